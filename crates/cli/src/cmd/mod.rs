@@ -1,0 +1,4 @@
+pub mod bench;
+pub mod convert;
+pub mod export;
+pub mod inspect;

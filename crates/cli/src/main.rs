@@ -1,0 +1,47 @@
+//! The `mvsplat360` binary: feed-forward 360° novel-view synthesis from sparse posed images.
+
+mod cmd;
+
+use clap::{Parser, Subcommand};
+
+#[derive(Parser)]
+#[command(name = "mvsplat360", version, about = "MVSplat360: feed-forward 360° novel-view synthesis from sparse posed views")]
+struct Cli {
+    /// Silence progress bars (errors are still printed).
+    #[arg(long, global = true)]
+    quiet: bool,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Summarise a scene: views, image size, intrinsics, camera centres, baseline, suggested context views.
+    Inspect(cmd::inspect::Args),
+    /// Predict Gaussians for a scene with the encoder and write them as .ply / .splat.
+    Export(cmd::export::Args),
+    /// Convert a supported checkpoint (Lightning .ckpt, .pth, .safetensors) to safetensors.
+    Convert(cmd::convert::Args),
+    /// Benchmarks printing one JSON line each (median of repeated runs after a warm-up).
+    Bench(cmd::bench::Args),
+}
+
+fn main() {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Inspect(a) => cmd::inspect::run(a),
+        Command::Export(a) => cmd::export::run(a, cli.quiet),
+        Command::Convert(a) => cmd::convert::run(a),
+        Command::Bench(a) => cmd::bench::run(a),
+    };
+    if let Err(e) = result {
+        eprintln!("error: {e:#}");
+        std::process::exit(1);
+    }
+}

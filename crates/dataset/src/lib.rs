@@ -1,0 +1,1 @@
+//! mvsplat360 dataset stage.

@@ -1,0 +1,1 @@
+//! See keymap/mod.rs.

@@ -1,0 +1,9 @@
+//! MVSplat360 refiner: Stable Video Diffusion img2vid (sgm layout) with 4 extra feature input channels,
+//! temporal VAE, OpenCLIP ViT-H image embedder, EDM sampler with linear guidance, histogram matching.
+
+pub mod clip;
+pub mod histogram;
+pub mod keymap;
+pub mod sampling;
+pub mod unet;
+pub mod vae;
