@@ -1,0 +1,113 @@
+//! Images: decoding (PNG/JPEG) to f32 CHW in [0,1], and the sources a scene's views come from.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use crate::DatasetError;
+
+/// f32 image, layout (C=3, H, W), values in [0,1].
+#[derive(Debug, Clone, PartialEq)]
+pub struct ImageF32 {
+    pub width: u32,
+    pub height: u32,
+    pub data: Vec<f32>,
+}
+
+impl ImageF32 {
+    /// Keep columns `x0..x0+w`, rows `y0..y0+h`.
+    pub fn crop(&self, x0: u32, y0: u32, w: u32, h: u32) -> ImageF32 {
+        let (sw, sh) = (self.width as usize, self.height as usize);
+        let mut data = Vec::with_capacity(3 * (w * h) as usize);
+        for c in 0..3 {
+            for y in y0 as usize..(y0 + h) as usize {
+                let row = c * sh * sw + y * sw;
+                data.extend_from_slice(&self.data[row + x0 as usize..row + (x0 + w) as usize]);
+            }
+        }
+        ImageF32 { width: w, height: h, data }
+    }
+
+    /// To 8-bit RGB (rounded, clamped).
+    pub fn to_rgb8(&self) -> ::image::RgbImage {
+        let (w, h) = (self.width as usize, self.height as usize);
+        ::image::RgbImage::from_fn(self.width, self.height, |x, y| {
+            let i = y as usize * w + x as usize;
+            let px = |c: usize| (self.data[c * w * h + i].clamp(0.0, 1.0) * 255.0).round() as u8;
+            ::image::Rgb([px(0), px(1), px(2)])
+        })
+    }
+
+    pub fn from_rgb8(img: &::image::RgbImage) -> ImageF32 {
+        let (w, h) = (img.width() as usize, img.height() as usize);
+        let mut data = vec![0f32; 3 * w * h];
+        for (x, y, p) in img.enumerate_pixels() {
+            let i = y as usize * w + x as usize;
+            for c in 0..3 {
+                data[c * w * h + i] = p[c] as f32 / 255.0;
+            }
+        }
+        ImageF32 { width: w as u32, height: h as u32, data }
+    }
+}
+
+/// Where a view's pixels live; decoding is deferred so large scenes cost no memory until used.
+#[derive(Debug, Clone)]
+pub enum ImageSource {
+    File(PathBuf),
+    /// Encoded PNG/JPEG bytes (from a `.torch` chunk), with a label for error messages.
+    Encoded { label: String, bytes: Arc<Vec<u8>> },
+}
+
+impl ImageSource {
+    pub fn label(&self) -> String {
+        match self {
+            ImageSource::File(p) => p.display().to_string(),
+            ImageSource::Encoded { label, .. } => label.clone(),
+        }
+    }
+
+    /// Image size from the header only.
+    pub fn dimensions(&self) -> Result<(u32, u32), DatasetError> {
+        let err = |msg: String| DatasetError::Image { what: self.label(), msg };
+        match self {
+            ImageSource::File(p) => ::image::image_dimensions(p).map_err(|e| err(e.to_string())),
+            ImageSource::Encoded { bytes, .. } => ::image::ImageReader::new(std::io::Cursor::new(bytes.as_slice()))
+                .with_guessed_format()
+                .map_err(|e| err(e.to_string()))?
+                .into_dimensions()
+                .map_err(|e| err(e.to_string())),
+        }
+    }
+
+    pub fn decode(&self) -> Result<ImageF32, DatasetError> {
+        let err = |msg: String| DatasetError::Image { what: self.label(), msg };
+        let dynimg = match self {
+            ImageSource::File(p) => ::image::open(p).map_err(|e| err(e.to_string()))?,
+            ImageSource::Encoded { bytes, .. } => ::image::ImageReader::new(std::io::Cursor::new(bytes.as_slice()))
+                .with_guessed_format()
+                .map_err(|e| err(e.to_string()))?
+                .decode()
+                .map_err(|e| err(e.to_string()))?,
+        };
+        // Alpha is dropped: scenes are composited photos, not masked objects.
+        Ok(ImageF32::from_rgb8(&dynimg.to_rgb8()))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rgb8_roundtrip_and_crop() {
+        let img = ::image::RgbImage::from_fn(5, 4, |x, y| ::image::Rgb([(x * 50) as u8, (y * 60) as u8, 7]));
+        let f = ImageF32::from_rgb8(&img);
+        assert_eq!(f.data.len(), 60);
+        assert_eq!(f.data[3], 150.0 / 255.0); // channel 0, row 0, x 3
+        assert_eq!(f.to_rgb8(), img);
+        let c = f.crop(1, 2, 3, 2);
+        assert_eq!((c.width, c.height), (3, 2));
+        assert_eq!(c.to_rgb8().get_pixel(0, 0), img.get_pixel(1, 2));
+        assert_eq!(c.to_rgb8().get_pixel(2, 1), img.get_pixel(3, 3));
+    }
+}

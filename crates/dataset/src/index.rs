@@ -1,0 +1,49 @@
+//! Evaluation index: `{scene: {"context": [...], "target": [...], "target_quantify"?: [...]} | null}`.
+//! A null entry means the scene is skipped by the protocol.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use serde::Deserialize;
+
+use crate::error::{field, io};
+use crate::DatasetError;
+
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+pub struct EvaluationEntry {
+    pub context: Vec<usize>,
+    pub target: Vec<usize>,
+    /// Subset of `target` used for metrics, when the index gives one.
+    #[serde(default)]
+    pub target_quantify: Option<Vec<usize>>,
+}
+
+/// Read an evaluation index; entries that are `null` map to `None`.
+pub fn read_evaluation_index(path: &Path) -> Result<BTreeMap<String, Option<EvaluationEntry>>, DatasetError> {
+    let text = std::fs::read_to_string(path).map_err(|e| io(path, e))?;
+    let raw: BTreeMap<String, serde_json::Value> =
+        serde_json::from_str(&text).map_err(|source| DatasetError::Json { path: path.to_path_buf(), source })?;
+    raw.into_iter()
+        .map(|(k, v)| {
+            if v.is_null() {
+                return Ok((k, None));
+            }
+            let e: EvaluationEntry = serde_json::from_value(v)
+                .map_err(|e| field(path, &k, format!("expected {{\"context\": [..], \"target\": [..]}}: {e}")))?;
+            if e.context.is_empty() {
+                return Err(field(path, format!("{k}.context"), "is empty; at least one context view is needed"));
+            }
+            Ok((k, Some(e)))
+        })
+        .collect()
+}
+
+/// Check an entry's indices against a scene's view count.
+pub fn check_entry(path: &Path, scene: &str, e: &EvaluationEntry, views: usize) -> Result<(), DatasetError> {
+    for (name, list) in [("context", &e.context), ("target", &e.target)] {
+        if let Some(&bad) = list.iter().find(|&&i| i >= views) {
+            return Err(field(path, format!("{scene}.{name}"), format!("view index {bad} is out of range (scene has {views} views)")));
+        }
+    }
+    Ok(())
+}
