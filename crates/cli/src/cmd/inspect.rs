@@ -1,6 +1,90 @@
-#[derive(clap::Args)]
-pub struct Args {}
+//! `mvsplat360 inspect`: what a scene holds and which views the model would take as context.
 
-pub fn run(_args: Args) -> anyhow::Result<()> {
-    anyhow::bail!("not built yet")
+use std::path::PathBuf;
+
+use anyhow::Context;
+use mvsplat360_camera::select::{baseline_stats, farthest_point_sampling, nearest_k};
+use serde_json::json;
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// Scene: a folder with transforms.json, a transforms*.json file, a COLMAP folder (sparse/0 + images/),
+    /// or a .torch chunk.
+    pub scene: PathBuf,
+    /// For a .torch chunk holding several scenes: the scene key to inspect (default: the first).
+    #[arg(long)]
+    pub scene_key: Option<String>,
+    /// Number of context views to suggest (farthest-point sampling over camera centres).
+    #[arg(long, default_value_t = 5)]
+    pub context: usize,
+    /// Print one JSON object on stdout instead of the human summary.
+    #[arg(long)]
+    pub json: bool,
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let scene = mvsplat360_dataset::read_scene_with(&args.scene, args.scene_key.as_deref())
+        .with_context(|| format!("cannot read scene {}", args.scene.display()))?;
+    let cams = &scene.cameras;
+    let c0 = &cams[0];
+    let shared = cams.iter().all(|c| (c.fx, c.fy, c.cx, c.cy) == (c0.fx, c0.fy, c0.cx, c0.cy));
+    let centres: Vec<[f64; 3]> = cams.iter().map(|c| c.center().into()).collect();
+    let (bmin, bmax) = baseline_stats(cams);
+    let context = farthest_point_sampling(cams, args.context);
+    let groups = nearest_k(cams, 2);
+    if args.json {
+        let out = json!({
+            "name": scene.name,
+            "views": scene.len(),
+            "width": c0.width,
+            "height": c0.height,
+            "shared_intrinsics": shared,
+            "intrinsics": cams.iter().map(|c| [c.fx, c.fy, c.cx, c.cy]).collect::<Vec<_>>(),
+            "view_names": scene.view_names,
+            "camera_centres": centres,
+            "baseline_min": bmin,
+            "baseline_max": bmax,
+            "suggested_context": context,
+            "context_local_groups": context.iter().map(|&i| &groups[i]).collect::<Vec<_>>(),
+        });
+        println!("{}", serde_json::to_string_pretty(&out)?);
+        return Ok(());
+    }
+    println!("scene      {} ({})", scene.name, args.scene.display());
+    println!("views      {}", scene.len());
+    println!("image      {}x{}", c0.width, c0.height);
+    println!(
+        "intrinsics fx {:.2} fy {:.2} cx {:.2} cy {:.2}{}",
+        c0.fx,
+        c0.fy,
+        c0.cx,
+        c0.cy,
+        if shared { " (shared by all views)" } else { " (view 0; views differ)" }
+    );
+    let mut lo = [f64::INFINITY; 3];
+    let mut hi = [f64::NEG_INFINITY; 3];
+    for c in &centres {
+        for k in 0..3 {
+            lo[k] = lo[k].min(c[k]);
+            hi[k] = hi[k].max(c[k]);
+        }
+    }
+    println!(
+        "centres    x [{:.3}, {:.3}]  y [{:.3}, {:.3}]  z [{:.3}, {:.3}]",
+        lo[0], hi[0], lo[1], hi[1], lo[2], hi[2]
+    );
+    println!("baseline   min {bmin:.4}  max {bmax:.4} (pairwise centre distance)");
+    println!("context    {:?} (farthest-point sampling, first view first)", context);
+    for &i in &context {
+        let c = centres[i];
+        println!(
+            "  view {i:>4} {:<24} centre ({:.3}, {:.3}, {:.3})  nearest {:?}",
+            scene.view_names[i],
+            c[0],
+            c[1],
+            c[2],
+            &groups[i][1..]
+        );
+    }
+    Ok(())
 }
