@@ -1,0 +1,60 @@
+//! The binary as a user runs it: output, exit codes, one readable error line, never a panic.
+
+use std::path::PathBuf;
+use std::process::Command;
+
+fn bin() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_mvsplat360"))
+}
+
+fn root() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
+
+#[test]
+fn inspect_bundled_scene_json() {
+    let out = bin().args(["inspect", "--json", "--context", "4"]).arg(root().join("assets/woodbox")).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).expect("valid JSON on stdout");
+    assert_eq!(v["views"], 24);
+    assert_eq!(v["width"], 448);
+    assert_eq!(v["height"], 256);
+    assert_eq!(v["suggested_context"].as_array().unwrap().len(), 4);
+    assert_eq!(v["suggested_context"][0], 0);
+    assert_eq!(v["context_local_groups"][0].as_array().unwrap().len(), 3);
+}
+
+#[test]
+fn inspect_human_and_chunk() {
+    let out = bin().arg("inspect").arg(root().join("assets/woodbox")).output().unwrap();
+    assert!(out.status.success());
+    let s = String::from_utf8_lossy(&out.stdout);
+    assert!(s.contains("views      24") && s.contains("448x256"), "{s}");
+    let chunk = root().join("crates/dataset/tests/data/chunk/000000.torch");
+    let out = bin().args(["inspect", "--scene-key", "woodbox_b", "--json"]).arg(&chunk).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(v["name"], "woodbox_b");
+    assert_eq!(v["views"], 2);
+}
+
+#[test]
+fn errors_are_one_line_and_exit_nonzero() {
+    let tmp = tempfile::tempdir().unwrap();
+    let bad = tmp.path().join("transforms.json");
+    std::fs::write(&bad, "{ broken").unwrap();
+    for (arg, needle) in [
+        (tmp.path().join("missing"), "no such file or folder"),
+        (bad.clone(), "invalid JSON"),
+    ] {
+        let out = bin().arg("inspect").arg(&arg).output().unwrap();
+        assert_eq!(out.status.code(), Some(1));
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.starts_with("error: ") && err.contains(needle), "{err}");
+        assert!(!err.contains("panicked") && !err.contains("RUST_BACKTRACE"), "{err}");
+        assert_eq!(err.trim_end().lines().count(), 1, "{err}");
+    }
+    // Unknown flag: clap's usage error, exit code 2.
+    let out = bin().args(["inspect", "--nope"]).output().unwrap();
+    assert_eq!(out.status.code(), Some(2));
+}
