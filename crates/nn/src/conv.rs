@@ -1,0 +1,227 @@
+//! 2-D convolution as im2col + gemm on the CPU (other devices use candle's own conv2d).
+//! `Im2Col`/`Col2Im` are custom ops that are each other's backward, so gradients flow to input and weight.
+
+use candle_core::{CpuStorage, CustomOp1, Layout, Module, Result, Shape, Tensor};
+use candle_nn::VarBuilder;
+use rayon::prelude::*;
+
+#[derive(Debug, Clone, Copy)]
+struct Geometry {
+    c: usize,
+    h: usize,
+    w: usize,
+    kh: usize,
+    kw: usize,
+    stride: usize,
+    padding: usize,
+    dilation: usize,
+    ho: usize,
+    wo: usize,
+}
+
+impl Geometry {
+    fn new(c: usize, h: usize, w: usize, kh: usize, kw: usize, stride: usize, padding: usize, dilation: usize) -> Result<Self> {
+        let eff_h = dilation * (kh - 1) + 1;
+        let eff_w = dilation * (kw - 1) + 1;
+        if h + 2 * padding < eff_h || w + 2 * padding < eff_w {
+            candle_core::bail!("conv2d: kernel {kh}x{kw} larger than padded input {h}x{w}");
+        }
+        let ho = (h + 2 * padding - eff_h) / stride + 1;
+        let wo = (w + 2 * padding - eff_w) / stride + 1;
+        Ok(Self { c, h, w, kh, kw, stride, padding, dilation, ho, wo })
+    }
+
+    fn k(&self) -> usize {
+        self.c * self.kh * self.kw
+    }
+
+    fn p(&self) -> usize {
+        self.ho * self.wo
+    }
+
+    /// Input column for output column `ox` at kernel column `kx`, or None in the padding.
+    #[inline]
+    fn src_x(&self, ox: usize, kx: usize) -> Option<usize> {
+        let x = (ox * self.stride + kx * self.dilation) as isize - self.padding as isize;
+        (x >= 0 && (x as usize) < self.w).then_some(x as usize)
+    }
+
+    #[inline]
+    fn src_y(&self, oy: usize, ky: usize) -> Option<usize> {
+        let y = (oy * self.stride + ky * self.dilation) as isize - self.padding as isize;
+        (y >= 0 && (y as usize) < self.h).then_some(y as usize)
+    }
+}
+
+/// (N, C, H, W) → (N, C·kh·kw, Ho·Wo), rows ordered (c, ky, kx) like a flattened conv weight.
+struct Im2Col(Geometry);
+/// Adjoint of [`Im2Col`]: scatter-add columns back to (N, C, H, W).
+struct Col2Im(Geometry);
+
+fn f32_slice<'a>(s: &'a CpuStorage, l: &Layout) -> Result<&'a [f32]> {
+    let data = s.as_slice::<f32>()?;
+    match l.contiguous_offsets() {
+        Some((a, b)) => Ok(&data[a..b]),
+        None => candle_core::bail!("conv2d: non-contiguous input"),
+    }
+}
+
+impl CustomOp1 for Im2Col {
+    fn name(&self) -> &'static str {
+        "im2col"
+    }
+
+    fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> Result<(CpuStorage, Shape)> {
+        let g = self.0;
+        let src = f32_slice(s, l)?;
+        let n = l.dims()[0];
+        let (k, p) = (g.k(), g.p());
+        let mut out = vec![0f32; n * k * p];
+        // One task per (image, kernel row): each writes a disjoint row block of the output.
+        out.par_chunks_mut(p).enumerate().for_each(|(row, dst)| {
+            let b = row / k;
+            let r = row % k;
+            let (c, ky, kx) = (r / (g.kh * g.kw), (r / g.kw) % g.kh, r % g.kw);
+            let plane = &src[(b * g.c + c) * g.h * g.w..][..g.h * g.w];
+            for oy in 0..g.ho {
+                let drow = &mut dst[oy * g.wo..(oy + 1) * g.wo];
+                let Some(y) = g.src_y(oy, ky) else {
+                    drow.fill(0.0);
+                    continue;
+                };
+                let srow = &plane[y * g.w..(y + 1) * g.w];
+                if g.stride == 1 && g.dilation == 1 {
+                    // Contiguous run: copy the valid span, zero the padded ends.
+                    let x0 = kx as isize - g.padding as isize;
+                    for (ox, d) in drow.iter_mut().enumerate() {
+                        let x = x0 + ox as isize;
+                        *d = if x >= 0 && (x as usize) < g.w { srow[x as usize] } else { 0.0 };
+                    }
+                } else {
+                    for (ox, d) in drow.iter_mut().enumerate() {
+                        *d = g.src_x(ox, kx).map_or(0.0, |x| srow[x]);
+                    }
+                }
+            }
+        });
+        Ok((CpuStorage::F32(out), Shape::from((n, k, p))))
+    }
+
+    fn bwd(&self, _arg: &Tensor, _res: &Tensor, grad_res: &Tensor) -> Result<Option<Tensor>> {
+        Ok(Some(grad_res.contiguous()?.apply_op1_no_bwd(&Col2Im(self.0))?))
+    }
+}
+
+impl CustomOp1 for Col2Im {
+    fn name(&self) -> &'static str {
+        "col2im"
+    }
+
+    fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> Result<(CpuStorage, Shape)> {
+        let g = self.0;
+        let src = f32_slice(s, l)?;
+        let n = l.dims()[0];
+        let (k, p) = (g.k(), g.p());
+        let mut out = vec![0f32; n * g.c * g.h * g.w];
+        // One task per (image, channel) plane: all kernel rows of that channel add into it, no races.
+        out.par_chunks_mut(g.h * g.w).enumerate().for_each(|(plane_idx, plane)| {
+            let b = plane_idx / g.c;
+            let c = plane_idx % g.c;
+            for ky in 0..g.kh {
+                for kx in 0..g.kw {
+                    let r = (c * g.kh + ky) * g.kw + kx;
+                    let col = &src[(b * k + r) * p..][..p];
+                    for oy in 0..g.ho {
+                        let Some(y) = g.src_y(oy, ky) else { continue };
+                        for ox in 0..g.wo {
+                            if let Some(x) = g.src_x(ox, kx) {
+                                plane[y * g.w + x] += col[oy * g.wo + ox];
+                            }
+                        }
+                    }
+                }
+            }
+        });
+        Ok((CpuStorage::F32(out), Shape::from((n, g.c, g.h, g.w))))
+    }
+
+    fn bwd(&self, _arg: &Tensor, _res: &Tensor, grad_res: &Tensor) -> Result<Option<Tensor>> {
+        Ok(Some(grad_res.contiguous()?.apply_op1_no_bwd(&Im2Col(self.0))?))
+    }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Conv2dConfig {
+    pub padding: usize,
+    pub stride: usize,
+    pub dilation: usize,
+}
+
+impl Default for Conv2dConfig {
+    fn default() -> Self {
+        Self { padding: 0, stride: 1, dilation: 1 }
+    }
+}
+
+/// Images per gemm: bounds the im2col buffer (≈ 256 MiB) for large batches such as 14 video frames.
+fn images_per_chunk(k: usize, p: usize) -> usize {
+    ((64usize << 20) / (k * p).max(1)).max(1)
+}
+
+/// `conv2d(x (N,C,H,W), w (Co,C,kh,kw), bias (Co))`, groups = 1. Same semantics as candle/PyTorch.
+pub fn conv2d(x: &Tensor, w: &Tensor, bias: Option<&Tensor>, cfg: Conv2dConfig) -> Result<Tensor> {
+    let (n, c, h, wd) = x.dims4()?;
+    let (co, ci, kh, kw) = w.dims4()?;
+    if ci != c {
+        candle_core::bail!("conv2d: input has {c} channels, weight expects {ci}");
+    }
+    let out = if !x.device().is_cpu() || x.dtype() != candle_core::DType::F32 {
+        x.conv2d(w, cfg.padding, cfg.stride, cfg.dilation, 1)?
+    } else {
+        let g = Geometry::new(c, h, wd, kh, kw, cfg.stride, cfg.padding, cfg.dilation)?;
+        let wm = w.reshape((co, g.k()))?;
+        let x = x.contiguous()?;
+        let run = |xb: &Tensor| -> Result<Tensor> {
+            let nb = xb.dim(0)?;
+            let cols = if kh == 1 && kw == 1 && cfg.stride == 1 && cfg.padding == 0 {
+                xb.reshape((nb, c, h * wd))?
+            } else {
+                xb.apply_op1(Im2Col(g))?
+            };
+            wm.broadcast_left(nb)?.matmul(&cols)?.reshape((nb, co, g.ho, g.wo))
+        };
+        let per = images_per_chunk(g.k(), g.p());
+        if n <= per {
+            run(&x)?
+        } else {
+            let parts = (0..n).step_by(per).map(|s| run(&x.narrow(0, s, per.min(n - s))?)).collect::<Result<Vec<_>>>()?;
+            Tensor::cat(&parts, 0)?
+        }
+    };
+    match bias {
+        Some(b) => out.broadcast_add(&b.reshape((1, co, 1, 1))?),
+        None => Ok(out),
+    }
+}
+
+/// Drop-in for `candle_nn::Conv2d` (same `weight`/`bias` keys), using [`conv2d`].
+#[derive(Debug, Clone)]
+pub struct Conv2d {
+    pub weight: Tensor,
+    pub bias: Option<Tensor>,
+    pub cfg: Conv2dConfig,
+}
+
+impl Conv2d {
+    pub fn new(vb: VarBuilder, c_in: usize, c_out: usize, k: usize, cfg: Conv2dConfig, bias: bool) -> Result<Self> {
+        let weight = vb.get((c_out, c_in, k, k), "weight")?;
+        let bias = if bias { Some(vb.get(c_out, "bias")?) } else { None };
+        Ok(Self { weight, bias, cfg })
+    }
+}
+
+impl Module for Conv2d {
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        conv2d(x, &self.weight, self.bias.as_ref(), self.cfg)
+    }
+}
