@@ -1,14 +1,25 @@
 //! `conv2d` against candle's own conv2d (an independent implementation), forward and backward.
 
 use candle_core::{Device, Tensor, Var};
-use mvsplat360_nn::{conv2d, conv2d_gemm, Conv2dConfig};
+use mvsplat360_nn::{conv2d, conv2d_gemm, conv2d_shift, Conv2dConfig};
 
 fn max_diff(a: &Tensor, b: &Tensor) -> f32 {
     (a - b).unwrap().abs().unwrap().flatten_all().unwrap().max(0).unwrap().to_scalar::<f32>().unwrap()
 }
 
+type ConvFn = fn(&Tensor, &Tensor, Option<&Tensor>, Conv2dConfig) -> candle_core::Result<Tensor>;
+
 #[test]
-fn matches_candle_forward_and_backward() {
+fn im2col_matches_candle_forward_and_finite_difference_backward() {
+    check(conv2d_gemm, true);
+}
+
+#[test]
+fn shift_conv_matches_candle_forward_and_finite_difference_backward() {
+    check(conv2d_shift, false);
+}
+
+fn check(conv: ConvFn, strided: bool) {
     let d = Device::Cpu;
     // (n, c, h, w, co, k, padding, stride, dilation)
     for &(n, c, h, w, co, k, padding, stride, dilation) in &[
@@ -17,12 +28,16 @@ fn matches_candle_forward_and_backward() {
         (3, 4, 8, 8, 2, 1, 0, 1, 1),
         (2, 3, 10, 9, 3, 3, 2, 1, 2),
         (1, 2, 7, 7, 3, 3, 0, 2, 1),
+        (2, 3, 5, 6, 4, 3, 0, 1, 1),
     ] {
+        if stride != 1 && !strided {
+            continue;
+        }
         let x = Var::from_tensor(&Tensor::randn(0f32, 1.0, (n, c, h, w), &d).unwrap()).unwrap();
         let wt = Var::from_tensor(&Tensor::randn(0f32, 1.0, (co, c, k, k), &d).unwrap()).unwrap();
         let b = Tensor::randn(0f32, 1.0, co, &d).unwrap();
         let cfg = Conv2dConfig { padding, stride, dilation };
-        let ours = conv2d_gemm(x.as_tensor(), wt.as_tensor(), Some(&b), cfg).unwrap();
+        let ours = conv(x.as_tensor(), wt.as_tensor(), Some(&b), cfg).unwrap();
         let theirs = x
             .as_tensor()
             .conv2d(wt.as_tensor(), padding, stride, dilation, 1)
@@ -37,7 +52,7 @@ fn matches_candle_forward_and_backward() {
         // input gradient for stride 2 with odd sizes, so it cannot serve here).
         let r = Tensor::randn(0f32, 1.0, ours.dims(), &d).unwrap();
         let loss = |xv: &Tensor, wv: &Tensor| -> f64 {
-            let o = conv2d_gemm(xv, wv, Some(&b), cfg).unwrap();
+            let o = conv(xv, wv, Some(&b), cfg).unwrap();
             (o * &r).unwrap().sum_all().unwrap().to_dtype(candle_core::DType::F64).unwrap().to_scalar::<f64>().unwrap()
         };
         let grads = (&ours * &r).unwrap().sum_all().unwrap().backward().unwrap();
@@ -70,13 +85,14 @@ fn matches_candle_forward_and_backward() {
 #[test]
 fn dispatcher_matches_both_paths() {
     let d = Device::Cpu;
-    // K = 130·3·3 ≥ 1024 takes the gemm path, K = 4·9 the candle path; both equal candle's conv.
-    for c in [130usize, 4] {
-        let x = Tensor::randn(0f32, 1.0, (2, c, 6, 7), &d).unwrap();
-        let w = Tensor::randn(0f32, 1.0, (5, c, 3, 3), &d).unwrap();
-        let cfg = Conv2dConfig { padding: 1, stride: 1, dilation: 1 };
+    // Stride 1 → shift path; stride 2 with K = 130·9 ≥ 1024 → im2col path; stride 2 with K = 36 → candle;
+    // 1×1 → pointwise gemm. All equal candle's conv.
+    for (c, k, stride, pad) in [(4usize, 3usize, 1usize, 1usize), (130, 3, 2, 1), (4, 3, 2, 1), (6, 1, 1, 0)] {
+        let x = Tensor::randn(0f32, 1.0, (2, c, 8, 7), &d).unwrap();
+        let w = Tensor::randn(0f32, 1.0, (5, c, k, k), &d).unwrap();
+        let cfg = Conv2dConfig { padding: pad, stride, dilation: 1 };
         let ours = conv2d(&x, &w, None, cfg).unwrap();
-        let theirs = x.conv2d(&w, 1, 1, 1, 1).unwrap();
-        assert!(max_diff(&ours, &theirs) < 1e-3, "c = {c}");
+        let theirs = x.conv2d(&w, pad, stride, 1, 1).unwrap();
+        assert!(max_diff(&ours, &theirs) < 1e-3, "c = {c}, stride = {stride}");
     }
 }
