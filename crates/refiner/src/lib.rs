@@ -4,6 +4,8 @@
 pub mod clip;
 pub mod histogram;
 pub mod keymap;
+pub mod refiner;
+pub mod bench;
 pub mod sampling;
 pub mod unet;
 pub mod vae;

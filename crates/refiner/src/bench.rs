@@ -1,0 +1,98 @@
+//! `mvsplat360 bench refiner`: one guided sampling step of the real-size VideoUNet with random weights.
+
+use std::time::Instant;
+
+use candle_core::Device;
+
+use crate::refiner::{seeded_noise, LatentDecoder};
+use crate::sampling::{guided_unet_input, v_scaling_edm};
+use crate::unet::util::timestep_embedding;
+use crate::unet::{UNetError, UNetInputs, VideoUNet, VideoUNetConfig};
+
+/// Peak resident set size of this process in MiB (Linux `VmHWM`), None elsewhere.
+pub fn peak_rss_mib() -> Option<f64> {
+    let s = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = s.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kb: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb / 1024.0)
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(|a, b| a.total_cmp(b));
+    v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
+}
+
+/// Time `runs` guided UNet steps (batch 2·frames: [uncond; cond]) of the MVSplat360 config with random
+/// weights on `threads` threads; `vae_decode_ms` is measured only when a decoder is given.
+pub fn run_refiner_bench_with(
+    cfg: &VideoUNetConfig,
+    frames: usize,
+    latent_h: usize,
+    latent_w: usize,
+    threads: usize,
+    runs: usize,
+    decoder: Option<&dyn LatentDecoder>,
+) -> Result<serde_json::Value, UNetError> {
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads.max(1))
+        .build()
+        .map_err(|e| UNetError::Config { path: "<bench>".into(), msg: e.to_string() })?;
+    pool.install(|| {
+        let dev = Device::Cpu;
+        let t0 = Instant::now();
+        let unet = VideoUNet::random(cfg, 0, &dev)?;
+        let load_ms = t0.elapsed().as_secs_f64() * 1e3;
+        let n = frames;
+        let x = seeded_noise(1, &[n, 4, latent_h, latent_w], &dev)?;
+        let concat = seeded_noise(2, &[n, cfg.in_channels.saturating_sub(4), latent_h, latent_w], &dev)?;
+        let ctx = seeded_noise(3, &[2 * n, 1, cfg.context_dim], &dev)?;
+        let sigma = 700f32;
+        let (_, _, c_in, c_noise) = v_scaling_edm(sigma);
+        let y = match cfg.adm_in_channels {
+            Some(adm) => Some(timestep_embedding(&vec![0.02; 2 * n], adm, 10000.0, &dev)?),
+            None => None,
+        };
+        let mut times = Vec::new();
+        for _ in 0..runs.max(1) {
+            let t = Instant::now();
+            let inp = guided_unet_input(&x, &concat, c_in)?;
+            let v = unet.forward(&UNetInputs {
+                x: &inp,
+                timesteps: &vec![c_noise; 2 * n],
+                context: &ctx,
+                y: y.as_ref(),
+                num_video_frames: frames,
+                num_splits: None,
+            })?;
+            let _ = v.sum_all()?.to_scalar::<f32>()?;
+            times.push(t.elapsed().as_secs_f64() * 1e3);
+        }
+        let vae_ms = match decoder {
+            Some(d) => {
+                let t = Instant::now();
+                let out = d.decode(&x, frames)?;
+                let _ = out.sum_all()?.to_scalar::<f32>()?;
+                Some(t.elapsed().as_secs_f64() * 1e3)
+            }
+            None => None,
+        };
+        Ok(serde_json::json!({
+            "bench": "refiner",
+            "frames": frames,
+            "latent_h": latent_h,
+            "latent_w": latent_w,
+            "threads": threads,
+            "unet_step_ms": median(times.clone()),
+            "unet_step_runs_ms": times,
+            "vae_decode_ms": vae_ms,
+            "weights_init_ms": load_ms,
+            "peak_mib": peak_rss_mib(),
+        }))
+    })
+}
+
+/// The real MVSplat360 UNet config (`svd_wo_mb_fps`), random weights; see [`run_refiner_bench_with`].
+pub fn run_refiner_bench(frames: usize, latent_h: usize, latent_w: usize, threads: usize, runs: usize) -> Result<serde_json::Value, UNetError> {
+    run_refiner_bench_with(&VideoUNetConfig::default(), frames, latent_h, latent_w, threads, runs, None)
+}
+

@@ -1,0 +1,332 @@
+//! sgm `video_model.py`: `VideoResBlock` and `VideoUNet` (input_blocks / middle_block / output_blocks / out).
+
+use candle_core::{Result, Tensor};
+use mvsplat360_nn::conv::{conv2d, Conv2dConfig};
+
+use super::util::{blend, sigmoid_scalar, timestep_embedding, Linear, Norm};
+use super::video_attention::{linear, norm, SpatialVideoTransformer};
+use super::weights::Weights;
+use super::VideoUNetConfig;
+
+#[derive(Debug)]
+struct Conv {
+    w: Tensor,
+    b: Tensor,
+    cfg: Conv2dConfig,
+}
+
+impl Conv {
+    fn load(w: &Weights, p: &str, i: usize, o: usize, k: usize, stride: usize) -> Result<Self> {
+        Ok(Self {
+            w: w.get(&format!("{p}.weight"), &[o, i, k, k])?,
+            b: w.get(&format!("{p}.bias"), &[o])?,
+            cfg: Conv2dConfig { padding: k / 2, stride, dilation: 1 },
+        })
+    }
+
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        conv2d(x, &self.w, Some(&self.b), self.cfg)
+    }
+}
+
+/// Conv3d with kernel (kt, 1, 1), padding (kt/2, 0, 0) on (B·T, C, H, W): one gemm producing kt·Cout
+/// channels per frame, then the kt frame-shifted slices are summed (zero outside the video).
+#[derive(Debug)]
+struct TemporalConv {
+    w: Tensor, // (kt·Cout, Cin)
+    b: Tensor,
+    kt: usize,
+    cout: usize,
+}
+
+impl TemporalConv {
+    fn load(w: &Weights, p: &str, i: usize, o: usize, kt: usize) -> Result<Self> {
+        let wt = w.get(&format!("{p}.weight"), &[o, i, kt, 1, 1])?;
+        let wt = wt.reshape((o, i, kt))?.permute((2, 0, 1))?.contiguous()?.reshape((kt * o, i))?;
+        Ok(Self { w: wt, b: w.get(&format!("{p}.bias"), &[o])?, kt, cout: o })
+    }
+
+    fn forward(&self, x: &Tensor, frames: usize) -> Result<Tensor> {
+        let (n, c, h, w) = x.dims4()?;
+        let b = n / frames;
+        let s = h * w;
+        let y = self.w.broadcast_left(n)?.matmul(&x.reshape((n, c, s))?)?; // (n, kt·Cout, s)
+        let y = y.reshape((b, frames, self.kt, self.cout, s))?;
+        let pad = self.kt / 2;
+        let mut acc: Option<Tensor> = None;
+        for k in 0..self.kt {
+            // out[t] += y_k[t + k - pad]
+            let yk = y.narrow(2, k, 1)?.squeeze(2)?;
+            let shifted = yk.pad_with_zeros(1, pad, pad)?.narrow(1, k, frames)?;
+            acc = Some(match acc {
+                None => shifted,
+                Some(a) => (a + shifted)?,
+            });
+        }
+        let out = match acc {
+            Some(a) => a,
+            None => candle_core::bail!("temporal conv with empty kernel"),
+        };
+        out.reshape((n, self.cout, h, w))?.broadcast_add(&self.b.reshape((1, self.cout, 1, 1))?)
+    }
+}
+
+/// sgm `ResBlock` (2-D) or its `time_stack` twin (3-D, kernel (kt,1,1)); no up/down, no scale-shift norm.
+#[derive(Debug)]
+struct ResBlock {
+    norm1: Norm,
+    norm2: Norm,
+    conv1: Either,
+    conv2: Either,
+    emb: Linear,
+    skip: Option<Conv>,
+    temporal: bool,
+}
+
+#[derive(Debug)]
+enum Either {
+    Spatial(Conv),
+    Temporal(TemporalConv),
+}
+
+impl Either {
+    fn forward(&self, x: &Tensor, frames: usize) -> Result<Tensor> {
+        match self {
+            Either::Spatial(c) => c.forward(x),
+            Either::Temporal(c) => c.forward(x, frames),
+        }
+    }
+}
+
+impl ResBlock {
+    fn load(w: &Weights, p: &str, i: usize, o: usize, emb: usize, eps: f64, kt: Option<usize>) -> Result<Self> {
+        let conv = |name: &str, ci: usize| -> Result<Either> {
+            Ok(match kt {
+                None => Either::Spatial(Conv::load(w, &format!("{p}.{name}"), ci, o, 3, 1)?),
+                Some(k) => Either::Temporal(TemporalConv::load(w, &format!("{p}.{name}"), ci, o, k)?),
+            })
+        };
+        Ok(Self {
+            norm1: norm(w, &format!("{p}.in_layers.0"), i, eps)?,
+            conv1: conv("in_layers.2", i)?,
+            emb: linear(w, &format!("{p}.emb_layers.1"), emb, o, true)?,
+            norm2: norm(w, &format!("{p}.out_layers.0"), o, eps)?,
+            conv2: conv("out_layers.3", o)?,
+            skip: if i != o { Some(Conv::load(w, &format!("{p}.skip_connection"), i, o, 1, 1)?) } else { None },
+            temporal: kt.is_some(),
+        })
+    }
+
+    /// `emb_act` = SiLU(emb), shared by every block.
+    fn forward(&self, x: &Tensor, emb_act: &Tensor, frames: usize) -> Result<Tensor> {
+        let f = if self.temporal { frames } else { 1 };
+        let h = self.conv1.forward(&self.norm1.group_norm(x, 32, f, true)?, frames)?;
+        let e = self.emb.forward(emb_act)?;
+        let h = h.broadcast_add(&e.unsqueeze(2)?.unsqueeze(3)?)?;
+        let h = self.conv2.forward(&self.norm2.group_norm(&h, 32, f, true)?, frames)?;
+        match &self.skip {
+            Some(s) => s.forward(x)? + h,
+            None => x + h,
+        }
+    }
+}
+
+/// sgm `VideoResBlock`: spatial ResBlock, temporal `time_stack`, AlphaBlender (`time_mixer`).
+#[derive(Debug)]
+pub struct VideoResBlock {
+    spatial: ResBlock,
+    time_stack: ResBlock,
+    alpha: f64,
+}
+
+impl VideoResBlock {
+    fn load(w: &Weights, p: &str, i: usize, o: usize, cfg: &VideoUNetConfig, eps: f64) -> Result<Self> {
+        let emb = cfg.model_channels * 4;
+        Ok(Self {
+            spatial: ResBlock::load(w, p, i, o, emb, eps, None)?,
+            time_stack: ResBlock::load(w, &format!("{p}.time_stack"), o, o, emb, eps, Some(cfg.video_kernel_size[0]))?,
+            alpha: sigmoid_scalar(&w.get(&format!("{p}.time_mixer.mix_factor"), &[1])?)?,
+        })
+    }
+
+    fn forward(&self, x: &Tensor, emb_act: &Tensor, frames: usize) -> Result<Tensor> {
+        let xs = self.spatial.forward(x, emb_act, frames)?;
+        let xt = self.time_stack.forward(&xs, emb_act, frames)?;
+        blend(&xs, &xt, self.alpha)
+    }
+}
+
+#[derive(Debug)]
+enum Layer {
+    Conv(Conv),
+    Res(VideoResBlock),
+    Attn(SpatialVideoTransformer),
+    Down(Conv),
+    Up(Conv),
+}
+
+/// Per-call inputs of [`VideoUNet::forward`].
+pub struct UNetInputs<'a> {
+    /// (B·F, in_channels, h, w): noisy latent × c_in, then the concat condition.
+    pub x: &'a Tensor,
+    /// c_noise per sample, length B·F.
+    pub timesteps: &'a [f32],
+    /// (B·F, Lc, context_dim) cross-attention tokens.
+    pub context: &'a Tensor,
+    /// (B·F, adm_in_channels) vector condition (`label_emb` input).
+    pub y: Option<&'a Tensor>,
+    /// Frames per video (F); the batch is B·F.
+    pub num_video_frames: usize,
+    /// Temporal self-attention in `num_splits` local windows of F/num_splits frames (MVSplat360 video mode).
+    pub num_splits: Option<usize>,
+}
+
+/// Spatio-temporal UNet of Stable Video Diffusion, sgm layout. `image_only_indicator` is all zeros
+/// (MVSplat360 inference), so every AlphaBlender uses sigmoid(mix_factor).
+#[derive(Debug)]
+pub struct VideoUNet {
+    pub cfg: VideoUNetConfig,
+    time_embed: (Linear, Linear),
+    label_emb: Option<(Linear, Linear)>,
+    input_blocks: Vec<Vec<Layer>>,
+    middle_block: Vec<Layer>,
+    output_blocks: Vec<Vec<Layer>>,
+    out_norm: Norm,
+    out_conv: Conv,
+}
+
+impl VideoUNet {
+    /// Build from a weight source (sgm names). Call [`Weights::finish`] afterwards for the strict check.
+    pub fn new(cfg: &VideoUNetConfig, w: &Weights) -> Result<Self> {
+        let mc = cfg.model_channels;
+        let ted = mc * 4;
+        let time_embed = (linear(w, "time_embed.0", mc, ted, true)?, linear(w, "time_embed.2", ted, ted, true)?);
+        let label_emb = match cfg.adm_in_channels {
+            Some(adm) => Some((linear(w, "label_emb.0.0", adm, ted, true)?, linear(w, "label_emb.0.2", ted, ted, true)?)),
+            None => None,
+        };
+        let attn = |p: &str, ch: usize| -> Result<Layer> {
+            let heads = ch / cfg.num_head_channels;
+            Ok(Layer::Attn(SpatialVideoTransformer::load(
+                w,
+                p,
+                ch,
+                heads,
+                cfg.num_head_channels,
+                cfg.transformer_depth,
+                cfg.context_dim,
+                cfg.max_ddpm_temb_period,
+            )?))
+        };
+        let mut input_blocks = vec![vec![Layer::Conv(Conv::load(w, "input_blocks.0.0", cfg.in_channels, mc, 3, 1)?)]];
+        let mut chans = vec![mc];
+        let mut ch = mc;
+        let mut ds = 1;
+        let levels = cfg.channel_mult.len();
+        for (level, &mult) in cfg.channel_mult.iter().enumerate() {
+            let has_attn = cfg.attention_resolutions.contains(&ds);
+            let eps = if has_attn { cfg.down_attn_resnet_eps } else { cfg.resnet_eps };
+            for _ in 0..cfg.num_res_blocks {
+                let idx = input_blocks.len();
+                let out = mult * mc;
+                let mut layers = vec![Layer::Res(VideoResBlock::load(w, &format!("input_blocks.{idx}.0"), ch, out, cfg, eps)?)];
+                ch = out;
+                if has_attn {
+                    layers.push(attn(&format!("input_blocks.{idx}.1"), ch)?);
+                }
+                input_blocks.push(layers);
+                chans.push(ch);
+            }
+            if level != levels - 1 {
+                let idx = input_blocks.len();
+                input_blocks.push(vec![Layer::Down(Conv::load(w, &format!("input_blocks.{idx}.0.op"), ch, ch, 3, 2)?)]);
+                chans.push(ch);
+                ds *= 2;
+            }
+        }
+        let middle_block = vec![
+            Layer::Res(VideoResBlock::load(w, "middle_block.0", ch, ch, cfg, cfg.resnet_eps)?),
+            attn("middle_block.1", ch)?,
+            Layer::Res(VideoResBlock::load(w, "middle_block.2", ch, ch, cfg, cfg.resnet_eps)?),
+        ];
+        let mut output_blocks = Vec::new();
+        for (level, &mult) in cfg.channel_mult.iter().enumerate().rev() {
+            for i in 0..=cfg.num_res_blocks {
+                let idx = output_blocks.len();
+                let Some(ich) = chans.pop() else { candle_core::bail!("VideoUNet: skip-channel stack underflow") };
+                let out = mc * mult;
+                let mut layers = vec![Layer::Res(VideoResBlock::load(w, &format!("output_blocks.{idx}.0"), ch + ich, out, cfg, cfg.up_resnet_eps)?)];
+                ch = out;
+                if cfg.attention_resolutions.contains(&ds) {
+                    layers.push(attn(&format!("output_blocks.{idx}.1"), ch)?);
+                }
+                if level > 0 && i == cfg.num_res_blocks {
+                    let j = layers.len();
+                    layers.push(Layer::Up(Conv::load(w, &format!("output_blocks.{idx}.{j}.conv"), ch, ch, 3, 1)?));
+                    ds /= 2;
+                }
+                output_blocks.push(layers);
+            }
+        }
+        Ok(Self {
+            cfg: cfg.clone(),
+            time_embed,
+            label_emb,
+            input_blocks,
+            middle_block,
+            output_blocks,
+            out_norm: norm(w, "out.0", ch, cfg.resnet_eps)?,
+            out_conv: Conv::load(w, "out.2", mc, cfg.out_channels, 3, 1)?,
+        })
+    }
+
+    fn run(&self, layers: &[Layer], h: Tensor, emb_act: &Tensor, ctx: &Tensor, frames: usize, splits: usize) -> Result<Tensor> {
+        let max = self.cfg.attn_max_score_elems;
+        let mut h = h;
+        for l in layers {
+            h = match l {
+                Layer::Conv(c) | Layer::Down(c) => c.forward(&h)?,
+                Layer::Res(r) => r.forward(&h, emb_act, frames)?,
+                Layer::Attn(a) => a.forward(&h, ctx, frames, splits, max)?,
+                Layer::Up(c) => {
+                    let (_, _, hh, ww) = h.dims4()?;
+                    c.forward(&h.upsample_nearest2d(hh * 2, ww * 2)?)?
+                }
+            };
+        }
+        Ok(h)
+    }
+
+    /// Model output (v-prediction) of shape (B·F, out_channels, h, w).
+    pub fn forward(&self, inp: &UNetInputs) -> Result<Tensor> {
+        let x = inp.x;
+        let n = x.dim(0)?;
+        let frames = inp.num_video_frames.max(1);
+        if n % frames != 0 || inp.timesteps.len() != n {
+            candle_core::bail!("VideoUNet: batch {n} is not B·F with F = {frames}, or {} timesteps given", inp.timesteps.len());
+        }
+        let splits = inp.num_splits.unwrap_or(1).max(1);
+        let t_emb = timestep_embedding(inp.timesteps, self.cfg.model_channels, 10000.0, x.device())?.to_dtype(x.dtype())?;
+        let mut emb = self.time_embed.1.forward(&self.time_embed.0.forward(&t_emb)?.silu()?)?;
+        if let Some((l1, l2)) = &self.label_emb {
+            let Some(y) = inp.y else { candle_core::bail!("VideoUNet: this model needs the vector condition y (adm_in_channels)") };
+            emb = (emb + l2.forward(&l1.forward(y)?.silu()?)?)?;
+        }
+        let emb_act = emb.silu()?;
+        let mut hs = Vec::with_capacity(self.input_blocks.len());
+        let mut h = x.clone();
+        for b in &self.input_blocks {
+            h = self.run(b, h, &emb_act, inp.context, frames, splits)?;
+            hs.push(h.clone());
+        }
+        h = self.run(&self.middle_block, h, &emb_act, inp.context, frames, splits)?;
+        for b in &self.output_blocks {
+            let Some(skip) = hs.pop() else { candle_core::bail!("VideoUNet: skip stack underflow") };
+            h = Tensor::cat(&[&h, &skip], 1)?;
+            drop(skip);
+            h = self.run(b, h, &emb_act, inp.context, frames, splits)?;
+        }
+        let h = self.out_norm.group_norm(&h, 32, 1, true)?;
+        self.out_conv.forward(&h)
+    }
+}

@@ -1,0 +1,120 @@
+//! VideoUNet parity against the diffusers fixture (`svd/`), plus the sgm-layout, f16 and label_emb-slicing
+//! load paths (the fixture re-saved under sgm names through the key table).
+
+use std::collections::HashMap;
+
+use candle_core::{DType, Device, Tensor};
+use mvsplat360_refiner::keymap::unet::diffusers_to_sgm;
+use mvsplat360_refiner::unet::util::timestep_embedding;
+use mvsplat360_refiner::unet::{UNetError, UNetInputs, UNetLayout, VideoUNet, VideoUNetConfig};
+use mvsplat360_testkit::{assert_close, fixture, get, load, max_abs_diff};
+
+struct Case {
+    pipe: HashMap<String, Tensor>,
+    cfg: VideoUNetConfig,
+}
+
+fn case() -> Case {
+    let cfg = VideoUNetConfig::from_diffusers_json(&fixture("svd/svd_unet_config.json")).expect("config");
+    Case { pipe: load("svd/svd_pipeline.safetensors"), cfg }
+}
+
+/// UNet outputs for step `i` of the fixture: (v_uncond, v_cond), each (B·F, 4, h, w).
+fn run_step(unet: &VideoUNet, c: &Case, i: usize) -> (Tensor, Tensor) {
+    let inp = get(&c.pipe, "step_unet_input").get(i).unwrap(); // (2B, F, 8, h, w)
+    let (b2, f, ch, h, w) = inp.dims5().unwrap();
+    let n = b2 * f;
+    let x = inp.reshape((n, ch, h, w)).unwrap();
+    let t = get(&c.pipe, "timesteps").to_vec1::<f32>().unwrap()[i];
+    let emb = get(&c.pipe, "clip_embedding"); // (B, 1, D)
+    let (b, lc, d) = emb.dims3().unwrap();
+    let ctx = emb.unsqueeze(1).unwrap().broadcast_as((b, f, lc, d)).unwrap().reshape((b * f, lc, d)).unwrap();
+    let ctx = Tensor::cat(&[&ctx.zeros_like().unwrap(), &ctx], 0).unwrap();
+    let cond_aug = get(&c.pipe, "cond_aug").to_vec1::<f32>().unwrap()[0];
+    let y = timestep_embedding(&vec![cond_aug; n], c.cfg.adm_in_channels.unwrap(), 10000.0, &Device::Cpu).unwrap();
+    let out = unet
+        .forward(&UNetInputs { x: &x, timesteps: &vec![t; n], context: &ctx, y: Some(&y), num_video_frames: f, num_splits: None })
+        .unwrap();
+    (out.narrow(0, 0, n / 2).unwrap(), out.narrow(0, n / 2, n / 2).unwrap())
+}
+
+fn expected(c: &Case, name: &str, i: usize) -> Tensor {
+    let t = get(&c.pipe, name).get(i).unwrap();
+    let d = t.dims().to_vec();
+    t.reshape((d[0] * d[1], d[2], d[3], d[4])).unwrap()
+}
+
+#[test]
+fn unet_matches_diffusers_fixture_every_step() {
+    let c = case();
+    let unet = VideoUNet::load(&fixture("svd/svd_unet.safetensors"), None, &c.cfg, &Device::Cpu).expect("strict load");
+    let steps = get(&c.pipe, "timesteps").dim(0).unwrap();
+    for i in 0..steps {
+        let (vu, vc) = run_step(&unet, &c, i);
+        let (du, _) = max_abs_diff(&vu, &expected(&c, "step_v_uncond", i));
+        let (dc, _) = max_abs_diff(&vc, &expected(&c, "step_v_cond", i));
+        eprintln!("step {i}: v_uncond max abs {du:.2e}, v_cond max abs {dc:.2e}");
+        assert_close(&format!("step_v_uncond[{i}]"), &vu, &expected(&c, "step_v_uncond", i), 1e-4);
+        assert_close(&format!("step_v_cond[{i}]"), &vc, &expected(&c, "step_v_cond", i), 1e-4);
+    }
+}
+
+/// Re-save the fixture under sgm names (`model.diffusion_model.` prefix, as in svd.safetensors), optionally
+/// as f16 and with a widened label_emb input (768-style), and check the same outputs come back.
+#[test]
+fn sgm_layout_f16_and_wide_label_emb_load_the_same_model() {
+    let c = case();
+    let diff = load("svd/svd_unet.safetensors");
+    let dir = tempfile::tempdir().unwrap();
+    let mut sgm = HashMap::new();
+    for (k, v) in &diff {
+        let s = diffusers_to_sgm(k, &c.cfg).unwrap_or_else(|| panic!("fixture key {k} has no sgm name"));
+        let v = if s == "label_emb.0.0.weight" {
+            // Extra trailing columns must be dropped by the loader (fps / motion-bucket inputs).
+            let extra = Tensor::ones((v.dim(0).unwrap(), 2 * v.dim(1).unwrap()), DType::F32, &Device::Cpu).unwrap();
+            Tensor::cat(&[v, &extra], 1).unwrap()
+        } else {
+            v.clone()
+        };
+        sgm.insert(format!("model.diffusion_model.{s}"), v);
+    }
+    // A non-UNet key of a full checkpoint must be ignored.
+    sgm.insert("first_stage_model.decoder.conv_in.weight".into(), Tensor::zeros(3, DType::F32, &Device::Cpu).unwrap());
+    let p32 = dir.path().join("sgm32.safetensors");
+    candle_core::safetensors::save(&sgm, &p32).unwrap();
+    let p16 = dir.path().join("sgm16.safetensors");
+    let sgm16: HashMap<String, Tensor> = sgm.iter().map(|(k, v)| (k.clone(), v.to_dtype(DType::F16).unwrap())).collect();
+    candle_core::safetensors::save(&sgm16, &p16).unwrap();
+
+    let reference = VideoUNet::load(&fixture("svd/svd_unet.safetensors"), Some(UNetLayout::Diffusers), &c.cfg, &Device::Cpu).unwrap();
+    let (ru, rc) = run_step(&reference, &c, 1);
+    let m32 = VideoUNet::load(&p32, None, &c.cfg, &Device::Cpu).expect("sgm layout, auto-detected");
+    let (u, v) = run_step(&m32, &c, 1);
+    assert_close("sgm f32 uncond", &u, &ru, 0.0);
+    assert_close("sgm f32 cond", &v, &rc, 0.0);
+    let m16 = VideoUNet::load(&p16, None, &c.cfg, &Device::Cpu).expect("sgm layout f16");
+    let (u, v) = run_step(&m16, &c, 1);
+    // f16 weight rounding (rel 2^-11) through ~40 layers: a few 1e-3 on outputs of magnitude ~1.5.
+    let (du, _) = max_abs_diff(&u, &ru);
+    let (dv, _) = max_abs_diff(&v, &rc);
+    eprintln!("f16 weights: max abs diff uncond {du:.2e}, cond {dv:.2e}");
+    assert!(du < 2e-2 && dv < 2e-2 && du > 0.0, "f16 load: {du} {dv}");
+}
+
+#[test]
+fn wrong_config_lists_missing_unexpected_and_misshaped_keys() {
+    let c = case();
+    let mut cfg = c.cfg.clone();
+    cfg.num_res_blocks = 2; // fixture has 1 per level → missing resnets.1 etc.
+    cfg.in_channels = 4; // → conv_in shape mismatch
+    let err = VideoUNet::load(&fixture("svd/svd_unet.safetensors"), None, &cfg, &Device::Cpu).unwrap_err();
+    match &err {
+        UNetError::KeyMismatch { missing, mismatched, .. } => {
+            assert!(!missing.is_empty());
+            assert!(mismatched.iter().any(|m| m.starts_with("conv_in.weight")), "{mismatched:?}");
+        }
+        e => panic!("unexpected error {e}"),
+    }
+    let msg = err.to_string();
+    assert!(msg.contains("missing") && msg.contains("svd_unet.safetensors"), "{msg}");
+}
