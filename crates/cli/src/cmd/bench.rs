@@ -1,4 +1,5 @@
-//! `mvsplat360 bench <what>`: each benchmark lives in the crate it measures; this only dispatches.
+//! `mvsplat360 bench <what>`: each benchmark lives in the crate it measures; this only dispatches and prints
+//! the JSON line on stdout.
 
 use clap::Subcommand;
 
@@ -8,9 +9,70 @@ pub struct Args {
     what: What,
 }
 
+#[derive(clap::Args, Clone, Copy)]
+struct Common {
+    /// Worker threads (0 = all cores).
+    #[arg(long, default_value_t = 0)]
+    threads: usize,
+    /// Timed runs after one warm-up; the median is reported.
+    #[arg(long, default_value_t = 5)]
+    runs: usize,
+}
+
 #[derive(Subcommand)]
-enum What {}
+enum What {
+    /// Encoder forward (DL3DV configuration, random weights): time and peak memory.
+    Encoder {
+        /// Context views.
+        #[arg(long, default_value_t = 5)]
+        views: usize,
+        /// Image height (a multiple of 64).
+        #[arg(long, default_value_t = 256)]
+        height: usize,
+        /// Image width (a multiple of 64).
+        #[arg(long, default_value_t = 448)]
+        width: usize,
+        /// Time only the backbone (CNN + multi-view transformer) instead of the whole encoder.
+        #[arg(long)]
+        backbone_only: bool,
+        #[command(flatten)]
+        common: Common,
+    },
+    /// Refiner (real SVD img2vid configuration, random weights): one guided UNet step and one VAE frame decode.
+    Refiner {
+        /// Frames denoised together in one UNet call (a temporal window).
+        #[arg(long, default_value_t = 14)]
+        frames: usize,
+        /// Latent height (image height / 4: images are upscaled 2× before the VAE's 8× downsampling).
+        #[arg(long, default_value_t = 64)]
+        latent_h: usize,
+        /// Latent width.
+        #[arg(long, default_value_t = 112)]
+        latent_w: usize,
+        #[command(flatten)]
+        common: Common,
+    },
+}
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    match args.what {}
+    let line = match args.what {
+        What::Encoder { views, height, width, backbone_only, common } => {
+            if height % 64 != 0 || width % 64 != 0 || views < 2 {
+                anyhow::bail!("bench encoder: need --views ≥ 2 and --height/--width multiples of 64 (got {views}, {height}x{width})");
+            }
+            if backbone_only {
+                mvsplat360_encoder::bench::run_backbone_bench(views, height, width, common.threads, common.runs)?
+            } else {
+                mvsplat360_encoder::bench::run_encoder_bench(views, height, width, common.threads, common.runs)?
+            }
+        }
+        What::Refiner { frames, latent_h, latent_w, common } => {
+            if frames == 0 || latent_h == 0 || latent_w == 0 || latent_h % 8 != 0 || latent_w % 8 != 0 {
+                anyhow::bail!("bench refiner: need --frames ≥ 1 and latent sizes that are positive multiples of 8 (three 2× downsamplings) (got {frames}, {latent_h}x{latent_w})");
+            }
+            mvsplat360_refiner::bench::run_refiner_bench(frames, latent_h, latent_w, common.threads, common.runs)?
+        }
+    };
+    println!("{line}");
+    Ok(())
 }
