@@ -168,59 +168,9 @@ impl CustomOp2 for ShiftConv {
         let w = f32_slice(s2, l2)?;
         let (n, c, h, wd) = l1.shape().dims4()?;
         let (co, _, kh, kw) = l2.shape().dims4()?;
-        let g = Geometry::new(c, h, wd, kh, kw, 1, self.padding, self.dilation)?;
-        let (hp, wp) = (h + 2 * self.padding, wd + 2 * self.padding);
-        let (ho, wo) = (g.ho, g.wo);
-        let ncols = (ho - 1) * wp + wo;
-        let mut out = vec![0f32; n * co * ho * wo];
-        let mut padded = vec![0f32; c * hp * wp];
-        let mut wide = vec![0f32; co * ho * wp];
-        let threads = rayon::current_num_threads();
-        for (b, out_b) in out.chunks_mut(co * ho * wo).enumerate() {
-            padded.par_chunks_mut(hp * wp).enumerate().for_each(|(ci, plane)| {
-                for y in 0..h {
-                    let src = &x[((b * c + ci) * h + y) * wd..][..wd];
-                    plane[(y + self.padding) * wp + self.padding..][..wd].copy_from_slice(src);
-                }
-            });
-            for ky in 0..kh {
-                for kx in 0..kw {
-                    let shift = self.dilation * (ky * wp + kx);
-                    // SAFETY: dst is co × ncols with row stride ho·wp ≤ its length; lhs reads w[o, ci, ky, kx];
-                    // rhs reads padded[ci·hp·wp + shift + j] for j < ncols, and shift + ncols ≤ hp·wp
-                    // because the last valid output pixel reads inside the padded plane.
-                    unsafe {
-                        gemm::gemm(
-                            co,
-                            ncols,
-                            c,
-                            wide.as_mut_ptr(),
-                            1,
-                            (ho * wp) as isize,
-                            !(ky == 0 && kx == 0),
-                            w.as_ptr().add(ky * kw + kx),
-                            (kh * kw) as isize,
-                            (c * kh * kw) as isize,
-                            padded.as_ptr().add(shift),
-                            1,
-                            (hp * wp) as isize,
-                            1.0,
-                            1.0,
-                            false,
-                            false,
-                            false,
-                            gemm::Parallelism::Rayon(threads),
-                        );
-                    }
-                }
-            }
-            out_b.par_chunks_mut(ho * wo).enumerate().for_each(|(o, dst)| {
-                for y in 0..ho {
-                    dst[y * wo..(y + 1) * wo].copy_from_slice(&wide[o * ho * wp + y * wp..][..wo]);
-                }
-            });
-        }
-        Ok((CpuStorage::F32(out), Shape::from((n, co, ho, wo))))
+        let geo = ShiftGeometry::new((n, c, h, wd), (co, kh, kw), self.padding, self.dilation, 1)?;
+        let out = shift_conv_raw(x, w, &geo, &RawEpilogue::default());
+        Ok((CpuStorage::F32(out), Shape::from((n, co, geo.ho, geo.wo))))
     }
 
     fn bwd(&self, x: &Tensor, w: &Tensor, _res: &Tensor, grad: &Tensor) -> Result<(Option<Tensor>, Option<Tensor>)> {
@@ -234,6 +184,234 @@ impl CustomOp2 for ShiftConv {
         let grad_w = grad_w.narrow(2, 0, kh)?.narrow(3, 0, kw)?;
         Ok((Some(grad_x), Some(grad_w)))
     }
+}
+
+
+/// Shapes of a stride-1 shifted-gemm convolution, optionally on the nearest-×`up` upsampled input.
+#[derive(Debug, Clone, Copy)]
+struct ShiftGeometry {
+    n: usize,
+    c: usize,
+    h: usize,
+    w: usize,
+    co: usize,
+    kh: usize,
+    kw: usize,
+    pad: usize,
+    dil: usize,
+    up: usize,
+    /// padded (upsampled) width, output size
+    wp: usize,
+    ho: usize,
+    wo: usize,
+}
+
+impl ShiftGeometry {
+    fn new((n, c, h, w): (usize, usize, usize, usize), (co, kh, kw): (usize, usize, usize), pad: usize, dil: usize, up: usize) -> Result<Self> {
+        let (hi, wi) = (h * up, w * up);
+        let (eh, ew) = (dil * (kh - 1) + 1, dil * (kw - 1) + 1);
+        if hi + 2 * pad < eh || wi + 2 * pad < ew {
+            candle_core::bail!("conv2d: kernel {kh}x{kw} larger than padded input {hi}x{wi}");
+        }
+        let wp = wi + 2 * pad;
+        Ok(Self { n, c, h, w, co, kh, kw, pad, dil, up, wp, ho: hi + 2 * pad - eh + 1, wo: wp - ew + 1 })
+    }
+}
+
+/// `out = residual + scale·(conv + bias[o] + item_bias[b, o])` applied while copying the result out.
+#[derive(Default)]
+struct RawEpilogue<'a> {
+    bias: Option<&'a [f32]>,
+    item_bias: Option<&'a [f32]>,
+    residual: Option<&'a [f32]>,
+    scale: Option<f32>,
+}
+
+#[derive(Clone, Copy)]
+struct OutPtr(*mut f32);
+// SAFETY: tasks write disjoint output rows.
+unsafe impl Send for OutPtr {}
+unsafe impl Sync for OutPtr {}
+
+/// Stride-1 conv as kh·kw gemms over shifted views of a zero-padded, channel-major copy of several
+/// images (or row bands of one large image) side by side, so each tap is one wide gemm even for small
+/// feature maps; the buffers stay ≈ 96 MiB.
+fn shift_conv_raw(x: &[f32], w: &[f32], g: &ShiftGeometry, epi: &RawEpilogue) -> Vec<f32> {
+    shift_conv_budget(x, w, g, epi, 24 << 20)
+}
+
+/// [`shift_conv_raw`] with `budget` floats for the padded + wide buffers (small in tests to force bands).
+fn shift_conv_budget(x: &[f32], w: &[f32], g: &ShiftGeometry, epi: &RawEpilogue, budget: usize) -> Vec<f32> {
+    let ShiftGeometry { n, c, h, w: wd, co, kh, kw, pad, dil, up, wp, ho, wo } = *g;
+    let halo = dil * (kh - 1);
+    let (hi, wi) = (h * up, wd * up);
+    #[allow(non_snake_case)]
+    let BUDGET = budget;
+    let per_row = (c + co) * wp;
+    let band = if (ho + halo) * per_row <= BUDGET { ho } else { (BUDGET / per_row).saturating_sub(halo).max(1).min(ho) };
+    let bands = ho.div_ceil(band);
+    let slot = (band + halo) * wp;
+    let pieces = n * bands;
+    let per = (BUDGET / ((c + co) * slot)).clamp(1, pieces);
+    let mut out = vec![0f32; n * co * ho * wo];
+    let optr = OutPtr(out.as_mut_ptr());
+    let mut padded = vec![0f32; c * per * slot];
+    let mut wide = vec![0f32; co * per * slot];
+    let threads = rayon::current_num_threads();
+    let mut p0 = 0;
+    while p0 < pieces {
+        let np = per.min(pieces - p0);
+        let row_len = per * slot;
+        // Fill: padded[ci, p·slot + r·wp + xx] = input (upsampled) at row y0 + r − pad, col xx − pad, or 0.
+        padded.par_chunks_mut(row_len).enumerate().for_each(|(ci, dst)| {
+            for p in 0..np {
+                let (b, bi) = ((p0 + p) / bands, (p0 + p) % bands);
+                let y0 = bi * band;
+                let src = &x[(b * c + ci) * h * wd..][..h * wd];
+                for r in 0..band + halo {
+                    let row = &mut dst[p * slot + r * wp..][..wp];
+                    let yy = (y0 + r) as isize - pad as isize;
+                    if yy < 0 || yy as usize >= hi {
+                        row.fill(0.0);
+                        continue;
+                    }
+                    row[..pad].fill(0.0);
+                    row[pad + wi..].fill(0.0);
+                    let srow = &src[(yy as usize / up) * wd..][..wd];
+                    if up == 1 {
+                        row[pad..pad + wi].copy_from_slice(srow);
+                    } else {
+                        for (xx, v) in row[pad..pad + wi].iter_mut().enumerate() {
+                            *v = srow[xx / up];
+                        }
+                    }
+                }
+            }
+        });
+        let ncols = (np - 1) * slot + (band - 1) * wp + wo;
+        for ky in 0..kh {
+            for kx in 0..kw {
+                let shift = dil * (ky * wp + kx);
+                // SAFETY: dst is co × ncols with row stride row_len ≥ ncols; lhs reads w[o, ci, ky, kx];
+                // rhs reads padded[ci·row_len + shift + j] for j < ncols and shift + ncols ≤ np·slot.
+                unsafe {
+                    gemm::gemm(
+                        co, ncols, c,
+                        wide.as_mut_ptr(), 1, row_len as isize, !(ky == 0 && kx == 0),
+                        w.as_ptr().add(ky * kw + kx), (kh * kw) as isize, (c * kh * kw) as isize,
+                        padded.as_ptr().add(shift), 1, row_len as isize,
+                        1.0, 1.0, false, false, false, gemm::Parallelism::Rayon(threads),
+                    );
+                }
+            }
+        }
+        wide.par_chunks(row_len).enumerate().for_each(|(o, wrow)| {
+            let optr = optr;
+            for p in 0..np {
+                let (b, bi) = ((p0 + p) / bands, (p0 + p) % bands);
+                let y0 = bi * band;
+                let rows = band.min(ho - y0);
+                let add = epi.bias.map_or(0.0, |bv| bv[o]) + epi.item_bias.map_or(0.0, |ib| ib[b * co + o]);
+                let plane = (b * co + o) * ho * wo;
+                for r in 0..rows {
+                    let y = y0 + r;
+                    let src = &wrow[p * slot + r * wp..][..wo];
+                    // SAFETY: output row (b, o, y) is written by this task only.
+                    let dst = unsafe { std::slice::from_raw_parts_mut(optr.0.add(plane + y * wo), wo) };
+                    epilogue_row(dst, src, add, epi.scale, epi.residual.map(|res| &res[plane + y * wo..][..wo]));
+                }
+            }
+        });
+        p0 += np;
+    }
+    out
+}
+
+fn epilogue_row(dst: &mut [f32], src: &[f32], add: f32, scale: Option<f32>, res: Option<&[f32]>) {
+    match (scale, res) {
+        (None, None) => dst.iter_mut().zip(src).for_each(|(d, &s)| *d = s + add),
+        (None, Some(r)) => dst.iter_mut().zip(src).zip(r).for_each(|((d, &s), &r)| *d = s + add + r),
+        (Some(k), None) => dst.iter_mut().zip(src).for_each(|(d, &s)| *d = k * (s + add)),
+        (Some(k), Some(r)) => dst.iter_mut().zip(src).zip(r).for_each(|((d, &s), &r)| *d = k * (s + add) + r),
+    }
+}
+
+/// What [`conv2d_fused`] adds to the convolution: `residual + scale·(conv + bias + item_bias)`.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct ConvEpilogue<'a> {
+    /// (N, Co): one extra bias per image and channel (e.g. a time embedding).
+    pub item_bias: Option<&'a Tensor>,
+    /// Same shape as the output.
+    pub residual: Option<&'a Tensor>,
+    /// Multiplies conv + biases (not the residual); None = 1.
+    pub scale: Option<f32>,
+    /// Nearest-neighbour ×2 upsampling of the input first (fused into the padded copy).
+    pub upsample2x: bool,
+}
+
+fn with_f32_opt<R>(t: Option<&Tensor>, f: impl FnOnce(Option<&[f32]>) -> Result<R>) -> Result<R> {
+    match t {
+        None => f(None),
+        Some(t) => {
+            let t = t.contiguous()?;
+            let (st, l) = t.storage_and_layout();
+            match (&*st, l.contiguous_offsets()) {
+                (candle_core::Storage::Cpu(CpuStorage::F32(v)), Some((a, b))) => f(Some(&v[a..b])),
+                _ => candle_core::bail!("conv2d_fused: expected CPU f32 tensors"),
+            }
+        }
+    }
+}
+
+/// Inference-only conv2d (no backward) with the epilogue fused into the output copy. Stride-1 CPU f32
+/// convolutions run on the batched shifted-gemm kernel; anything else through [`conv2d`] and tensor ops.
+pub fn conv2d_fused(x: &Tensor, w: &Tensor, bias: Option<&Tensor>, cfg: Conv2dConfig, epi: ConvEpilogue) -> Result<Tensor> {
+    let (n, c, h, wd) = x.dims4()?;
+    let (co, ci, kh, kw) = w.dims4()?;
+    if ci != c {
+        candle_core::bail!("conv2d: input has {c} channels, weight expects {ci}");
+    }
+    let cpu_f32 = x.device().is_cpu() && x.dtype() == candle_core::DType::F32;
+    if !cpu_f32 || cfg.stride != 1 {
+        let x = if epi.upsample2x { x.upsample_nearest2d(2 * h, 2 * wd)? } else { x.clone() };
+        let mut y = conv2d(&x, w, bias, cfg)?;
+        if let Some(ib) = epi.item_bias {
+            y = y.broadcast_add(&ib.reshape((n, co, 1, 1))?)?;
+        }
+        if let Some(k) = epi.scale {
+            y = (y * k as f64)?;
+        }
+        if let Some(r) = epi.residual {
+            y = (y + r)?;
+        }
+        return Ok(y);
+    }
+    let geo = ShiftGeometry::new((n, c, h, wd), (co, kh, kw), cfg.padding, cfg.dilation, if epi.upsample2x { 2 } else { 1 })?;
+    if let Some(r) = epi.residual {
+        if r.dims() != [n, co, geo.ho, geo.wo] {
+            candle_core::bail!("conv2d_fused: residual {:?}, output {:?}", r.dims(), [n, co, geo.ho, geo.wo]);
+        }
+    }
+    if let Some(ib) = epi.item_bias {
+        if ib.elem_count() != n * co {
+            candle_core::bail!("conv2d_fused: item bias {:?}, expected ({n}, {co})", ib.dims());
+        }
+    }
+    let x = x.contiguous()?;
+    let w = w.contiguous()?;
+    let out = with_f32_opt(Some(&x), |xd| {
+        with_f32_opt(Some(&w), |wdat| {
+            with_f32_opt(bias, |bd| {
+                with_f32_opt(epi.item_bias, |ibd| {
+                    with_f32_opt(epi.residual, |rd| {
+                        let e = RawEpilogue { bias: bd, item_bias: ibd, residual: rd, scale: epi.scale };
+                        Ok(shift_conv_raw(xd.unwrap_or(&[]), wdat.unwrap_or(&[]), &geo, &e))
+                    })
+                })
+            })
+        })
+    })?;
+    Tensor::from_vec(out, (n, co, geo.ho, geo.wo), x.device())
 }
 
 /// [`conv2d`] for stride 1 through [`ShiftConv`] (CPU, f32).
@@ -345,5 +523,43 @@ impl Conv2d {
 impl Module for Conv2d {
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
         conv2d(x, &self.weight, self.bias.as_ref(), self.cfg)
+    }
+}
+
+#[cfg(test)]
+mod fused_tests {
+    use super::*;
+    use candle_core::{Device, Tensor};
+
+    fn max_diff(a: &Tensor, b: &Tensor) -> f32 {
+        (a - b).unwrap().abs().unwrap().flatten_all().unwrap().max(0).unwrap().to_scalar::<f32>().unwrap()
+    }
+
+    #[test]
+    fn fused_conv_matches_candle_with_epilogue_upsample_and_bands() {
+        let dev = Device::Cpu;
+        let (n, c, co, h, w) = (3, 5, 7, 9, 11);
+        let x = Tensor::randn(0f32, 1.0, (n, c, h, w), &dev).unwrap();
+        let wt = Tensor::randn(0f32, 0.3, (co, c, 3, 3), &dev).unwrap();
+        let b = Tensor::randn(0f32, 0.3, co, &dev).unwrap();
+        let ib = Tensor::randn(0f32, 0.3, (n, co), &dev).unwrap();
+        for (up, pad, dil) in [(false, 1, 1), (true, 1, 1), (false, 2, 2), (false, 0, 1)] {
+            let xin = if up { x.upsample_nearest2d(2 * h, 2 * w).unwrap() } else { x.clone() };
+            let plain = xin.conv2d(&wt, pad, 1, dil, 1).unwrap().broadcast_add(&b.reshape((1, co, 1, 1)).unwrap()).unwrap();
+            let res = Tensor::randn(0f32, 1.0, plain.dims(), &dev).unwrap();
+            let want = ((plain.broadcast_add(&ib.reshape((n, co, 1, 1)).unwrap()).unwrap() * 0.25).unwrap() + &res).unwrap();
+            let cfg = Conv2dConfig { padding: pad, stride: 1, dilation: dil };
+            let epi = ConvEpilogue { item_bias: Some(&ib), residual: Some(&res), scale: Some(0.25), upsample2x: up };
+            let got = conv2d_fused(&x, &wt, Some(&b), cfg, epi).unwrap();
+            assert!(max_diff(&got, &want) < 1e-4, "up {up} pad {pad} dil {dil}: {}", max_diff(&got, &want));
+            // Tiny buffer budget: one row band at a time, several bands per image.
+            let geo = ShiftGeometry::new((n, c, h, w), (co, 3, 3), pad, dil, if up { 2 } else { 1 }).unwrap();
+            let xv = x.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+            let wv = wt.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+            let banded = shift_conv_budget(&xv, &wv, &geo, &RawEpilogue::default(), (c + co) * geo.wp * (2 + 2 * dil));
+            let banded = Tensor::from_vec(banded, plain.dims(), &dev).unwrap();
+            let plain_nb = xin.conv2d(&wt, pad, 1, dil, 1).unwrap();
+            assert!(max_diff(&banded, &plain_nb) < 1e-4, "banded up {up} pad {pad}: {}", max_diff(&banded, &plain_nb));
+        }
     }
 }

@@ -3,4 +3,4 @@
 
 pub mod conv;
 
-pub use conv::{conv2d, conv2d_gemm, conv2d_shift, Conv2d, Conv2dConfig};
+pub use conv::{conv2d, conv2d_fused, conv2d_gemm, conv2d_shift, Conv2d, Conv2dConfig, ConvEpilogue};

@@ -8,6 +8,7 @@ use crate::refiner::{seeded_noise, LatentDecoder};
 use crate::sampling::{guided_unet_input, v_scaling_edm};
 use crate::unet::util::timestep_embedding;
 use crate::unet::{UNetError, UNetInputs, VideoUNet, VideoUNetConfig};
+use crate::vae::{AutoencoderConfig, AutoencoderKL};
 
 /// Peak resident set size of this process in MiB (Linux `VmHWM`), None elsewhere.
 pub fn peak_rss_mib() -> Option<f64> {
@@ -67,10 +68,15 @@ pub fn run_refiner_bench_with(
             let _ = v.sum_all()?.to_scalar::<f32>()?;
             times.push(t.elapsed().as_secs_f64() * 1e3);
         }
+        let unet_peak = peak_rss_mib();
+        drop(unet);
+        // One latent frame per decoder call (MVSplat360's `en_and_decode_n_samples_a_time: 1`), as the
+        // PyTorch reference (scripts/bench-reference/bench_refiner.py) times it.
         let vae_ms = match decoder {
             Some(d) => {
+                let z = (x.narrow(0, 0, 1)? / 0.18215)?;
                 let t = Instant::now();
-                let out = d.decode(&x, frames)?;
+                let out = d.decode(&z, 1)?;
                 let _ = out.sum_all()?.to_scalar::<f32>()?;
                 Some(t.elapsed().as_secs_f64() * 1e3)
             }
@@ -85,14 +91,19 @@ pub fn run_refiner_bench_with(
             "unet_step_ms": median(times.clone()),
             "unet_step_runs_ms": times,
             "vae_decode_ms": vae_ms,
+            "vae_frames": 1,
             "weights_init_ms": load_ms,
+            "unet_peak_mib": unet_peak,
             "peak_mib": peak_rss_mib(),
         }))
     })
 }
 
-/// The real MVSplat360 UNet config (`svd_wo_mb_fps`), random weights; see [`run_refiner_bench_with`].
+/// The real MVSplat360 UNet and VAE configs (`svd_wo_mb_fps`), random weights; `vae_decode_ms` times one
+/// latent frame through the temporal decoder. See [`run_refiner_bench_with`].
 pub fn run_refiner_bench(frames: usize, latent_h: usize, latent_w: usize, threads: usize, runs: usize) -> Result<serde_json::Value, UNetError> {
-    run_refiner_bench_with(&VideoUNetConfig::default(), frames, latent_h, latent_w, threads, runs, None)
+    let vae = AutoencoderKL::random(&AutoencoderConfig::default(), 1, &Device::Cpu)
+        .map_err(|e| UNetError::Config { path: "<bench VAE>".into(), msg: e.to_string() })?;
+    run_refiner_bench_with(&VideoUNetConfig::default(), frames, latent_h, latent_w, threads, runs, Some(&vae))
 }
 

@@ -3,7 +3,9 @@
 
 pub mod clip;
 pub mod histogram;
+pub mod kernels;
 pub mod keymap;
+pub mod prof;
 pub mod refiner;
 pub mod bench;
 pub mod sampling;

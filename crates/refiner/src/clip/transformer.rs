@@ -43,17 +43,19 @@ impl ResidualAttentionBlock {
     }
 
     fn forward(&self, x: &Tensor, cfg: &ClipVisionConfig) -> Result<Tensor> {
+        let _p = crate::prof::scope("clip.block");
         let d = cfg.width;
         let qkv = self.in_proj.forward(&self.ln_1.layer_norm(x)?)?;
         let (q, k, v) = (qkv.narrow(D::Minus1, 0, d)?, qkv.narrow(D::Minus1, d, d)?, qkv.narrow(D::Minus1, 2 * d, d)?);
         let a = attention(&q.contiguous()?, &k.contiguous()?, &v.contiguous()?, cfg.heads, cfg.attn_max_score_elems)?;
-        let x = (x + self.out_proj.forward(&a)?)?;
+        let x = crate::kernels::linear_fused(&a, &self.out_proj.weight, self.out_proj.bias.as_ref(), 1.0, &[(x, 1.0)])?;
+        let _m = crate::prof::scope("clip.mlp");
         let h = self.c_fc.forward(&self.ln_2.layer_norm(&x)?)?;
         let h = match cfg.act {
-            ClipAct::Gelu => h.gelu_erf()?,
+            ClipAct::Gelu => crate::kernels::gelu(&h)?,
             ClipAct::QuickGelu => (&h * candle_nn::ops::sigmoid(&(&h * 1.702)?)?)?,
         };
-        x + self.c_proj.forward(&h)?
+        crate::kernels::linear_fused(&h, &self.c_proj.weight, self.c_proj.bias.as_ref(), 1.0, &[(&x, 1.0)])
     }
 }
 

@@ -43,6 +43,9 @@ pub struct Linear {
 
 impl Linear {
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        if crate::kernels::is_cpu_f32(x) {
+            return crate::kernels::linear_fused(x, &self.weight, self.bias.as_ref(), 1.0, &[]);
+        }
         let dims = x.dims().to_vec();
         let last = *dims.last().unwrap_or(&1);
         let out = self.weight.dim(0)?;
@@ -83,21 +86,17 @@ impl Norm {
 /// LayerNorm over the last dim. CPU f32 path: per-row two-pass statistics in f64 (candle's fused op
 /// uses E[x²]−E[x]² in f32, which loses ~1e-4 on rows with a large mean).
 pub fn layer_norm(x: &Tensor, weight: &Tensor, bias: &Tensor, eps: f64) -> Result<Tensor> {
+    let _p = crate::prof::scope("layer_norm");
     let dims = x.dims().to_vec();
     let c = *dims.last().unwrap_or(&1);
     if x.device().is_cpu() && x.dtype() == DType::F32 {
-        let data = x.contiguous()?.flatten_all()?.to_vec1::<f32>()?;
         let w = weight.to_vec1::<f32>()?;
         let b = bias.to_vec1::<f32>()?;
-        let mut out = vec![0f32; data.len()];
-        out.par_chunks_mut(c).zip(data.par_chunks(c)).for_each(|(dst, src)| {
-            let mean = src.iter().map(|&v| v as f64).sum::<f64>() / c as f64;
-            let var = src.iter().map(|&v| (v as f64 - mean).powi(2)).sum::<f64>() / c as f64;
-            let rstd = 1.0 / (var + eps).sqrt();
-            for i in 0..c {
-                dst[i] = ((src[i] as f64 - mean) * rstd) as f32 * w[i] + b[i];
-            }
-        });
+        let mut out = vec![0f32; x.elem_count()];
+        crate::kernels::with_f32(x, |data| {
+            let rows = (1usize << 14) / c.max(1) + 1;
+            out.par_chunks_mut(c * rows).zip(data.par_chunks(c * rows)).for_each(|(dst, src)| layer_norm_rows(src, dst, c, &w, &b, eps));
+        })?;
         return Tensor::from_vec(out, dims, x.device());
     }
     let mean = x.mean_keepdim(D::Minus1)?;
@@ -116,6 +115,7 @@ pub fn group_norm(
     eps: f64,
     silu: bool,
 ) -> Result<Tensor> {
+    let _p = crate::prof::scope("group_norm");
     let dims = x.dims().to_vec();
     let (n, c) = (dims[0], dims[1]);
     let s: usize = dims[2..].iter().product();
@@ -125,51 +125,10 @@ pub fn group_norm(
     let cg = c / groups;
     let bn = n / frames;
     if x.device().is_cpu() && x.dtype() == DType::F32 {
-        let x = x.contiguous()?;
-        let data = x.flatten_all()?.to_vec1::<f32>()?;
         let w = weight.to_vec1::<f32>()?;
         let b = bias.to_vec1::<f32>()?;
-        // Stats per (batch item, group), pooled over frames, channels in group, spatial.
-        let stats: Vec<(f32, f32)> = (0..bn * groups)
-            .into_par_iter()
-            .map(|idx| {
-                let (bi, g) = (idx / groups, idx % groups);
-                let mut sum = 0f64;
-                let mut sq = 0f64;
-                for t in 0..frames {
-                    let base = ((bi * frames + t) * c + g * cg) * s;
-                    for &v in &data[base..base + cg * s] {
-                        let v = v as f64;
-                        sum += v;
-                        sq += v * v;
-                    }
-                }
-                let cnt = (frames * cg * s) as f64;
-                let mean = sum / cnt;
-                let var = (sq / cnt - mean * mean).max(0.0);
-                (mean as f32, (1.0 / (var + eps).sqrt()) as f32)
-            })
-            .collect();
-        let mut out = vec![0f32; data.len()];
-        out.par_chunks_mut(s).enumerate().for_each(|(row, dst)| {
-            let item = row / c;
-            let ch = row % c;
-            let bi = item / frames;
-            let (mean, rstd) = stats[bi * groups + ch / cg];
-            let a = rstd * w[ch];
-            let o = b[ch] - mean * a;
-            let src = &data[row * s..(row + 1) * s];
-            if silu {
-                for (d, &v) in dst.iter_mut().zip(src) {
-                    let y = v * a + o;
-                    *d = y / (1.0 + (-y).exp());
-                }
-            } else {
-                for (d, &v) in dst.iter_mut().zip(src) {
-                    *d = v * a + o;
-                }
-            }
-        });
+        let mut out = vec![0f32; x.elem_count()];
+        crate::kernels::with_f32(x, |data| group_norm_cpu(data, &mut out, (bn, frames, groups, cg, c, s), &w, &b, eps, silu))?;
         return Tensor::from_vec(out, dims, x.device());
     }
     let xr = x.reshape((bn, frames, groups, cg * s))?;
@@ -182,9 +141,100 @@ pub fn group_norm(
     y.reshape(dims)
 }
 
+/// CPU GroupNorm(+SiLU): statistics per (item, group, pooled over frames) in f64, then one fused
+/// scale/shift(/SiLU) pass.
+#[allow(clippy::too_many_arguments)]
+fn group_norm_cpu(data: &[f32], out: &mut [f32], (bn, frames, groups, cg, c, s): (usize, usize, usize, usize, usize, usize), w: &[f32], b: &[f32], eps: f64, silu: bool) {
+    let stats: Vec<(f32, f32)> = (0..bn * groups)
+        .into_par_iter()
+        .map(|idx| {
+            let (bi, g) = (idx / groups, idx % groups);
+            let mut sum = 0f64;
+            let mut sq = 0f64;
+            for t in 0..frames {
+                let base = ((bi * frames + t) * c + g * cg) * s;
+                let (s1, s2) = sum_sq(&data[base..base + cg * s]);
+                sum += s1;
+                sq += s2;
+            }
+            let cnt = (frames * cg * s) as f64;
+            let mean = sum / cnt;
+            let var = (sq / cnt - mean * mean).max(0.0);
+            (mean as f32, (1.0 / (var + eps).sqrt()) as f32)
+        })
+        .collect();
+    out.par_chunks_mut(s).enumerate().for_each(|(row, dst)| {
+        let item = row / c;
+        let ch = row % c;
+        let bi = item / frames;
+        let (mean, rstd) = stats[bi * groups + ch / cg];
+        let a = rstd * w[ch];
+        let o = b[ch] - mean * a;
+        scale_shift_silu(&data[row * s..(row + 1) * s], dst, a, o, silu);
+    });
+}
+
+crate::kernels::simd_dispatch! {
+    /// (Σx, Σx²) in f64, accumulated per block of 64 values in f32 lanes.
+    fn sum_sq(x: &[f32]) -> (f64, f64) {
+        let (mut s1, mut s2) = (0f64, 0f64);
+        for blk in x.chunks(64) {
+            let mut a = [0f32; 16];
+            let mut q = [0f32; 16];
+            let mut it = blk.chunks_exact(16);
+            for c in &mut it {
+                for i in 0..16 {
+                    a[i] += c[i];
+                    q[i] = c[i].mul_add(c[i], q[i]);
+                }
+            }
+            for &v in it.remainder() {
+                a[0] += v;
+                q[0] = v.mul_add(v, q[0]);
+            }
+            s1 += a.iter().map(|&v| v as f64).sum::<f64>();
+            s2 += q.iter().map(|&v| v as f64).sum::<f64>();
+        }
+        (s1, s2)
+    }
+}
+
+crate::kernels::simd_dispatch! {
+    fn scale_shift_silu(src: &[f32], dst: &mut [f32], a: f32, o: f32, silu: bool) {
+        if silu {
+            for (d, &v) in dst.iter_mut().zip(src) {
+                let y = v.mul_add(a, o);
+                *d = y / (1.0 + crate::kernels::exp_f32(-y));
+            }
+        } else {
+            for (d, &v) in dst.iter_mut().zip(src) {
+                *d = v.mul_add(a, o);
+            }
+        }
+    }
+}
+
+crate::kernels::simd_dispatch! {
+    fn layer_norm_rows(src: &[f32], dst: &mut [f32], c: usize, w: &[f32], b: &[f32], eps: f64) {
+        for (s, d) in src.chunks_exact(c).zip(dst.chunks_exact_mut(c)) {
+            let mean = s.iter().map(|&v| v as f64).sum::<f64>() / c as f64;
+            let var = s.iter().map(|&v| (v as f64 - mean) * (v as f64 - mean)).sum::<f64>() / c as f64;
+            let rstd = (1.0 / (var + eps).sqrt()) as f32;
+            let m = mean as f32;
+            for i in 0..c {
+                d[i] = ((s[i] - m) * rstd).mul_add(w[i], b[i]);
+            }
+        }
+    }
+}
+
 /// Scaled dot-product attention, heads folded into the batch, computed in blocks of (batch·head, query)
 /// so the score buffer stays below `max_score_elems` floats. q: (N, Lq, H·d), k/v: (N, Lk, H·d).
 pub fn attention(q: &Tensor, k: &Tensor, v: &Tensor, heads: usize, max_score_elems: usize) -> Result<Tensor> {
+    let _p = crate::prof::scope("attention_core");
+    if crate::kernels::is_cpu_f32(q) {
+        return crate::kernels::attention_tensors(q, k, v, heads);
+    }
     let (n, lq, inner) = q.dims3()?;
     let lk = k.dim(1)?;
     let d = inner / heads;
@@ -241,7 +291,7 @@ pub fn sigmoid_scalar(t: &Tensor) -> Result<f64> {
 
 /// `alpha·a + (1−alpha)·b`.
 pub fn blend(a: &Tensor, b: &Tensor, alpha: f64) -> Result<Tensor> {
-    (a * alpha)? + (b * (1.0 - alpha))?
+    crate::kernels::axpby(a, alpha as f32, b, (1.0 - alpha) as f32)
 }
 
 /// GEGLU gate: first half times exact-GELU of the second half (sgm/diffusers `GEGLU`).

@@ -3,7 +3,8 @@
 
 use candle_core::{Result, Tensor};
 
-use super::util::{attention, blend, geglu, sigmoid_scalar, timestep_embedding, Linear, Norm};
+use super::util::{attention, sigmoid_scalar, timestep_embedding, Linear, Norm};
+use crate::kernels::{self, AttnOperand, SeqLayout};
 use super::weights::Weights;
 
 pub(crate) fn linear(w: &Weights, name: &str, i: usize, o: usize, bias: bool) -> Result<Linear> {
@@ -40,42 +41,98 @@ impl CrossAttention {
 
     /// x: (N, L, C); context: (N', Lc, D) with N divisible by N' — the N/N' consecutive query rows of one
     /// context item share its keys, so they are folded into the query length (one big matmul, no repeat).
+    #[cfg_attr(not(test), allow(dead_code))]
     fn forward(&self, x: &Tensor, context: Option<&Tensor>, max_elems: usize) -> Result<Tensor> {
-        let q = self.to_q.forward(x)?;
-        let (n, l, inner) = q.dims3()?;
-        let out = match context {
+        let zero = Tensor::zeros((x.dim(0)?, x.dim(1)?, self.to_out.weight.dim(0)?), x.dtype(), x.device())?;
+        match context {
             None => {
-                let k = self.to_k.forward(x)?;
-                let v = self.to_v.forward(x)?;
-                attention(&q, &k, &v, self.heads, max_elems)?
+                let (n, l, _) = x.dims3()?;
+                self.self_attention(x, &zero, SeqLayout::contiguous(n, l), max_elems)
             }
-            Some(ctx) => {
-                let nc = ctx.dim(0)?;
-                let k = self.to_k.forward(ctx)?;
-                let v = self.to_v.forward(ctx)?;
-                let q = q.reshape((nc, (n / nc) * l, inner))?;
-                attention(&q, &k, &v, self.heads, max_elems)?.reshape((n, l, inner))?
-            }
-        };
-        self.to_out.forward(&out)
+            Some(ctx) => self.cross_attention(Some(x), &zero, ctx, max_elems),
+        }
     }
 
     /// Self-attention restricted to `splits` consecutive windows of the sequence (MVSplat360 `num_splits`).
+    #[cfg_attr(not(test), allow(dead_code))]
     fn forward_windows(&self, x: &Tensor, splits: usize, max_elems: usize) -> Result<Tensor> {
-        let q = self.to_q.forward(x)?;
-        let k = self.to_k.forward(x)?;
-        let v = self.to_v.forward(x)?;
-        let (n, l, inner) = q.dims3()?;
-        if splits <= 1 {
-            return self.to_out.forward(&attention(&q, &k, &v, self.heads, max_elems)?);
-        }
+        let (n, l, _) = x.dims3()?;
+        let splits = splits.max(1);
         if l % splits != 0 {
             candle_core::bail!("num_splits {splits} does not divide the {l} video frames");
         }
-        let win = |t: &Tensor| t.reshape((n * splits, l / splits, inner));
-        let o = attention(&win(&q)?, &win(&k)?, &win(&v)?, self.heads, max_elems)?.reshape((n, l, inner))?;
-        self.to_out.forward(&o)
+        let zero = Tensor::zeros((n, l, self.to_out.weight.dim(0)?), x.dtype(), x.device())?;
+        self.self_attention(x, &zero, SeqLayout::contiguous(n * splits, l / splits), max_elems)
     }
+
+    /// `residual + to_out(attention(xn))`, self-attention over the sequences `layout` picks from the rows
+    /// of xn (any leading shape, last dim C).
+    fn self_attention(&self, xn: &Tensor, residual: &Tensor, layout: SeqLayout, max_elems: usize) -> Result<Tensor> {
+        let q = self.to_q.forward(xn)?;
+        let k = self.to_k.forward(xn)?;
+        let v = self.to_v.forward(xn)?;
+        let inner = *q.dims().last().unwrap_or(&1);
+        let rows = q.elem_count() / inner.max(1);
+        let o = if kernels::is_cpu_f32(&q) {
+            let d = inner / self.heads;
+            let mut out = vec![0f32; rows * inner];
+            kernels::with_f32(&q, |qd| {
+                kernels::with_f32(&k, |kd| {
+                    kernels::with_f32(&v, |vd| {
+                        let op = |data| AttnOperand { data, row_len: inner, col_offset: 0 };
+                        kernels::attention_raw(op(qd), layout, op(kd), op(vd), layout, &mut out, inner, self.heads, d, 1.0 / (d as f32).sqrt())
+                    })
+                })
+            })???;
+            Tensor::from_vec(out, (rows, inner), q.device())?
+        } else {
+            // Generic devices: gather the sequences, attend, scatter back.
+            let idx: Vec<u32> = (0..layout.count).flat_map(|g| (0..layout.len).map(move |p| layout_row(&layout, g, p) as u32)).collect();
+            let idx = Tensor::from_vec(idx, layout.count * layout.len, q.device())?;
+            let gather = |t: &Tensor| t.reshape((rows, inner))?.index_select(&idx, 0)?.reshape((layout.count, layout.len, inner));
+            let a = attention(&gather(&q)?, &gather(&k)?, &gather(&v)?, self.heads, max_elems)?.reshape((rows, inner))?;
+            Tensor::zeros((rows, inner), a.dtype(), a.device())?.index_add(&idx, &a, 0)?
+        };
+        let mut od = residual.dims().to_vec();
+        if let Some(l) = od.last_mut() {
+            *l = inner;
+        }
+        kernels::linear_fused(&o.reshape(od)?, &self.to_out.weight, self.to_out.bias.as_ref(), 1.0, &[(residual, 1.0)])
+    }
+
+    /// `residual + to_out(attention(to_q(xn), context))`; the rows of `residual` (N rows in total, any
+    /// leading shape) are split into N' consecutive groups, group i attending to context item i.
+    /// With a single context token the softmax is exactly 1, so the output is `to_out(to_v(ctx))` for
+    /// every query: no query projection or normalised input is needed (`xn` may be None then).
+    fn cross_attention(&self, xn: Option<&Tensor>, residual: &Tensor, ctx: &Tensor, max_elems: usize) -> Result<Tensor> {
+        let (nc, lc, _) = ctx.dims3()?;
+        let c = *residual.dims().last().unwrap_or(&1);
+        let rows = residual.elem_count() / c.max(1);
+        if rows % nc != 0 {
+            candle_core::bail!("cross-attention: {rows} query rows not divisible by {nc} context items");
+        }
+        if lc == 1 {
+            let v = self.to_v.forward(ctx)?; // (nc, 1, inner)
+            let o = self.to_out.forward(&v)?; // (nc, 1, c)
+            return residual.reshape((nc, rows / nc, c))?.broadcast_add(&o)?.reshape(residual.dims());
+        }
+        let Some(xn) = xn else { candle_core::bail!("cross-attention with {lc} context tokens needs the normalised input") };
+        let q = self.to_q.forward(xn)?;
+        let inner = *q.dims().last().unwrap_or(&1);
+        let k = self.to_k.forward(ctx)?;
+        let v = self.to_v.forward(ctx)?;
+        let q = q.reshape((nc, rows / nc, inner))?;
+        let a = attention(&q, &k, &v, self.heads, max_elems)?;
+        let mut od = residual.dims().to_vec();
+        if let Some(l) = od.last_mut() {
+            *l = inner;
+        }
+        kernels::linear_fused(&a.reshape(od)?, &self.to_out.weight, self.to_out.bias.as_ref(), 1.0, &[(residual, 1.0)])
+    }
+}
+
+fn layout_row(l: &SeqLayout, g: usize, p: usize) -> usize {
+    (g / l.inner_count) * l.outer + (g % l.inner_count) * l.inner + p * l.pos
 }
 
 /// GEGLU feed-forward: `net.0.proj` (dim → 2·inner), `net.2` (inner → out).
@@ -94,29 +151,11 @@ impl FeedForward {
         })
     }
 
-    /// Rows are processed in chunks so the 8·dim-wide hidden activation stays ≈ 128 MiB.
-    fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        let dims = x.dims().to_vec();
-        let c = *dims.last().unwrap_or(&1);
-        let rows = x.elem_count() / c.max(1);
-        let hidden = self.proj.weight.dim(0)?;
-        let chunk = ((32usize << 20) / hidden.max(1)).max(1);
-        if rows <= chunk {
-            return self.out.forward(&geglu(&self.proj.forward(x)?)?);
-        }
-        let x2 = x.reshape((rows, c))?;
-        let mut parts = Vec::with_capacity(rows.div_ceil(chunk));
-        let mut i = 0;
-        while i < rows {
-            let m = chunk.min(rows - i);
-            parts.push(self.out.forward(&geglu(&self.proj.forward(&x2.narrow(0, i, m)?)?)?)?);
-            i += m;
-        }
-        let mut od = dims;
-        if let Some(l) = od.last_mut() {
-            *l = self.out.weight.dim(0)?;
-        }
-        Tensor::cat(&parts, 0)?.reshape(od)
+    /// `scale·ff(x) + Σ cᵢ·addᵢ` (rows processed in chunks; the residual/blend is folded into the output gemm).
+    fn forward_fused(&self, x: &Tensor, scale: f32, adds: &[(&Tensor, f32)]) -> Result<Tensor> {
+        let _p = crate::prof::scope("ff");
+        let (Some(b1), Some(b2)) = (&self.proj.bias, &self.out.bias) else { candle_core::bail!("feed-forward without bias") };
+        kernels::geglu_ff(x, &self.proj.weight, b1, &self.out.weight, b2, scale, adds)
     }
 }
 
@@ -143,10 +182,26 @@ impl BasicTransformerBlock {
         })
     }
 
+    /// x: (N, L, C) tokens of N frames.
     fn forward(&self, x: &Tensor, context: &Tensor, max_elems: usize) -> Result<Tensor> {
-        let x = (self.attn1.forward(&self.norm1.layer_norm(x)?, None, max_elems)? + x)?;
-        let x = (self.attn2.forward(&self.norm2.layer_norm(&x)?, Some(context), max_elems)? + &x)?;
-        self.ff.forward(&self.norm3.layer_norm(&x)?)? + &x
+        let _p = crate::prof::scope("transformer.spatial_block");
+        let (n, l, _) = x.dims3()?;
+        let x = {
+            let _a = crate::prof::scope("attn.self_spatial");
+            self.attn1.self_attention(&self.norm1.layer_norm(x)?, x, SeqLayout::contiguous(n, l), max_elems)?
+        };
+        let x = cross(&self.attn2, &self.norm2, &x, context, max_elems)?;
+        self.ff.forward_fused(&self.norm3.layer_norm(&x)?, 1.0, &[(&x, 1.0)])
+    }
+}
+
+/// `x + attn(norm(x), ctx)`, skipping the norm when the context is a single token.
+fn cross(attn: &CrossAttention, norm: &Norm, x: &Tensor, ctx: &Tensor, max_elems: usize) -> Result<Tensor> {
+    let _a = crate::prof::scope("attn.cross");
+    if ctx.dim(1)? == 1 {
+        attn.cross_attention(None, x, ctx, max_elems)
+    } else {
+        attn.cross_attention(Some(&norm.layer_norm(x)?), x, ctx, max_elems)
     }
 }
 
@@ -177,17 +232,28 @@ impl VideoTransformerBlock {
         })
     }
 
-    /// x: (B·T, S, C); time_context: (B, Lc, D) (first frame's context of each video).
-    fn forward(&self, x: &Tensor, time_context: &Tensor, frames: usize, splits: usize, max_elems: usize) -> Result<Tensor> {
-        let (n, s, c) = x.dims3()?;
+    /// x: (B·T, S, C) frame-major tokens; time_context: (B, Lc, D) (first frame's context of each video).
+    /// The block works per token except the temporal self-attention, which reads each pixel's sequence
+    /// over the frames through strides, so no (b t) s c ↔ (b s) t c transposes are made. Returns
+    /// `keep_coef·keep + (1 − keep_coef)·block(x)` (the AlphaBlender folded into the last gemm).
+    fn forward(&self, x: &Tensor, time_context: &Tensor, frames: usize, splits: usize, max_elems: usize, keep: (&Tensor, f32)) -> Result<Tensor> {
+        let _p = crate::prof::scope("transformer.temporal_block");
+        let (n, s, _) = x.dims3()?;
         let b = n / frames;
-        // (b t) s c -> (b s) t c
-        let h = x.reshape((b, frames, s, c))?.transpose(1, 2)?.contiguous()?.reshape((b * s, frames, c))?;
-        let h = (self.ff_in.forward(&self.norm_in.layer_norm(&h)?)? + &h)?;
-        let h = (self.attn1.forward_windows(&self.norm1.layer_norm(&h)?, splits, max_elems)? + &h)?;
-        let h = (self.attn2.forward(&self.norm2.layer_norm(&h)?, Some(time_context), max_elems)? + &h)?;
-        let h = (self.ff.forward(&self.norm3.layer_norm(&h)?)? + &h)?;
-        h.reshape((b, s, frames, c))?.transpose(1, 2)?.contiguous()?.reshape((n, s, c))
+        let splits = splits.max(1);
+        if frames % splits != 0 {
+            candle_core::bail!("num_splits {splits} does not divide the {frames} video frames");
+        }
+        let tw = frames / splits;
+        let h = self.ff_in.forward_fused(&self.norm_in.layer_norm(x)?, 1.0, &[(x, 1.0)])?;
+        let layout = SeqLayout { count: b * splits * s, len: tw, inner_count: s, outer: tw * s, inner: 1, pos: s };
+        let h = {
+            let _a = crate::prof::scope("attn.self_temporal");
+            self.attn1.self_attention(&self.norm1.layer_norm(&h)?, &h, layout, max_elems)?
+        };
+        let h = cross(&self.attn2, &self.norm2, &h, time_context, max_elems)?;
+        let a = 1.0 - keep.1;
+        self.ff.forward_fused(&self.norm3.layer_norm(&h)?, a, &[(&h, a), (keep.0, keep.1)])
     }
 }
 
@@ -233,25 +299,25 @@ impl SpatialVideoTransformer {
 
     /// x: (B·T, C, H, W); context: (B·T, Lc, D).
     pub fn forward(&self, x: &Tensor, context: &Tensor, frames: usize, splits: usize, max_elems: usize) -> Result<Tensor> {
+        let _p = crate::prof::scope("transformer.total");
         let (n, c, hh, ww) = x.dims4()?;
         let b = n / frames;
         let (_, lc, dc) = context.dims3()?;
         let time_context = context.reshape((b, frames, lc, dc))?.narrow(1, 0, 1)?.reshape((b, lc, dc))?;
         let h = self.norm.group_norm(x, 32, 1, false)?;
-        let h = h.permute((0, 2, 3, 1))?.contiguous()?.reshape((n, hh * ww, c))?;
-        let mut h = self.proj_in.forward(&h)?;
+        let (Some(bin), Some(bout)) = (&self.proj_in.bias, &self.proj_out.bias) else { candle_core::bail!("proj_in/proj_out without bias") };
+        let mut h = kernels::linear_from_channels_first(&h.reshape((n, c, hh * ww))?, &self.proj_in.weight, bin)?;
         let idx: Vec<f32> = (0..n).map(|i| (i % frames) as f32).collect();
         let t_emb = timestep_embedding(&idx, self.channels, self.max_period, x.device())?.to_dtype(x.dtype())?;
         let emb = self.time_pos_embed.1.forward(&self.time_pos_embed.0.forward(&t_emb)?.silu()?)?.unsqueeze(1)?;
         for (block, mix) in self.blocks.iter().zip(&self.time_stack) {
             h = block.forward(&h, context, max_elems)?;
             let hm = h.broadcast_add(&emb)?;
-            let hm = mix.forward(&hm, &time_context, frames, splits, max_elems)?;
-            h = blend(&h, &hm, self.alpha)?;
+            // AlphaBlender: alpha·spatial + (1 − alpha)·temporal, folded into the temporal block's last gemm.
+            h = mix.forward(&hm, &time_context, frames, splits, max_elems, (&h, self.alpha as f32))?;
         }
-        let h = self.proj_out.forward(&h)?;
-        let h = h.reshape((n, hh, ww, c))?.permute((0, 3, 1, 2))?;
-        h + x
+        let out = kernels::linear_to_channels_first(&h, &self.proj_out.weight, bout, &x.reshape((n, c, hh * ww))?)?;
+        out.reshape((n, c, hh, ww))
     }
 }
 

@@ -1,9 +1,11 @@
 //! sgm `video_model.py`: `VideoResBlock` and `VideoUNet` (input_blocks / middle_block / output_blocks / out).
 
 use candle_core::{Result, Tensor};
-use mvsplat360_nn::conv::{conv2d, Conv2dConfig};
+use mvsplat360_nn::conv::{conv2d, conv2d_fused, Conv2dConfig, ConvEpilogue};
 
-use super::util::{blend, sigmoid_scalar, timestep_embedding, Linear, Norm};
+use crate::kernels;
+
+use super::util::{sigmoid_scalar, timestep_embedding, Linear, Norm};
 use super::video_attention::{linear, norm, SpatialVideoTransformer};
 use super::weights::Weights;
 use super::VideoUNetConfig;
@@ -25,49 +27,37 @@ impl Conv {
     }
 
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        conv2d(x, &self.w, Some(&self.b), self.cfg)
+        self.forward_fused(x, ConvEpilogue::default())
+    }
+
+    fn forward_fused(&self, x: &Tensor, epi: ConvEpilogue) -> Result<Tensor> {
+        let _p = crate::prof::scope(if self.cfg.stride == 1 { "unet.conv" } else { "unet.conv_stride2" });
+        if self.cfg.stride == 1 || epi.item_bias.is_some() || epi.residual.is_some() || epi.upsample2x {
+            conv2d_fused(x, &self.w, Some(&self.b), self.cfg, epi)
+        } else {
+            conv2d(x, &self.w, Some(&self.b), self.cfg)
+        }
     }
 }
 
-/// Conv3d with kernel (kt, 1, 1), padding (kt/2, 0, 0) on (B·T, C, H, W): one gemm producing kt·Cout
-/// channels per frame, then the kt frame-shifted slices are summed (zero outside the video).
+/// Conv3d with kernel (kt, 1, 1), padding (kt/2, 0, 0) on (B·T, C, H, W), see [`kernels::temporal_conv`].
 #[derive(Debug)]
 struct TemporalConv {
-    w: Tensor, // (kt·Cout, Cin)
+    w: Tensor, // (Cout, kt·Cin), tap-major columns
     b: Tensor,
     kt: usize,
-    cout: usize,
 }
 
 impl TemporalConv {
     fn load(w: &Weights, p: &str, i: usize, o: usize, kt: usize) -> Result<Self> {
         let wt = w.get(&format!("{p}.weight"), &[o, i, kt, 1, 1])?;
-        let wt = wt.reshape((o, i, kt))?.permute((2, 0, 1))?.contiguous()?.reshape((kt * o, i))?;
-        Ok(Self { w: wt, b: w.get(&format!("{p}.bias"), &[o])?, kt, cout: o })
+        let wt = wt.reshape((o, i, kt))?.transpose(1, 2)?.contiguous()?.reshape((o, kt * i))?;
+        Ok(Self { w: wt, b: w.get(&format!("{p}.bias"), &[o])?, kt })
     }
 
-    fn forward(&self, x: &Tensor, frames: usize) -> Result<Tensor> {
-        let (n, c, h, w) = x.dims4()?;
-        let b = n / frames;
-        let s = h * w;
-        let y = self.w.broadcast_left(n)?.matmul(&x.reshape((n, c, s))?)?; // (n, kt·Cout, s)
-        let y = y.reshape((b, frames, self.kt, self.cout, s))?;
-        let pad = self.kt / 2;
-        let mut acc: Option<Tensor> = None;
-        for k in 0..self.kt {
-            // out[t] += y_k[t + k - pad]
-            let yk = y.narrow(2, k, 1)?.squeeze(2)?;
-            let shifted = yk.pad_with_zeros(1, pad, pad)?.narrow(1, k, frames)?;
-            acc = Some(match acc {
-                None => shifted,
-                Some(a) => (a + shifted)?,
-            });
-        }
-        let out = match acc {
-            Some(a) => a,
-            None => candle_core::bail!("temporal conv with empty kernel"),
-        };
-        out.reshape((n, self.cout, h, w))?.broadcast_add(&self.b.reshape((1, self.cout, 1, 1))?)
+    fn forward(&self, x: &Tensor, frames: usize, epi: ConvEpilogue) -> Result<Tensor> {
+        let _p = crate::prof::scope("unet.temporal_conv");
+        kernels::temporal_conv(x, &self.w, &self.b, self.kt, frames, epi.item_bias, epi.residual, epi.scale.unwrap_or(1.0))
     }
 }
 
@@ -90,10 +80,10 @@ enum Either {
 }
 
 impl Either {
-    fn forward(&self, x: &Tensor, frames: usize) -> Result<Tensor> {
+    fn forward(&self, x: &Tensor, frames: usize, epi: ConvEpilogue) -> Result<Tensor> {
         match self {
-            Either::Spatial(c) => c.forward(x),
-            Either::Temporal(c) => c.forward(x, frames),
+            Either::Spatial(c) => c.forward_fused(x, epi),
+            Either::Temporal(c) => c.forward(x, frames, epi),
         }
     }
 }
@@ -117,17 +107,21 @@ impl ResBlock {
         })
     }
 
-    /// `emb_act` = SiLU(emb), shared by every block.
-    fn forward(&self, x: &Tensor, emb_act: &Tensor, frames: usize) -> Result<Tensor> {
+    /// `emb_act` = SiLU(emb), shared by every block. Returns `skip(x) + out_scale·h` (out_scale folds the
+    /// AlphaBlender of a `time_stack` into the last conv).
+    fn forward(&self, x: &Tensor, emb_act: &Tensor, frames: usize, out_scale: Option<f32>) -> Result<Tensor> {
+        let _p = crate::prof::scope(if self.temporal { "unet.resblock_temporal" } else { "unet.resblock_spatial" });
         let f = if self.temporal { frames } else { 1 };
-        let h = self.conv1.forward(&self.norm1.group_norm(x, 32, f, true)?, frames)?;
         let e = self.emb.forward(emb_act)?;
-        let h = h.broadcast_add(&e.unsqueeze(2)?.unsqueeze(3)?)?;
-        let h = self.conv2.forward(&self.norm2.group_norm(&h, 32, f, true)?, frames)?;
-        match &self.skip {
-            Some(s) => s.forward(x)? + h,
-            None => x + h,
-        }
+        let epi1 = ConvEpilogue { item_bias: Some(&e), ..Default::default() };
+        let h = self.conv1.forward(&self.norm1.group_norm(x, 32, f, true)?, frames, epi1)?;
+        let skip = match &self.skip {
+            Some(s) => s.forward(x)?,
+            None => x.clone(),
+        };
+        let hn = self.norm2.group_norm(&h, 32, f, true)?;
+        drop(h);
+        self.conv2.forward(&hn, frames, ConvEpilogue { residual: Some(&skip), scale: out_scale, ..Default::default() })
     }
 }
 
@@ -149,10 +143,10 @@ impl VideoResBlock {
         })
     }
 
+    /// alpha·xs + (1−alpha)·(xs + h_t) = xs + (1−alpha)·h_t, folded into the temporal block's last conv.
     fn forward(&self, x: &Tensor, emb_act: &Tensor, frames: usize) -> Result<Tensor> {
-        let xs = self.spatial.forward(x, emb_act, frames)?;
-        let xt = self.time_stack.forward(&xs, emb_act, frames)?;
-        blend(&xs, &xt, self.alpha)
+        let xs = self.spatial.forward(x, emb_act, frames, None)?;
+        self.time_stack.forward(&xs, emb_act, frames, Some((1.0 - self.alpha) as f32))
     }
 }
 
@@ -288,10 +282,7 @@ impl VideoUNet {
                 Layer::Conv(c) | Layer::Down(c) => c.forward(&h)?,
                 Layer::Res(r) => r.forward(&h, emb_act, frames)?,
                 Layer::Attn(a) => a.forward(&h, ctx, frames, splits, max)?,
-                Layer::Up(c) => {
-                    let (_, _, hh, ww) = h.dims4()?;
-                    c.forward(&h.upsample_nearest2d(hh * 2, ww * 2)?)?
-                }
+                Layer::Up(c) => c.forward_fused(&h, ConvEpilogue { upsample2x: true, ..Default::default() })?,
             };
         }
         Ok(h)

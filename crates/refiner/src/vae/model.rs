@@ -2,7 +2,7 @@
 //! Inference only (fused candle ops are fine).
 
 use candle_core::{Result, Tensor};
-use mvsplat360_nn::conv::{conv2d, Conv2dConfig};
+use mvsplat360_nn::conv::{conv2d, conv2d_fused, Conv2dConfig, ConvEpilogue};
 
 use super::weights::StrictWeights;
 use super::AutoencoderConfig;
@@ -28,7 +28,16 @@ impl Conv {
     }
 
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        conv2d(x, &self.w, Some(&self.b), self.cfg)
+        self.forward_fused(x, ConvEpilogue::default())
+    }
+
+    pub fn forward_fused(&self, x: &Tensor, epi: ConvEpilogue) -> Result<Tensor> {
+        let _p = crate::prof::scope(if self.cfg.stride == 1 { "vae.conv" } else { "vae.conv_stride2" });
+        if self.cfg.stride == 1 || epi.residual.is_some() || epi.upsample2x {
+            conv2d_fused(x, &self.w, Some(&self.b), self.cfg, epi)
+        } else {
+            conv2d(x, &self.w, Some(&self.b), self.cfg)
+        }
     }
 }
 
@@ -73,11 +82,13 @@ impl ResnetBlock {
 
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         let h = self.conv1.forward(&self.norm1.forward(x, 1, true)?)?;
-        let h = self.conv2.forward(&self.norm2.forward(&h, 1, true)?)?;
-        match &self.nin_shortcut {
-            Some(s) => s.forward(x)? + h,
-            None => x + h,
-        }
+        let hn = self.norm2.forward(&h, 1, true)?;
+        drop(h);
+        let skip = match &self.nin_shortcut {
+            Some(s) => s.forward(x)?,
+            None => x.clone(),
+        };
+        self.conv2.forward_fused(&hn, ConvEpilogue { residual: Some(&skip), ..Default::default() })
     }
 }
 
@@ -110,6 +121,7 @@ impl AttnBlock {
     }
 
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let _p = crate::prof::scope("vae.attn");
         let (n, c, h, w) = x.dims4()?;
         let tokens = self.norm.forward(x, 1, false)?.reshape((n, c, h * w))?.transpose(1, 2)?.contiguous()?;
         let lin = |t: &Tensor, (wt, b): &(Tensor, Tensor)| -> Result<Tensor> {
@@ -154,8 +166,7 @@ impl Upsample {
     }
 
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        let (_, _, h, w) = x.dims4()?;
-        self.conv.forward(&x.upsample_nearest2d(2 * h, 2 * w)?)
+        self.conv.forward_fused(x, ConvEpilogue { upsample2x: true, ..Default::default() })
     }
 }
 

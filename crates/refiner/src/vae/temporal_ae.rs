@@ -32,34 +32,18 @@ impl TemporalConv {
     }
 
     pub fn forward(&self, x: &Tensor, frames: usize) -> Result<Tensor> {
-        let (n, c, h, w) = x.dims4()?;
-        if c != self.cin || frames == 0 || n % frames != 0 {
-            candle_core::bail!("temporal conv: input {:?} with {frames} frames, expected {} channels", x.dims(), self.cin);
+        self.forward_fused(x, frames, None, 1.0)
+    }
+
+    /// `residual + scale·conv(x)`.
+    pub fn forward_fused(&self, x: &Tensor, frames: usize, residual: Option<&Tensor>, scale: f32) -> Result<Tensor> {
+        let _p = crate::prof::scope("vae.temporal_conv");
+        let (_, c, _, _) = x.dims4()?;
+        if c != self.cin {
+            candle_core::bail!("temporal conv: input {:?}, expected {} channels", x.dims(), self.cin);
         }
-        let s = h * w;
-        let x = x.reshape((n, c, s))?;
-        let pad = self.kt / 2;
-        // Weight slices for each valid neighbour range [k0, k1), cached by range.
-        let mut cache: Vec<((usize, usize), Tensor)> = Vec::new();
-        let mut outs = Vec::with_capacity(n);
-        for item in 0..n {
-            let (bi, t) = (item / frames, item % frames);
-            // input frame t + k - pad must lie in [0, frames)
-            let k0 = pad.saturating_sub(t);
-            let k1 = self.kt.min(frames + pad - t);
-            let wk = match cache.iter().find(|(r, _)| *r == (k0, k1)) {
-                Some((_, t)) => t.clone(),
-                None => {
-                    let t = self.w.narrow(1, k0, k1 - k0)?.contiguous()?.reshape((self.cout, (k1 - k0) * c))?;
-                    cache.push(((k0, k1), t.clone()));
-                    t
-                }
-            };
-            let first = bi * frames + t + k0 - pad;
-            let src = x.narrow(0, first, k1 - k0)?.reshape(((k1 - k0) * c, s))?;
-            outs.push(wk.matmul(&src)?.broadcast_add(&self.b.reshape((self.cout, 1))?)?);
-        }
-        Tensor::stack(&outs, 0)?.reshape((n, self.cout, h, w))
+        let w = self.w.reshape((self.cout, self.kt * self.cin))?;
+        crate::kernels::temporal_conv(x, &w, &self.b, self.kt, frames, None, residual, scale)
     }
 }
 
@@ -82,10 +66,12 @@ impl TimeStack {
         })
     }
 
-    fn forward(&self, x: &Tensor, frames: usize) -> Result<Tensor> {
+    /// `x + scale·h` (scale folds the AlphaBlender into the last conv).
+    fn forward(&self, x: &Tensor, frames: usize, scale: f32) -> Result<Tensor> {
         let h = self.in_conv.forward(&self.in_norm.forward(x, frames, true)?, frames)?;
-        let h = self.out_conv.forward(&self.out_norm.forward(&h, frames, true)?, frames)?;
-        x + h
+        let hn = self.out_norm.forward(&h, frames, true)?;
+        drop(h);
+        self.out_conv.forward_fused(&hn, frames, Some(x), scale)
     }
 }
 
@@ -108,9 +94,13 @@ impl VideoResBlock {
     }
 
     pub fn forward(&self, x: &Tensor, frames: usize) -> Result<Tensor> {
-        let spatial = self.spatial.forward(x)?;
-        let temporal = self.time_stack.forward(&spatial, frames)?;
-        (temporal * self.alpha)? + (spatial * (1.0 - self.alpha))?
+        let spatial = {
+            let _p = crate::prof::scope("vae.resblock_spatial");
+            self.spatial.forward(x)?
+        };
+        let _p = crate::prof::scope("vae.resblock_temporal+blend");
+        // alpha·(xs + h) + (1 − alpha)·xs = xs + alpha·h
+        self.time_stack.forward(&spatial, frames, self.alpha as f32)
     }
 }
 
@@ -168,6 +158,7 @@ impl VideoDecoder {
 
     /// z (B·T, z, h, w), frames = T (the `timesteps` of one decode call) → (B·T, out_ch, 8h, 8w).
     pub fn forward(&self, z: &Tensor, frames: usize) -> Result<Tensor> {
+        let _p = crate::prof::scope("vae.decoder_total");
         let mut h = self.conv_in.forward(z)?;
         h = self.mid_block_1.forward(&h, frames)?;
         if let Some(b2) = &self.mid_block_2 {
@@ -182,6 +173,7 @@ impl VideoDecoder {
                 h = u.forward(&h)?;
             }
         }
+        let _u = crate::prof::scope("vae.out");
         let h = self.conv_out.forward(&self.norm_out.forward(&h, 1, true)?)?;
         self.time_mix_conv.forward(&h, frames)
     }
