@@ -92,3 +92,29 @@ impl Default for EncoderCostVolumeCfg {
         }
     }
 }
+
+impl EncoderCostVolumeCfg {
+    /// A small configuration for fast tests with random weights (same code paths as DL3DV: windows, shifted
+    /// blocks, nearest-view selection, both UNets with attention). Use 3 views and H, W multiples of 32.
+    pub fn tiny() -> Self {
+        Self {
+            d_feature: 32,
+            num_depth_candidates: 16,
+            costvolume_unet_feat_dim: 32,
+            costvolume_unet_channel_mult: vec![1, 1],
+            costvolume_unet_attn_res: vec![2],
+            depth_unet_feat_dim: 32,
+            depth_unet_channel_mult: vec![1, 1],
+            depth_unet_attn_res: vec![2],
+            num_transformer_layers: 2,
+            num_views: 3,
+            ..Self::default()
+        }
+    }
+
+    /// Images must be a multiple of this size (the official data shim crops to `shim_patch_size ·
+    /// downscale_factor`).
+    pub fn image_multiple(&self) -> usize {
+        self.shim_patch_size * self.downscale_factor
+    }
+}

@@ -1,0 +1,133 @@
+//! `mvsplat360 bench encoder`: forward time of the encoder with random weights (DL3DV configuration).
+
+use std::time::Instant;
+
+use candle_core::{DType, Device, Tensor};
+use candle_nn::VarBuilder;
+use serde_json::json;
+
+use crate::backbone::{camera_distances, BackboneMultiview};
+use crate::config::EncoderCostVolumeCfg;
+use crate::weights::random_tensors;
+
+#[derive(Debug, thiserror::Error)]
+pub enum BenchError {
+    #[error("bench: {0}")]
+    Candle(#[from] candle_core::Error),
+    #[error("bench: {0}")]
+    Setup(String),
+}
+
+/// Peak resident memory of this process in MiB (`VmHWM`), 0 where /proc is unavailable.
+pub fn peak_rss_mib() -> f64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines().find(|l| l.starts_with("VmHWM:")).and_then(|l| l.split_whitespace().nth(1)?.parse::<f64>().ok())
+        })
+        .map(|kb| kb / 1024.0)
+        .unwrap_or(0.0)
+}
+
+/// Use `threads` worker threads (0 = all cores) for candle's CPU kernels and rayon. Call before any tensor work.
+pub fn set_threads(threads: usize) -> Result<(), BenchError> {
+    if threads > 0 {
+        std::env::set_var("RAYON_NUM_THREADS", threads.to_string());
+        // An already-built global pool (second call in one process) is fine: keep it.
+        let _ = rayon::ThreadPoolBuilder::new().num_threads(threads).build_global();
+    }
+    Ok(())
+}
+
+/// Synthetic context: smooth images in [0,1], cameras on an arc looking at the origin, normalised K.
+pub fn synthetic_context(b: usize, v: usize, h: usize, w: usize, device: &Device) -> candle_core::Result<[Tensor; 5]> {
+    let mut img = Vec::with_capacity(b * v * 3 * h * w);
+    for bi in 0..b {
+        for vi in 0..v {
+            for c in 0..3 {
+                for y in 0..h {
+                    for x in 0..w {
+                        let t = (x as f32 * 0.05 + y as f32 * 0.03 + (vi + bi) as f32 * 0.7 + c as f32).sin();
+                        img.push(0.5 + 0.4 * t);
+                    }
+                }
+            }
+        }
+    }
+    let images = Tensor::from_vec(img, (b, v, 3, h, w), device)?;
+    let mut ext = Vec::with_capacity(b * v * 16);
+    for _ in 0..b {
+        for vi in 0..v {
+            let ang = -1.0f32 + 2.0 * vi as f32 / (v.max(2) - 1) as f32;
+            let c = [2.0 * ang.sin(), 0.05 * vi as f32, -2.0 * ang.cos()];
+            // Look at the origin: z = −c/|c|, x = y_world(0,1,0)... OpenCV: y down.
+            let n = (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]).sqrt();
+            let z = [-c[0] / n, -c[1] / n, -c[2] / n];
+            let down = [0.0f32, 1.0, 0.0];
+            let mut x = [down[1] * z[2] - down[2] * z[1], down[2] * z[0] - down[0] * z[2], down[0] * z[1] - down[1] * z[0]];
+            let xn = (x[0] * x[0] + x[1] * x[1] + x[2] * x[2]).sqrt();
+            x = [x[0] / xn, x[1] / xn, x[2] / xn];
+            let y = [z[1] * x[2] - z[2] * x[1], z[2] * x[0] - z[0] * x[2], z[0] * x[1] - z[1] * x[0]];
+            ext.extend_from_slice(&[x[0], y[0], z[0], c[0], x[1], y[1], z[1], c[1], x[2], y[2], z[2], c[2], 0.0, 0.0, 0.0, 1.0]);
+        }
+    }
+    let extrinsics = Tensor::from_vec(ext, (b, v, 4, 4), device)?;
+    let k = Tensor::new(&[[0.75f32, 0.0, 0.5], [0.0, 1.3, 0.5], [0.0, 0.0, 1.0]], device)?;
+    let intrinsics = k.broadcast_as((b, v, 3, 3))?.contiguous()?;
+    let near = Tensor::ones((b, v), DType::F32, device)?;
+    let far = (Tensor::ones((b, v), DType::F32, device)? * 100.0)?;
+    Ok([images, intrinsics, extrinsics, near, far])
+}
+
+fn median(mut xs: Vec<f64>) -> f64 {
+    xs.sort_by(f64::total_cmp);
+    xs[xs.len() / 2]
+}
+
+/// Backbone only (CNN + transformer), for a breakdown of the encoder time.
+pub fn run_backbone_bench(views: usize, height: usize, width: usize, threads: usize, runs: usize) -> Result<serde_json::Value, BenchError> {
+    set_threads(threads)?;
+    let cfg = EncoderCostVolumeCfg { num_views: views, ..Default::default() };
+    let dev = Device::Cpu;
+    let build = |vb: VarBuilder| BackboneMultiview::new(vb.pp("encoder").pp("backbone"), cfg.d_feature, cfg.num_transformer_layers, cfg.ffn_dim_expansion);
+    let weights = random_tensors(0, &dev, build)?;
+    let model = build(VarBuilder::from_tensors(weights, DType::F32, &dev))?;
+    let [images, _, extrinsics, _, _] = synthetic_context(1, views, height, width, &dev)?;
+    let mut times = Vec::new();
+    for i in 0..runs.max(1) + 1 {
+        let t0 = Instant::now();
+        let (_, index) = camera_distances(&extrinsics)?;
+        let n = cfg.multiview_trans_nearest_n_views;
+        let nn: Vec<Vec<Vec<u32>>> = index.iter().map(|b| b.iter().map(|r| r[..n.min(r.len())].to_vec()).collect()).collect();
+        let out = model.forward(&images, cfg.multiview_trans_attn_split, Some(&nn), false)?;
+        let _ = out.trans_features.sum_all()?.to_scalar::<f32>()?;
+        if i > 0 {
+            times.push(t0.elapsed().as_secs_f64() * 1e3);
+        }
+    }
+    Ok(json!({"bench": "encoder_backbone", "views": views, "height": height, "width": width,
+        "forward_ms": median(times), "peak_mib": peak_rss_mib()}))
+}
+
+/// The full encoder (DL3DV configuration, `views` context views, random weights): median forward time over `runs`
+/// runs after one warm-up, and the process's peak RSS.
+pub fn run_encoder_bench(views: usize, height: usize, width: usize, threads: usize, runs: usize) -> Result<serde_json::Value, BenchError> {
+    set_threads(threads)?;
+    let cfg = EncoderCostVolumeCfg { num_views: views, ..Default::default() };
+    let dev = Device::Cpu;
+    let build = |vb: VarBuilder| crate::EncoderCostVolume::new(vb.pp("encoder"), &cfg);
+    let weights = random_tensors(0, &dev, build)?;
+    let model = build(VarBuilder::from_tensors(weights, DType::F32, &dev))?;
+    let [images, intrinsics, extrinsics, near, far] = synthetic_context(1, views, height, width, &dev)?;
+    let mut times = Vec::new();
+    for i in 0..runs.max(1) + 1 {
+        let t0 = Instant::now();
+        let g = model.forward(&images, &intrinsics, &extrinsics, &near, &far)?;
+        let _ = g.means.sum_all()?.to_scalar::<f32>()?;
+        if i > 0 {
+            times.push(t0.elapsed().as_secs_f64() * 1e3);
+        }
+    }
+    Ok(json!({"bench": "encoder", "views": views, "height": height, "width": width,
+        "forward_ms": median(times), "peak_mib": peak_rss_mib()}))
+}

@@ -1,0 +1,169 @@
+//! Layers shared by the UNet and the depth predictor (`ldm_unet/util.py`). GroupNorm is composed from
+//! differentiable ops (candle's fused norms record no backward); statistics are taken in f32 as the official
+//! `GroupNorm8`/`GroupNorm4` do.
+
+use candle_core::{DType, Module, Result, Tensor, D};
+use candle_nn::VarBuilder;
+
+/// `nn.Conv2d(c_in, c_out, k, stride, padding)` with bias, PyTorch weight layout `[out, in, k, k]`.
+#[derive(Debug, Clone)]
+pub struct Conv2d {
+    pub weight: Tensor,
+    pub bias: Tensor,
+    pub stride: usize,
+    pub padding: usize,
+}
+
+impl Conv2d {
+    pub fn new(vb: VarBuilder, c_in: usize, c_out: usize, k: usize, stride: usize, padding: usize) -> Result<Self> {
+        Ok(Self { weight: vb.get((c_out, c_in, k, k), "weight")?, bias: vb.get(c_out, "bias")?, stride, padding })
+    }
+
+    /// "Same" 3×3 convolution (stride 1, padding 1).
+    pub fn same3(vb: VarBuilder, c_in: usize, c_out: usize) -> Result<Self> {
+        Self::new(vb, c_in, c_out, 3, 1, 1)
+    }
+}
+
+/// Largest im2col buffer (values) one convolution call may need; bigger ones run per image, then per band of
+/// output rows. At DL3DV size the full-resolution Gaussian head would otherwise allocate ~5 GB at once.
+const IM2COL_BUDGET: usize = 48 << 20;
+
+impl Module for Conv2d {
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        self.forward_budget(x, IM2COL_BUDGET)
+    }
+}
+
+impl Conv2d {
+    fn forward_budget(&self, x: &Tensor, budget: usize) -> Result<Tensor> {
+        let (n, cin, h, w) = x.dims4()?;
+        let (_, _, k, _) = self.weight.dims4()?;
+        let (s, pd) = (self.stride, self.padding);
+        if h + 2 * pd < k || w + 2 * pd < k {
+            candle_core::bail!("conv2d: kernel {k} larger than padded input {h}x{w}");
+        }
+        let ho = (h + 2 * pd - k) / s + 1;
+        let wo = (w + 2 * pd - k) / s + 1;
+        let per_row = wo * cin * k * k;
+        let y = if n * ho * per_row <= budget || k == 1 {
+            crate::backbone::conv::conv2d(x, &self.weight, s, pd)?
+        } else if ho * per_row <= budget {
+            let per = (budget / (ho * per_row)).max(1);
+            let parts = (0..n).step_by(per).map(|i| crate::backbone::conv::conv2d(&x.narrow(0, i, per.min(n - i))?, &self.weight, s, pd)).collect::<Result<Vec<_>>>()?;
+            Tensor::cat(&parts, 0)?
+        } else {
+            // Bands of output rows over the zero-padded input (differentiable: pad/narrow/cat).
+            let xp = x.pad_with_zeros(2, pd, pd)?.pad_with_zeros(3, pd, pd)?;
+            let rows = (budget / per_row).max(1);
+            let mut per_image = Vec::with_capacity(n);
+            for i in 0..n {
+                let xi = xp.narrow(0, i, 1)?;
+                let mut bands = Vec::new();
+                let mut r0 = 0;
+                while r0 < ho {
+                    let r1 = (r0 + rows).min(ho);
+                    let band = xi.narrow(2, r0 * s, (r1 - 1) * s + k - r0 * s)?;
+                    bands.push(crate::backbone::conv::conv2d(&band, &self.weight, s, 0)?);
+                    r0 = r1;
+                }
+                per_image.push(Tensor::cat(&bands, 2)?);
+            }
+            Tensor::cat(&per_image, 0)?
+        };
+        y.broadcast_add(&self.bias.reshape((1, (), 1, 1))?)
+    }
+}
+
+/// `nn.Conv1d(c_in, c_out, 1)` on `[N, C, T]` (weight `[out, in, 1]`), as one matrix product.
+#[derive(Debug, Clone)]
+pub struct Conv1x1 {
+    pub weight: Tensor,
+    pub bias: Tensor,
+}
+
+impl Conv1x1 {
+    pub fn new(vb: VarBuilder, c_in: usize, c_out: usize) -> Result<Self> {
+        Ok(Self { weight: vb.get((c_out, c_in, 1), "weight")?, bias: vb.get(c_out, "bias")? })
+    }
+}
+
+impl Module for Conv1x1 {
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let (n, _, _) = x.dims3()?;
+        let w = self.weight.squeeze(2)?;
+        w.broadcast_left(n)?.matmul(&x.contiguous()?)?.broadcast_add(&self.bias.reshape((1, (), 1))?)
+    }
+}
+
+/// `nn.GroupNorm(groups, channels)` (eps 1e-5) on `[N, C, ...]`.
+#[derive(Debug, Clone)]
+pub struct GroupNorm {
+    pub weight: Tensor,
+    pub bias: Tensor,
+    groups: usize,
+    eps: f64,
+}
+
+impl GroupNorm {
+    pub fn new(vb: VarBuilder, groups: usize, channels: usize) -> Result<Self> {
+        if groups == 0 || channels % groups != 0 {
+            candle_core::bail!("GroupNorm at `{}`: {channels} channels not divisible into {groups} groups", vb.prefix());
+        }
+        Ok(Self { weight: vb.get(channels, "weight")?, bias: vb.get(channels, "bias")?, groups, eps: 1e-5 })
+    }
+
+    /// The UNet's `normalization(channels)`: 8 groups when divisible, else 4.
+    pub fn unet(vb: VarBuilder, channels: usize) -> Result<Self> {
+        Self::new(vb, if channels % 8 == 0 { 8 } else { 4 }, channels)
+    }
+}
+
+impl Module for GroupNorm {
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let dims = x.dims().to_vec();
+        let (n, c) = (dims[0], dims[1]);
+        let in_dtype = x.dtype();
+        let xg = x.to_dtype(DType::F32)?.reshape((n, self.groups, ()))?;
+        let mean = xg.mean_keepdim(D::Minus1)?;
+        let xc = xg.broadcast_sub(&mean)?;
+        let var = xc.sqr()?.mean_keepdim(D::Minus1)?;
+        let xn = xc.broadcast_div(&(var + self.eps)?.sqrt()?)?.reshape(dims.as_slice())?;
+        let mut pshape = vec![1usize; dims.len()];
+        pshape[1] = c;
+        let w = self.weight.to_dtype(DType::F32)?.reshape(pshape.as_slice())?;
+        let b = self.bias.to_dtype(DType::F32)?.reshape(pshape.as_slice())?;
+        xn.broadcast_mul(&w)?.broadcast_add(&b)?.to_dtype(in_dtype)
+    }
+}
+
+/// Exact (erf) GELU, as `nn.GELU()`.
+pub fn gelu(x: &Tensor) -> Result<Tensor> {
+    x.gelu_erf()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use candle_core::Device;
+
+    #[test]
+    fn banded_convolution_equals_direct() {
+        let dev = Device::Cpu;
+        for &(stride, padding) in &[(1usize, 1usize), (2, 1)] {
+            let conv = Conv2d {
+                weight: Tensor::randn(0f32, 0.3, (5, 3, 3, 3), &dev).unwrap(),
+                bias: Tensor::randn(0f32, 0.3, 5, &dev).unwrap(),
+                stride,
+                padding,
+            };
+            let x = Tensor::randn(0f32, 1.0, (2, 3, 11, 9), &dev).unwrap();
+            let direct = conv.forward_budget(&x, usize::MAX).unwrap();
+            for budget in [1usize, 100, 400] {
+                let banded = conv.forward_budget(&x, budget).unwrap();
+                let e = (&banded - &direct).unwrap().abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap();
+                assert!(e < 1e-5, "stride {stride} budget {budget}: max diff {e}");
+            }
+        }
+    }
+}
