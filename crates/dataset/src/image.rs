@@ -27,6 +27,31 @@ impl ImageF32 {
         ImageF32 { width: w, height: h, data }
     }
 
+    /// Bilinear resize with pixel centres aligned (PyTorch's `align_corners=False`, no antialiasing).
+    pub fn resize_bilinear(&self, w: u32, h: u32) -> ImageF32 {
+        let (sw, sh) = (self.width as usize, self.height as usize);
+        let (w, h) = (w as usize, h as usize);
+        let mut data = vec![0f32; 3 * w * h];
+        let (rx, ry) = (sw as f32 / w as f32, sh as f32 / h as f32);
+        for y in 0..h {
+            let fy = ((y as f32 + 0.5) * ry - 0.5).clamp(0.0, (sh - 1) as f32);
+            let (y0, ty) = (fy.floor() as usize, fy - fy.floor());
+            let y1 = (y0 + 1).min(sh - 1);
+            for x in 0..w {
+                let fx = ((x as f32 + 0.5) * rx - 0.5).clamp(0.0, (sw - 1) as f32);
+                let (x0, tx) = (fx.floor() as usize, fx - fx.floor());
+                let x1 = (x0 + 1).min(sw - 1);
+                for c in 0..3 {
+                    let p = |yy: usize, xx: usize| self.data[(c * sh + yy) * sw + xx];
+                    let top = p(y0, x0) * (1.0 - tx) + p(y0, x1) * tx;
+                    let bot = p(y1, x0) * (1.0 - tx) + p(y1, x1) * tx;
+                    data[(c * h + y) * w + x] = top * (1.0 - ty) + bot * ty;
+                }
+            }
+        }
+        ImageF32 { width: w as u32, height: h as u32, data }
+    }
+
     /// To 8-bit RGB (rounded, clamped).
     pub fn to_rgb8(&self) -> ::image::RgbImage {
         let (w, h) = (self.width as usize, self.height as usize);
@@ -109,5 +134,18 @@ mod tests {
         assert_eq!((c.width, c.height), (3, 2));
         assert_eq!(c.to_rgb8().get_pixel(0, 0), img.get_pixel(1, 2));
         assert_eq!(c.to_rgb8().get_pixel(2, 1), img.get_pixel(3, 3));
+    }
+
+    #[test]
+    fn bilinear_resize_closed_form() {
+        // A horizontal ramp v = x/7 on 8 columns halved to 4: output pixel x samples source x' = 2x + 0.5,
+        // so the ramp value is (2x + 0.5)/7 exactly (interior, no clamping).
+        let data: Vec<f32> = (0..3).flat_map(|_| (0..2).flat_map(|_| (0..8).map(|x| x as f32 / 7.0))).collect();
+        let img = ImageF32 { width: 8, height: 2, data };
+        let r = img.resize_bilinear(4, 1);
+        for x in 0..4 {
+            assert!((r.data[x] - (2.0 * x as f32 + 0.5) / 7.0).abs() < 1e-6);
+        }
+        assert_eq!(img.resize_bilinear(8, 2), img);
     }
 }

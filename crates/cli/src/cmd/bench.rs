@@ -21,6 +21,24 @@ struct Common {
 
 #[derive(Subcommand)]
 enum What {
+    /// Rasterizer forward and forward+backward on a synthetic depth-layered scene (pixel-aligned Gaussians of
+    /// several 256×448 views) rendered into one view with latent features.
+    Raster {
+        /// Number of Gaussians (default: 5 views × 256 × 448).
+        #[arg(long, default_value_t = 573_440)]
+        gaussians: usize,
+        /// Rendered image width.
+        #[arg(long, default_value_t = 448)]
+        width: usize,
+        /// Rendered image height.
+        #[arg(long, default_value_t = 256)]
+        height: usize,
+        /// Latent feature channels rendered beside RGB.
+        #[arg(long, default_value_t = 4)]
+        features: usize,
+        #[command(flatten)]
+        common: Common,
+    },
     /// Encoder forward (DL3DV configuration, random weights): time and peak memory.
     Encoder {
         /// Context views.
@@ -56,6 +74,20 @@ enum What {
 
 pub fn run(args: Args) -> anyhow::Result<()> {
     let line = match args.what {
+        What::Raster { gaussians, width, height, features, common } => {
+            if gaussians == 0 || width == 0 || height == 0 {
+                anyhow::bail!("bench raster: --gaussians, --width and --height must be positive");
+            }
+            let opts = mvsplat360_splat::bench::RasterBenchOpts {
+                gaussians,
+                width,
+                height,
+                features,
+                threads: common.threads,
+                runs: common.runs,
+            };
+            mvsplat360_splat::bench::run_raster_bench(&opts)?
+        }
         What::Encoder { views, height, width, backbone_only, common } => {
             if height % 64 != 0 || width % 64 != 0 || views < 2 {
                 anyhow::bail!("bench encoder: need --views ≥ 2 and --height/--width multiples of 64 (got {views}, {height}x{width})");

@@ -5,7 +5,6 @@ use std::path::PathBuf;
 use anyhow::{bail, Context};
 use candle_core::{Device, Tensor};
 use mvsplat360_camera::Camera;
-use mvsplat360_dataset::ImageF32;
 use mvsplat360_encoder::encoder_costvolume::{camera_tensors, to_splat_gaussians, EncoderCostVolume};
 use mvsplat360_encoder::EncoderCostVolumeCfg;
 
@@ -37,31 +36,6 @@ pub struct Args {
     far: f32,
 }
 
-/// Bilinear resize (pixel centres aligned, as `align_corners=False`) of a CHW image.
-fn resize(img: &ImageF32, w: u32, h: u32) -> ImageF32 {
-    let (sw, sh) = (img.width as usize, img.height as usize);
-    let (w, h) = (w as usize, h as usize);
-    let mut data = vec![0f32; 3 * w * h];
-    let (rx, ry) = (sw as f32 / w as f32, sh as f32 / h as f32);
-    for y in 0..h {
-        let fy = ((y as f32 + 0.5) * ry - 0.5).clamp(0.0, (sh - 1) as f32);
-        let (y0, ty) = (fy.floor() as usize, fy - fy.floor());
-        let y1 = (y0 + 1).min(sh - 1);
-        for x in 0..w {
-            let fx = ((x as f32 + 0.5) * rx - 0.5).clamp(0.0, (sw - 1) as f32);
-            let (x0, tx) = (fx.floor() as usize, fx - fx.floor());
-            let x1 = (x0 + 1).min(sw - 1);
-            for c in 0..3 {
-                let p = |yy: usize, xx: usize| img.data[(c * sh + yy) * sw + xx];
-                let top = p(y0, x0) * (1.0 - tx) + p(y0, x1) * tx;
-                let bot = p(y1, x0) * (1.0 - tx) + p(y1, x1) * tx;
-                data[(c * h + y) * w + x] = top * (1.0 - ty) + bot * ty;
-            }
-        }
-    }
-    ImageF32 { width: w as u32, height: h as u32, data }
-}
-
 pub fn run(args: Args, quiet: bool) -> anyhow::Result<()> {
     let scene = mvsplat360_dataset::read_scene(&args.scene).with_context(|| format!("reading scene {}", args.scene.display()))?;
     if args.context < 2 {
@@ -86,7 +60,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<()> {
         let mut cam = scene.cameras[i].clone();
         if args.resize_width > 0 && img.width != args.resize_width {
             let h = ((img.height as f64 * args.resize_width as f64 / img.width as f64).round() as u32).max(1);
-            img = resize(&img, args.resize_width, h);
+            img = img.resize_bilinear(args.resize_width, h);
             cam = cam.rescaled(args.resize_width, h);
         }
         let rect = cam.center_crop_rect(multiple).with_context(|| format!("view {}", scene.view_names[i]))?;
@@ -124,9 +98,17 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<()> {
 fn write_outputs(g: &mvsplat360_splat::Gaussians, ply: &std::path::Path, splat: Option<&std::path::Path>) -> anyhow::Result<()> {
     use mvsplat360_splat::io::{write_ply, write_splat, ExportGaussians};
     let eg = ExportGaussians::from_gaussians(g).context("converting Gaussians to the file parameterisation")?;
-    write_ply(ply, &eg).with_context(|| format!("writing {}", ply.display()))?;
+    // Write beside the target and rename, so an interrupted run never leaves a truncated file behind.
+    let atomic = |path: &std::path::Path, write: &dyn Fn(&std::path::Path) -> anyhow::Result<()>| -> anyhow::Result<()> {
+        let mut tmp = path.as_os_str().to_owned();
+        tmp.push(".partial");
+        let tmp = std::path::PathBuf::from(tmp);
+        write(&tmp).with_context(|| format!("writing {}", path.display()))?;
+        std::fs::rename(&tmp, path).with_context(|| format!("moving {} into place", tmp.display()))
+    };
+    atomic(ply, &|p| Ok(write_ply(p, &eg)?))?;
     if let Some(s) = splat {
-        write_splat(s, &eg).with_context(|| format!("writing {}", s.display()))?;
+        atomic(s, &|p| Ok(write_splat(p, &eg)?))?;
     }
     Ok(())
 }
