@@ -1,5 +1,6 @@
 //! `mvsplat360 bench raster`: forward and forward+backward time of the CPU rasterizer on a synthetic,
-//! MVSplat-like scene (one Gaussian per context pixel, depth-layered), rendered into one view.
+//! MVSplat-like scene (one Gaussian per context pixel, depth-layered; the spec shared with the PyTorch reference
+//! in scripts/bench-reference/README.md), rendered into one view.
 
 use std::time::Instant;
 
@@ -30,102 +31,164 @@ impl Default for RasterBenchOpts {
     }
 }
 
-/// A synthetic scene in plain buffers (see [`synthetic_scene`]).
+/// The benchmark scene in plain buffers (see [`synthetic_scene`]).
 pub struct SyntheticScene {
     pub means: Vec<f32>,
-    pub cov3d: Vec<f32>,
+    /// (N,3) linear scales
+    pub scales: Vec<f32>,
+    /// (N,4) unit quaternions (w,x,y,z)
+    pub quats: Vec<f32>,
     pub opacities: Vec<f32>,
-    /// (N,16,3)
+    /// (N,25,3)
     pub sh: Vec<f32>,
     pub features: Vec<f32>,
     pub num_features: usize,
     pub camera: RasterCamera,
+    /// Loss weights as planar pixel gradients: (3,H,W) and (C,H,W).
+    pub w1: Vec<f32>,
+    pub w2: Vec<f32>,
 }
 
 impl SyntheticScene {
     pub fn inputs(&self) -> RasterInputs<'_> {
         RasterInputs {
             means: &self.means,
-            cov: CovInput::Cov3d(&self.cov3d),
+            cov: CovInput::ScaleRot { scales: &self.scales, quats: &self.quats },
             opacities: &self.opacities,
             sh: &self.sh,
-            sh_coeffs: 16,
-            sh_degree: 3,
+            sh_coeffs: 25,
+            sh_degree: 4,
             features: &self.features,
             num_features: self.num_features,
         }
     }
 }
 
-fn hash(mut x: u64) -> u64 {
-    x = x.wrapping_add(0x9E37_79B9_7F4A_7C15);
-    x = (x ^ (x >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-    x = (x ^ (x >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-    x ^ (x >> 31)
+fn lowbias32(mut x: u32) -> u32 {
+    x ^= x >> 16;
+    x = x.wrapping_mul(0x7feb_352d);
+    x ^= x >> 15;
+    x = x.wrapping_mul(0x846c_a68b);
+    x ^ (x >> 16)
 }
 
-fn unit(i: u64, k: u64) -> f32 {
-    (hash(i.wrapping_mul(31).wrapping_add(k)) >> 40) as f32 / (1u64 << 24) as f32
+/// u(k, i) in [0,1) of the shared bench spec.
+fn unit(k: u32, i: u64) -> f32 {
+    (lowbias32((i as u32) ^ lowbias32(k)) >> 8) as f32 * (1.0 / 16_777_216.0)
 }
 
-/// Depth-layered scene seen by `ceil(n / (w·h))` context cameras (small baselines), one Gaussian per
-/// context pixel sized to its pixel footprint, rendered from the centre camera.
+fn norm3(v: [f32; 3]) -> [f32; 3] {
+    let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+    [v[0] / n, v[1] / n, v[2] / n]
+}
+
+fn cross(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
+    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+}
+
+/// Camera at (2 sin θ, h, −2 cos θ) looking at the origin (OpenCV axes): (rotation columns x, y, z; centre).
+fn look_at(theta: f32, h: f32) -> ([[f32; 3]; 3], [f32; 3]) {
+    let c = [2.0 * (theta as f64).sin() as f32, h, -2.0 * (theta as f64).cos() as f32];
+    let z = norm3([-c[0], -c[1], -c[2]]);
+    let x = norm3(cross([0.0, 1.0, 0.0], z));
+    let y = cross(z, x);
+    ([x, y, z], c)
+}
+
+const LAYER_DEPTHS: [f32; 4] = [1.5, 2.5, 4.0, 8.0];
+
+/// The shared raster bench scene (scripts/bench-reference/README.md, "Synthetic raster scene"; the PyTorch
+/// reference generates the same): N pixel-aligned, depth-layered Gaussians from source views of W×H pixels
+/// (5 views by default), rendered into one W×H view.
 pub fn synthetic_scene(n: usize, w: usize, h: usize, nf: usize) -> SyntheticScene {
-    let (fx, fy) = (0.8 * w as f32, 0.8 * w as f32);
-    let (cx, cy) = (w as f32 / 2.0, h as f32 / 2.0);
-    let mut ident = [[0f32; 4]; 4];
-    for (i, r) in ident.iter_mut().enumerate() {
-        r[i] = 1.0;
+    let (fx, fy, cx, cy) = (0.75 * w as f32, 1.3 * h as f32, 0.5 * w as f32, 0.5 * h as f32);
+    let hw = (w * h).max(1);
+    let n_src = n.div_ceil(hw);
+    let srcs: Vec<_> = (0..n_src).map(|v| look_at(-0.5 + 0.25 * (v % 5) as f32, 0.05 * (v / 5) as f32)).collect();
+    let (rr, rc) = look_at(0.1, 0.0);
+    // viewmatrix = inverse(c2w) = [Rᵀ | −Rᵀ c] (R's columns are the camera axes).
+    let mut v = [[0f32; 4]; 4];
+    for i in 0..3 {
+        for j in 0..3 {
+            v[i][j] = rr[i][j];
+        }
+        v[i][3] = -(rr[i][0] * rc[0] + rr[i][1] * rc[1] + rr[i][2] * rc[2]);
     }
-    let camera = RasterCamera { viewmatrix: ident, fx, fy, cx, cy, width: w, height: h, near: 0.5, far: 100.0 };
-    let px = (w * h).max(1);
+    v[3][3] = 1.0;
+    let camera = RasterCamera { viewmatrix: v, fx, fy, cx, cy, width: w, height: h, near: 0.01, far: 100.0 };
     let mut s = SyntheticScene {
         means: vec![0.0; 3 * n],
-        cov3d: vec![0.0; 6 * n],
+        scales: vec![0.0; 3 * n],
+        quats: vec![0.0; 4 * n],
         opacities: vec![0.0; n],
-        sh: vec![0.0; 48 * n],
+        sh: vec![0.0; 75 * n],
         features: vec![0.0; nf * n],
         num_features: nf,
         camera,
+        w1: vec![0.0; 3 * w * h],
+        w2: vec![0.0; nf * w * h],
     };
     s.means
         .par_chunks_mut(3)
-        .zip(s.cov3d.par_chunks_mut(6))
+        .zip(s.scales.par_chunks_mut(3))
+        .zip(s.quats.par_chunks_mut(4))
         .zip(s.opacities.par_iter_mut())
-        .zip(s.sh.par_chunks_mut(48))
+        .zip(s.sh.par_chunks_mut(75))
         .enumerate()
-        .for_each(|(i, (((m, c), o), shc))| {
-            let view = i / px;
-            let (u, v) = ((i % px) % w, (i % px) / w);
-            let iu = i as u64;
-            // Context camera centres on a small circle around the target camera (translation only).
-            let ang = view as f32 * 1.3;
-            let off = if view == 0 { [0.0, 0.0] } else { [0.15 * ang.cos(), 0.08 * ang.sin()] };
-            // Layers: far wall, two blocky mid layers, a near slab in one corner.
-            let (uf, vf) = (u as f32 / w as f32, v as f32 / h as f32);
-            let mut d = 8.0 + 0.5 * (uf * 6.0).sin();
-            if ((uf * 5.0) as i32 + (vf * 3.0) as i32) % 2 == 0 {
-                d = 4.0 + vf;
+        .for_each(|(g, ((((m, sc), q), o), shc))| {
+            let gi = g as u64;
+            let (sv, p) = (g / hw, g % hw);
+            let (px, py) = (p % w, p / w);
+            let (r, c) = &srcs[sv];
+            let ray = norm3([
+                (px as f32 + unit(0, gi) - cx) / fx,
+                (py as f32 + unit(1, gi) - cy) / fy,
+                1.0,
+            ]);
+            let block = (sv * 1_000_000 + (py / 32) * 1000 + px / 32) as u64;
+            let layer = ((5.0 * unit(2, block)) as usize).min(3);
+            let d = LAYER_DEPTHS[layer] * (0.95 + 0.1 * unit(3, gi));
+            for i in 0..3 {
+                let rw = r[0][i] * ray[0] + r[1][i] * ray[1] + r[2][i] * ray[2];
+                m[i] = c[i] + d * rw;
             }
-            if uf < 0.35 && vf > 0.55 {
-                d = 2.0 + 0.3 * uf;
+            let foot = d / fx;
+            for j in 0..3 {
+                sc[j] = foot * (0.5 + 1.5 * unit(4 + j as u32, gi));
             }
-            d *= 1.0 + 0.01 * (unit(iu, 1) - 0.5);
-            let x = (u as f32 + 0.5 - cx) / fx * d + off[0];
-            let y = (v as f32 + 0.5 - cy) / fy * d + off[1];
-            m.copy_from_slice(&[x, y, d]);
-            let sx = d / fx * (0.6 + 0.6 * unit(iu, 2));
-            let sy = d / fy * (0.6 + 0.6 * unit(iu, 3));
-            let sz = 0.5 * (sx + sy);
-            let rho = 0.3 * (unit(iu, 4) - 0.5);
-            c.copy_from_slice(&[sx * sx, rho * sx * sy, 0.0, sy * sy, 0.0, sz * sz]);
-            *o = 0.2 + 0.8 * unit(iu, 5);
-            for (k, e) in shc.iter_mut().enumerate() {
-                let r = unit(iu, 10 + k as u64) - 0.5;
-                *e = if k < 3 { 2.0 * r } else { 0.2 * r };
+            let qr: [f32; 4] = std::array::from_fn(|j| 2.0 * unit(7 + j as u32, gi) - 1.0);
+            let qn = qr.iter().map(|x| x * x).sum::<f32>().sqrt();
+            if qn > 1e-6 {
+                for j in 0..4 {
+                    q[j] = qr[j] / qn;
+                }
+            } else {
+                q.copy_from_slice(&[1.0, 0.0, 0.0, 0.0]);
+            }
+            *o = 0.05 + 0.9 * unit(11, gi);
+            for k in 0..25usize {
+                let l = (k as f32).sqrt().floor() as i32;
+                for ch in 0..3 {
+                    shc[3 * k + ch] = if k == 0 {
+                        let base = 0.5
+                            + 0.4 * (px as f32 * 0.05 + py as f32 * 0.03 + sv as f32 * 0.7 + ch as f32).sin();
+                        (base - 0.5) / crate::sh::C0
+                    } else {
+                        0.1 * 0.25f32.powi(l) * (2.0 * unit(12, 75 * gi + 3 * k as u64 + ch as u64) - 1.0)
+                    };
+                }
             }
         });
-    s.features.par_iter_mut().enumerate().for_each(|(j, f)| *f = unit(j as u64, 99) - 0.5);
+    s.features.par_iter_mut().enumerate().for_each(|(j, f)| *f = 2.0 * unit(13, j as u64) - 1.0);
+    let npx = w * h;
+    for pix in 0..npx {
+        for c in 0..3 {
+            s.w1[c * npx + pix] = 2.0 * unit(14, (3 * pix + c) as u64) - 1.0;
+        }
+        for c in 0..nf {
+            s.w2[c * npx + pix] = 2.0 * unit(15, (nf * pix + c) as u64) - 1.0;
+        }
+    }
     s
 }
 
@@ -148,14 +211,13 @@ pub fn run_raster_bench(opts: &RasterBenchOpts) -> Result<serde_json::Value> {
         let scene = synthetic_scene(opts.gaussians, opts.width, opts.height, opts.features);
         let inp = scene.inputs();
         let st = RasterSettings { camera: scene.camera, background: [0.0; 3] };
-        let hw = opts.width * opts.height;
-        let grad_rgb: Vec<f32> = (0..3 * hw).map(|i| unit(i as u64, 7) - 0.5).collect();
-        let grad_feat: Vec<f32> = (0..opts.features * hw).map(|i| unit(i as u64, 8) - 0.5).collect();
-        let pg = PixelGrads { rgb: &grad_rgb, features: &grad_feat, alpha: None, depth: None };
+        // dL/dimage of L = Σ rgb·W1 + Σ feat·W2.
+        let pg = PixelGrads { rgb: &scene.w1, features: &scene.w2, alpha: None, depth: None };
         let runs = opts.runs.max(5);
         // Warm-up (page faults, thread start-up).
         let warm = cpu::forward(&inp, &st)?;
         let pairs = warm.num_pairs();
+        let visible = warm.radii.iter().filter(|&&r| r > 0).count();
         cpu::backward(&inp, &st, &warm, &pg, GradMode::Official)?;
         drop(warm);
         let mut fwd_ms = Vec::with_capacity(runs);
@@ -180,6 +242,7 @@ pub fn run_raster_bench(opts: &RasterBenchOpts) -> Result<serde_json::Value> {
             "forward_ms": median(fwd_ms),
             "forward_backward_ms": median(fb_ms),
             "pairs": pairs,
+            "visible": visible,
             "threads": rayon::current_num_threads(),
         }))
     })

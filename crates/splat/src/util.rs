@@ -23,3 +23,114 @@ impl<T> SharedMut<T> {
         *self.ptr.add(i) = v;
     }
 }
+
+/// A few reusable large buffers: re-touching already-mapped memory is far cheaper than page-faulting fresh
+/// allocations of tens of MB on every call. Holds at most `MAX_POOLED` vectors per pool.
+pub(crate) struct Pool<T>(std::sync::Mutex<Vec<Vec<T>>>);
+
+const MAX_POOLED: usize = 6;
+
+impl<T: Clone> Pool<T> {
+    pub const fn new() -> Self {
+        Pool(std::sync::Mutex::new(Vec::new()))
+    }
+
+    /// A vector of length `len`; reused contents are stale (callers overwrite what they read).
+    pub fn take(&self, len: usize, fill: T) -> Vec<T> {
+        let mut v = self.0.lock().ok().and_then(|mut p| p.pop()).unwrap_or_default();
+        v.truncate(len);
+        v.resize(len, fill);
+        v
+    }
+
+    pub fn put(&self, v: Vec<T>) {
+        if v.capacity() == 0 {
+            return;
+        }
+        if let Ok(mut p) = self.0.lock() {
+            if p.len() < MAX_POOLED {
+                p.push(v);
+            }
+        }
+    }
+}
+
+/// A vector that returns itself to its [`Pool`] when dropped.
+pub(crate) struct Pooled<T: Clone + 'static> {
+    v: Vec<T>,
+    pool: &'static Pool<T>,
+}
+
+impl<T: Clone + 'static> Pooled<T> {
+    pub fn new(v: Vec<T>, pool: &'static Pool<T>) -> Self {
+        Pooled { v, pool }
+    }
+}
+
+impl<T: Clone + 'static> std::ops::Deref for Pooled<T> {
+    type Target = Vec<T>;
+    fn deref(&self) -> &Vec<T> {
+        &self.v
+    }
+}
+
+impl<T: Clone + 'static> std::ops::DerefMut for Pooled<T> {
+    fn deref_mut(&mut self) -> &mut Vec<T> {
+        &mut self.v
+    }
+}
+
+impl<T: Clone + 'static> Drop for Pooled<T> {
+    fn drop(&mut self) {
+        self.pool.put(std::mem::take(&mut self.v));
+    }
+}
+
+impl<T: Clone + 'static> Clone for Pooled<T> {
+    fn clone(&self) -> Self {
+        Pooled { v: self.v.clone(), pool: self.pool }
+    }
+}
+
+impl<T: Clone + 'static> std::fmt::Debug for Pooled<T> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "[{} pooled values]", self.v.len())
+    }
+}
+
+pub(crate) static POOL_U32: Pool<u32> = Pool::new();
+pub(crate) static POOL_F32: Pool<f32> = Pool::new();
+pub(crate) static POOL_U64: Pool<u64> = Pool::new();
+pub(crate) static POOL_GEO: Pool<[f32; 8]> = Pool::new();
+pub(crate) static POOL_RECT: Pool<[u32; 4]> = Pool::new();
+
+/// A zero-filled vector. Large ones are advised to use transparent huge pages and filled in parallel: with
+/// 4 KiB pages, first-touching the ~100-200 MB of gradient outputs costs tens of thousands of page faults.
+pub(crate) fn zeroed<T: Copy + Default + Send + Sync>(len: usize) -> Vec<T> {
+    const BIG: usize = 8 << 20;
+    let bytes = len.saturating_mul(std::mem::size_of::<T>());
+    if bytes < BIG {
+        return vec![T::default(); len];
+    }
+    use rayon::prelude::*;
+    let mut v = Vec::<T>::with_capacity(len);
+    #[cfg(target_os = "linux")]
+    {
+        const HUGE: usize = 2 << 20;
+        let p = v.as_mut_ptr() as usize;
+        let a0 = (p + HUGE - 1) & !(HUGE - 1);
+        let a1 = (p + bytes) & !(HUGE - 1);
+        if a1 > a0 {
+            // SAFETY: the range lies inside this allocation; the advice only affects how it is backed.
+            unsafe { libc::madvise(a0 as *mut libc::c_void, a1 - a0, libc::MADV_HUGEPAGE) };
+        }
+    }
+    v.spare_capacity_mut()[..len].par_chunks_mut(1 << 16).for_each(|c| {
+        for x in c {
+            x.write(T::default());
+        }
+    });
+    // SAFETY: all `len` elements were initialised above.
+    unsafe { v.set_len(len) };
+    v
+}

@@ -3,12 +3,16 @@
 
 use rayon::prelude::*;
 
-use super::composite::{backward_pairs, P_CA, P_CB, P_CC, P_COL, P_DEPTH, P_FEAT, P_MX, P_MY, P_OP};
+use super::composite::{backward_pairs, pair_stride, P_CA, P_CB, P_CC, P_COL, P_DEPTH, P_FEAT, P_MX, P_MY, P_OP};
 use super::preprocess::{cov3d_of, ewa, mean_of, quat_to_rot, view_dir, view_point};
 use super::{CovInput, ForwardOutput, Frame, GradMode, Gradients, PixelGrads, RasterInputs, RasterSettings};
 use crate::error::{input_err, Result};
 use crate::sh;
-use crate::util::SharedMut;
+use crate::util::{zeroed, SharedMut, POOL_F32};
+
+/// The per-pair gradient buffer, kept between calls: reusing it avoids page-faulting tens of MB per backward
+/// (its size is bounded by the largest pair count seen; a concurrent second call just allocates).
+static PAIR_POOL: std::sync::Mutex<Vec<f32>> = std::sync::Mutex::new(Vec::new());
 
 /// Gradients of the loss w.r.t. every input, given the forward result of the same inputs and settings.
 pub fn backward(
@@ -25,43 +29,67 @@ pub fn backward(
     }
     let nf = inp.num_features;
     let f = Frame::new(&s.camera);
-    let buf = backward_pairs(inp, s, fwd, grads, mode)?;
-    let np = fwd.point_list.len();
-    let nch = P_FEAT + nf;
-    // One sequential pass per channel keeps the summation order fixed (deterministic) while channels run in parallel.
-    let sums: Vec<Vec<f32>> = (0..nch)
-        .into_par_iter()
-        .map(|c| {
-            let mut acc = vec![0f32; n];
-            let src = &buf[c * np..(c + 1) * np];
-            for (v, &g) in src.iter().zip(&fwd.point_list) {
-                acc[g as usize] += *v;
+    let timing = std::env::var_os("MVSPLAT360_RASTER_TIMING").is_some();
+    let t0 = std::time::Instant::now();
+    let mut buf = PAIR_POOL.lock().map(|mut b| std::mem::take(&mut *b)).unwrap_or_default();
+    backward_pairs(inp, s, fwd, grads, mode, &mut buf)?;
+    let t1 = std::time::Instant::now();
+    let ps = pair_stride(nf);
+    // Per Gaussian, its (contiguous) pair rows in a fixed order: deterministic sums.
+    // Only visible Gaussians' rows are written and read, so a reused buffer needs no clearing.
+    let mut sums = POOL_F32.take(n * ps, 0.0);
+    {
+        let so = SharedMut::new(&mut sums);
+        let buf = &buf;
+        fwd.order.par_iter().enumerate().with_min_len(1024).for_each(|(m, &g)| {
+            let rows = &buf[fwd.pstart[m] as usize * ps..fwd.pstart[m + 1] as usize * ps];
+            let mut acc = [0f32; 64];
+            let (head, _) = acc.split_at_mut(ps.min(64));
+            for r in rows.chunks_exact(ps) {
+                for (a, v) in head.iter_mut().zip(r) {
+                    *a += *v;
+                }
             }
-            acc
-        })
-        .collect();
-    drop(buf);
+            let g = g as usize;
+            // SAFETY: every Gaussian appears once in `order`, so rows g·ps.. are written by one iteration.
+            unsafe {
+                for (k, &a) in head.iter().enumerate() {
+                    so.write(g * ps + k, a);
+                }
+                // Rare wide feature sets: the channels past the stack buffer.
+                for k in head.len()..ps {
+                    let v: f32 = rows.chunks_exact(ps).map(|r| r[k]).sum();
+                    so.write(g * ps + k, v);
+                }
+            }
+        });
+    }
+    if let Ok(mut pool) = PAIR_POOL.lock() {
+        *pool = buf;
+    }
+    let t2 = std::time::Instant::now();
+    let sum = |ch: usize, i: usize| sums[i * ps + ch];
 
     let k = inp.sh_coeffs;
     let mut out = Gradients {
-        means: vec![0.0; 3 * n],
-        cov3d: vec![0.0; 6 * n],
+        means: zeroed(3 * n),
+        cov3d: zeroed(6 * n),
         scales: None,
         quats: None,
-        opacities: sums[P_OP].clone(),
-        sh: vec![0.0; n * k * 3],
-        features: vec![0.0; n * nf],
-        means2d_ndc: vec![0.0; 2 * n],
+        opacities: (0..n).map(|i| sum(P_OP, i)).collect(),
+        sh: zeroed(n * k * 3),
+        features: zeroed(n * nf),
+        means2d_ndc: zeroed(2 * n),
     };
     let scale_rot = matches!(inp.cov, CovInput::ScaleRot { .. });
-    let mut gs = vec![0f32; if scale_rot { 3 * n } else { 0 }];
-    let mut gq = vec![0f32; if scale_rot { 4 * n } else { 0 }];
+    let mut gs = zeroed::<f32>(if scale_rot { 3 * n } else { 0 });
+    let mut gq = zeroed::<f32>(if scale_rot { 4 * n } else { 0 });
     for i in 0..n {
         if fwd.radii[i] <= 0 {
             out.opacities[i] = 0.0;
         }
         for c in 0..nf {
-            out.features[i * nf + c] = if fwd.radii[i] > 0 { sums[P_FEAT + c][i] } else { 0.0 };
+            out.features[i * nf + c] = if fwd.radii[i] > 0 { sum(P_FEAT + c, i) } else { 0.0 };
         }
     }
     let exact = mode == GradMode::Exact;
@@ -74,7 +102,7 @@ pub fn backward(
     let o_m2 = SharedMut::new(&mut out.means2d_ndc);
     let o_s = SharedMut::new(&mut gs);
     let o_q = SharedMut::new(&mut gq);
-    let sums = &sums;
+    let sum = &sum;
     (0..n).into_par_iter().with_min_len(1024).for_each(|i| {
         if fwd.radii[i] <= 0 {
             return;
@@ -83,7 +111,7 @@ pub fn backward(
         let mut dmean = [0f32; 3];
 
         // Screen-space mean: pixel gradient → ndc → world.
-        let g_ndc = [sums[P_MX][i] * 0.5 * wf, sums[P_MY][i] * 0.5 * hf];
+        let g_ndc = [sum(P_MX, i) * 0.5 * wf, sum(P_MY, i) * 0.5 * hf];
         let fp = &f.fp;
         let hom = |r: usize| fp[r][0] * p[0] + fp[r][1] * p[1] + fp[r][2] * p[2] + fp[r][3];
         let m_w = 1.0 / (hom(3) + 1e-7);
@@ -99,7 +127,7 @@ pub fn backward(
         let e = ewa(&f, t_view, &cov);
         let [a, b, c] = e.cov2d;
         let det = a * c - b * b;
-        let (ga, gb, gc) = (sums[P_CA][i], sums[P_CB][i], sums[P_CC][i]);
+        let (ga, gb, gc) = (sum(P_CA, i), sum(P_CB, i), sum(P_CC, i));
         let denom2inv = if exact { 1.0 / (det * det) } else { 1.0 / (det * det + 1e-7) };
         let (dl_da, dl_db, dl_dc) = if denom2inv != 0.0 && denom2inv.is_finite() {
             (
@@ -158,7 +186,7 @@ pub fn backward(
             dt[1] = dl_dtyc;
         }
         if exact {
-            dt[2] += sums[P_DEPTH][i];
+            dt[2] += sum(P_DEPTH, i);
         }
         for j in 0..3 {
             dmean[j] += v[0][j] * dt[0] + v[1][j] * dt[1] + v[2][j] * dt[2];
@@ -172,7 +200,7 @@ pub fn backward(
         let mask = fwd.clamped[i];
         let mut dcol = [0f32; 3];
         for ch in 0..3 {
-            dcol[ch] = if mask & (1 << ch) != 0 { 0.0 } else { sums[P_COL + ch][i] };
+            dcol[ch] = if mask & (1 << ch) != 0 { 0.0 } else { sum(P_COL + ch, i) };
         }
         let shi = &inp.sh[i * k * 3..(i + 1) * k * 3];
         let mut ddir = [0f32; 3];
@@ -227,6 +255,15 @@ pub fn backward(
         out.scales = Some(gs);
         out.quats = Some(gq);
     }
+    if timing {
+        eprintln!(
+            "raster backward: tiles {:.1} ms, reduce {:.1} ms, per-Gaussian chain rule {:.1} ms",
+            (t1 - t0).as_secs_f64() * 1e3,
+            (t2 - t1).as_secs_f64() * 1e3,
+            t2.elapsed().as_secs_f64() * 1e3
+        );
+    }
+    POOL_F32.put(sums);
     Ok(out)
 }
 

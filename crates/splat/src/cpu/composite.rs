@@ -1,126 +1,30 @@
 //! Tile kernels: front-to-back compositing (forward) and the reverse traversal (backward).
 //!
-//! Each tile loops over its depth-sorted Gaussians and, per Gaussian, over the pixels of a conservative
-//! bounding box of its alpha ≥ 1/255 ellipse; per pixel the decisions are exactly the CUDA kernel's
-//! (power > 0 skip, alpha < 1/255 skip, T·(1-alpha) < 1e-4 stop), so results match pixel-major order.
+//! Gaussian-major inside a tile: per-pixel state (T, last contributor, accumulators) lives in a 16×16 scratch,
+//! and each Gaussian visits only the rows / 8-pixel windows of the bounding box of its alpha ≥ 1/255 ellipse,
+//! skipping finished pixels. Per pixel the decisions are exactly the CUDA kernel's (power > 0 skip,
+//! alpha < 1/255 skip, T·(1-alpha) < 1e-4 stop) in the same depth order, so results equal the pixel-major loop.
+//! The lane code is written once over [`F8`] and compiled for AVX2 (runtime-detected) and portably; both
+//! give bit-identical results.
 
 use rayon::prelude::*;
 
 use super::binning::bin;
-use super::preprocess::preprocess;
+use super::preprocess::{preprocess, GEO_LEN};
+use super::simd::{exp8, has_avx2, Arr, F8, LANES};
 use super::{ForwardOutput, Frame, GradMode, PixelGrads, RasterInputs, RasterSettings, TILE};
 use crate::error::{input_err, Result};
 use crate::util::SharedMut;
 
 const NPIX: usize = TILE * TILE;
 const ALPHA_MIN: f32 = 1.0 / 255.0;
+/// Largest window start inside a tile row.
+const WMAX: usize = TILE - LANES;
 
-/// Per-tile copy of the data of its Gaussians (the CPU analogue of the kernel's shared memory).
-#[derive(Default)]
-struct Gathered {
-    /// [mx, my, A, B, C, opacity, depth, unused] per Gaussian.
-    geo: Vec<[f32; 8]>,
-    col: Vec<f32>,
-    feat: Vec<f32>,
-}
-
-impl Gathered {
-    fn fill(&mut self, ids: &[u32], out: &ForwardOutput, inp: &RasterInputs, nf: usize) {
-        self.geo.clear();
-        self.col.clear();
-        self.feat.clear();
-        for &g in ids {
-            let g = g as usize;
-            self.geo.push([
-                out.means2d[2 * g],
-                out.means2d[2 * g + 1],
-                out.conic[3 * g],
-                out.conic[3 * g + 1],
-                out.conic[3 * g + 2],
-                inp.opacities[g],
-                out.depths[g],
-                0.0,
-            ]);
-            self.col.extend_from_slice(&out.colors[3 * g..3 * g + 3]);
-            self.feat.extend_from_slice(&inp.features[nf * g..nf * g + nf]);
-        }
-    }
-}
-
-/// Inclusive pixel box (within the tile) that can hold alpha ≥ 1/255 for this Gaussian.
-#[inline]
-fn pixel_box(geo: &[f32; 8], x0: usize, x1: usize, y0: usize, y1: usize) -> Option<[usize; 4]> {
-    let [mx, my, a, b, c, o, ..] = *geo;
-    if !(o >= ALPHA_MIN) {
-        return None;
-    }
-    let r2 = 2.0 * (255.0 * o).ln().max(0.0);
-    let detq = a * c - b * b;
-    let (ex, ey) = if detq > 0.0 && a > 0.0 && c > 0.0 {
-        ((r2 * c / detq).sqrt() * 1.01 + 1.0, (r2 * a / detq).sqrt() * 1.01 + 1.0)
-    } else {
-        (f32::INFINITY, f32::INFINITY)
-    };
-    let lo = |m: f32, e: f32, lim: usize| -> f32 { (m - e).ceil().max(lim as f32) };
-    let hi = |m: f32, e: f32, lim: usize| -> f32 { (m + e).floor().min(lim as f32 - 1.0) };
-    let (xs, xe) = (lo(mx, ex, x0), hi(mx, ex, x1));
-    let (ys, ye) = (lo(my, ey, y0), hi(my, ey, y1));
-    // NaN bounds fall back to the whole tile.
-    let xs = if xs.is_nan() { x0 as f32 } else { xs };
-    let ys = if ys.is_nan() { y0 as f32 } else { ys };
-    let xe = if xe.is_nan() { x1 as f32 - 1.0 } else { xe };
-    let ye = if ye.is_nan() { y1 as f32 - 1.0 } else { ye };
-    if xs > xe || ys > ye {
-        return None;
-    }
-    Some([xs as usize, xe as usize, ys as usize, ye as usize])
-}
-
-/// exp(x) for x ≤ 0 (Cephes expf: ~1 ulp), written so the per-row loops auto-vectorise.
-#[inline(always)]
+/// exp(x) as the kernels evaluate it (Cephes expf, ~1 ulp).
+#[cfg(test)]
 pub(crate) fn fast_exp(x: f32) -> f32 {
-    let x = x.clamp(-87.0, 88.0);
-    let t = x * std::f32::consts::LOG2_E + 0.5;
-    let mut fx = (t as i32) as f32;
-    fx -= if fx > t { 1.0 } else { 0.0 };
-    let r = x - fx * 0.693_359_4 + fx * 2.121_944_4e-4;
-    let z = r * r;
-    let y = (((((1.987_569_1e-4 * r + 1.398_199_9e-3) * r + 8.333_452e-3) * r + 4.166_579_6e-2) * r + 1.666_666_5e-1) * r
-        + 5.000_000_1e-1)
-        * z
-        + r
-        + 1.0;
-    y * f32::from_bits(((fx as i32 + 127) as u32) << 23)
-}
-
-/// Conservative pixel span [xs, xe] of row `y` where alpha can reach 1/255; `None` if the row is missed.
-#[inline(always)]
-fn row_span(geo: &[f32; 8], r2: f32, y: usize, xs: usize, xe: usize) -> Option<(usize, usize)> {
-    let [mx, my, a, b, c, ..] = *geo;
-    let dy = my - y as f32;
-    if !(a > 0.0 && a * c - b * b > 0.0) {
-        return Some((xs, xe));
-    }
-    // A dx² + 2B dy dx + (C dy² - r2) ≤ 0 with dx = mx - x; r2 is inflated so rounding cannot lose a pixel.
-    let disc = b * b * dy * dy - a * (c * dy * dy - r2);
-    if disc < 0.0 {
-        return None;
-    }
-    let sq = disc.sqrt();
-    // r2 already carries the safety margin; 1e-3 px only absorbs rounding of the root.
-    let lo = (mx - (-b * dy + sq) / a - 1e-3).ceil();
-    let hi = (mx - (-b * dy - sq) / a + 1e-3).floor();
-    let lo = if lo.is_nan() { xs as f32 } else { lo.max(xs as f32) };
-    let hi = if hi.is_nan() { xe as f32 } else { hi.min(xe as f32) };
-    if lo > hi {
-        return None;
-    }
-    Some((lo as usize, hi as usize))
-}
-
-#[inline(always)]
-fn inflated_r2(o: f32) -> f32 {
-    2.0 * (255.0 * o).ln().max(0.0) * 1.02 + 0.02
+    super::simd::exp1(x)
 }
 
 fn tile_bounds(f: &Frame, t: usize) -> (usize, usize, usize, usize) {
@@ -130,14 +34,195 @@ fn tile_bounds(f: &Frame, t: usize) -> (usize, usize, usize, usize) {
     (x0, (x0 + TILE).min(f.w), y0, (y0 + TILE).min(f.h))
 }
 
+/// Inclusive tile-local pixel box (xs, xe, ys, ye) that can hold alpha ≥ 1/255; `None` if empty.
+#[inline(always)]
+fn local_box(geo: &[f32; GEO_LEN], x0: usize, y0: usize, tw: usize, th: usize) -> Option<(usize, usize, usize, usize)> {
+    let [mx, my, _, _, _, _, ex, ey] = *geo;
+    let (x0f, y0f) = (x0 as f32, y0 as f32);
+    // f32::max/min drop NaN, so NaN bounds fall back to the tile edges.
+    let lx = (mx - ex).max(x0f).min(x0f + tw as f32).ceil();
+    let hx = (mx + ex).min(x0f + tw as f32 - 1.0).max(x0f - 1.0).floor();
+    let ly = (my - ey).max(y0f).min(y0f + th as f32).ceil();
+    let hy = (my + ey).min(y0f + th as f32 - 1.0).max(y0f - 1.0).floor();
+    if lx > hx || ly > hy {
+        return None;
+    }
+    Some(((lx - x0f) as usize, (hx - x0f) as usize, (ly - y0f) as usize, (hy - y0f) as usize))
+}
+
+/// Lane range [lo, hi] (window-local, clamped to the window) of the pixels xs..=xe not yet handled, given
+/// the window starts at `ws` and pixels before `s0` belong to the previous window.
+#[inline(always)]
+fn lane_range(ws: usize, s0: usize, xe: usize) -> (f32, f32) {
+    ((s0 - ws) as f32, ((xe - ws).min(LANES - 1)) as f32)
+}
+
+/// Shared, read-only inputs of the tile kernels.
+struct Ctx<'a> {
+    f: &'a Frame,
+    geo: &'a [[f32; GEO_LEN]],
+    vals: &'a [f32],
+    nv: usize,
+    tile_start: &'a [u32],
+    point_list: &'a [u32],
+}
+
+impl Ctx<'_> {
+    #[inline(always)]
+    fn ids(&self, t: usize) -> &[u32] {
+        &self.point_list[self.tile_start[t] as usize..self.tile_start[t + 1] as usize]
+    }
+
+    #[inline(always)]
+    fn prefetch(&self, ids: &[u32], j: usize) {
+        #[cfg(target_arch = "x86_64")]
+        if let Some(&g) = ids.get(j) {
+            use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+            let g = g as usize;
+            // SAFETY: prefetch never faults; the indices are in bounds anyway.
+            unsafe {
+                _mm_prefetch::<_MM_HINT_T0>(self.geo.as_ptr().add(g) as *const i8);
+                _mm_prefetch::<_MM_HINT_T0>(self.vals.as_ptr().add(g * self.nv) as *const i8);
+            }
+        }
+    }
+}
+
 struct FwdScratch {
-    g: Gathered,
+    /// Transmittance; negated once the pixel is finished (so "live" is `t > 0`).
     t: [f32; NPIX],
-    last: [u32; NPIX],
-    done: [bool; NPIX],
-    /// channel-major accumulators: rgb (3), depth (1), features (C)
+    /// Last blended list position (1-based) as raw u32 bits.
+    last: [f32; NPIX],
+    /// Channel-major accumulators in `vals` order: r, g, b, depth, features.
     acc: Vec<f32>,
-    abuf: [f32; TILE],
+}
+
+/// Planar output images of the forward pass.
+struct FwdImages {
+    rgb: SharedMut<f32>,
+    feat: SharedMut<f32>,
+    alpha: SharedMut<f32>,
+    depth: SharedMut<f32>,
+    final_t: SharedMut<f32>,
+    n_contrib: SharedMut<u32>,
+    bg: [f32; 3],
+}
+
+#[inline(always)]
+unsafe fn fwd_tile<V: F8>(c: &Ctx, tile: usize, s: &mut FwdScratch, out: &FwdImages) {
+    let f = c.f;
+    let (x0, x1, y0, y1) = tile_bounds(f, tile);
+    let (tw, th) = (x1 - x0, y1 - y0);
+    let nv = c.nv;
+    s.t.fill(1.0);
+    s.last.fill(0.0);
+    s.acc[..nv * NPIX].fill(0.0);
+    let mut live = [0u32; TILE];
+    for l in live.iter_mut().take(th) {
+        *l = (1u32 << tw) - 1;
+    }
+    let mut live_rows = th;
+    let ids = c.ids(tile);
+    let (zero, one) = (V::splat(0.0), V::splat(1.0));
+    let (amin, amax, tmin) = (V::splat(ALPHA_MIN), V::splat(0.99), V::splat(1e-4));
+    let sign = V::splat(-0.0);
+    let iota = V::iota();
+    let tp = s.t.as_mut_ptr();
+    let lp = s.last.as_mut_ptr();
+    let ap = s.acc.as_mut_ptr();
+    for (j, &g) in ids.iter().enumerate() {
+        if live_rows == 0 {
+            break;
+        }
+        c.prefetch(ids, j + 8);
+        let g = g as usize;
+        let geo = &c.geo[g];
+        let Some((xs, xe, ys, ye)) = local_box(geo, x0, y0, tw, th) else { continue };
+        let span = ((1u32 << (xe + 1)) - 1) & !((1u32 << xs) - 1);
+        let [mx, my, ca, cb, cc, o, ..] = *geo;
+        let vals = &c.vals[g * nv..g * nv + nv];
+        let (mxv, cav, ov) = (V::splat(mx), V::splat(ca), V::splat(o));
+        let jv = V::splat(f32::from_bits(j as u32 + 1));
+        for ly in ys..=ye {
+            if live[ly] & span == 0 {
+                continue;
+            }
+            let dy = my - (y0 + ly) as f32;
+            let (cdy2, bdy) = (V::splat(cc * dy * dy), V::splat(cb * dy));
+            let mut s0 = xs;
+            while s0 <= xe {
+                let ws = s0.min(WMAX);
+                let (lo, hi) = lane_range(ws, s0, xe);
+                s0 = ws + LANES;
+                if (live[ly] >> ws) & 0xff == 0 {
+                    continue;
+                }
+                let idx = ly * TILE + ws;
+                let dx = mxv.sub(V::splat((x0 + ws) as f32).add(iota));
+                let power = V::splat(-0.5).mul(cav.mul(dx).mul(dx).add(cdy2)).sub(dx.mul(bdy));
+                let al = ov.mul(exp8(power)).min(amax);
+                let tv = V::load(tp.add(idx));
+                let act = iota
+                    .ge(V::splat(lo))
+                    .and(iota.le(V::splat(hi)))
+                    .and(power.le(zero))
+                    .and(al.ge(amin))
+                    .and(tv.gt(zero));
+                if act.bits() == 0 {
+                    continue;
+                }
+                let test = tv.mul(one.sub(al));
+                let stop = act.and(test.lt(tmin));
+                let blend = act.and_not(stop);
+                V::select(blend, test, V::select(stop, tv.xor(sign), tv)).store(tp.add(idx));
+                let sb = stop.bits();
+                if sb != 0 {
+                    live[ly] &= !(sb << ws);
+                    if live[ly] == 0 {
+                        live_rows -= 1;
+                    }
+                }
+                if blend.bits() == 0 {
+                    continue;
+                }
+                V::select(blend, jv, V::load(lp.add(idx))).store(lp.add(idx));
+                let w = al.mul(tv).and(blend);
+                for (ch, &v) in vals.iter().enumerate() {
+                    let p = ap.add(ch * NPIX + idx);
+                    V::load(p).add(w.mul(V::splat(v))).store(p);
+                }
+            }
+        }
+    }
+    let hw = f.w * f.h;
+    let nf = nv - 4;
+    for ly in 0..th {
+        for lx in 0..tw {
+            let l = ly * TILE + lx;
+            let pix = (y0 + ly) * f.w + x0 + lx;
+            let tf = s.t[l].abs();
+            for ch in 0..3 {
+                out.rgb.write(ch * hw + pix, s.acc[ch * NPIX + l] + tf * out.bg[ch]);
+            }
+            out.depth.write(pix, s.acc[3 * NPIX + l]);
+            for ch in 0..nf {
+                out.feat.write(ch * hw + pix, s.acc[(4 + ch) * NPIX + l]);
+            }
+            out.alpha.write(pix, 1.0 - tf);
+            out.final_t.write(pix, tf);
+            out.n_contrib.write(pix, s.last[l].to_bits());
+        }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn fwd_tile_avx2(c: &Ctx, tile: usize, s: &mut FwdScratch, out: &FwdImages) {
+    fwd_tile::<super::simd::Avx>(c, tile, s, out)
+}
+
+unsafe fn fwd_tile_portable(c: &Ctx, tile: usize, s: &mut FwdScratch, out: &FwdImages) {
+    fwd_tile::<Arr>(c, tile, s, out)
 }
 
 /// Forward rasterization of one view.
@@ -153,132 +238,42 @@ pub fn forward(inp: &RasterInputs, s: &RasterSettings) -> Result<ForwardOutput> 
     let bins = bin(&f, &pre.means2d, &pre.radii, &pre.depths);
     let t2 = std::time::Instant::now();
     let hw = f.w * f.h;
-    let mut out = ForwardOutput {
-        width: f.w,
-        height: f.h,
-        num_features: nf,
-        rgb: vec![0.0; 3 * hw],
-        features: vec![0.0; nf * hw],
-        alpha: vec![0.0; hw],
-        depth: vec![0.0; hw],
-        final_t: vec![0.0; hw],
-        n_contrib: vec![0; hw],
-        radii: pre.radii,
-        tiles_touched: pre.tiles_touched,
-        means2d: pre.means2d,
-        cov2d: pre.cov2d,
-        conic: pre.conic,
-        depths: pre.depths,
-        colors: pre.colors,
-        clamped: pre.clamped,
-        tile_start: bins.tile_start,
-        point_list: bins.point_list,
-    };
-    let mut rgb = std::mem::take(&mut out.rgb);
-    let mut feat = std::mem::take(&mut out.features);
-    let mut alpha = std::mem::take(&mut out.alpha);
-    let mut depth = std::mem::take(&mut out.depth);
-    let mut final_t = std::mem::take(&mut out.final_t);
-    let mut n_contrib = std::mem::take(&mut out.n_contrib);
+    let mut rgb = vec![0.0; 3 * hw];
+    let mut feat = vec![0.0; nf * hw];
+    let mut alpha = vec![0.0; hw];
+    let mut depth = vec![0.0; hw];
+    let mut final_t = vec![0.0; hw];
+    let mut n_contrib = vec![0; hw];
     {
-        let o_rgb = SharedMut::new(&mut rgb);
-        let o_feat = SharedMut::new(&mut feat);
-        let o_alpha = SharedMut::new(&mut alpha);
-        let o_depth = SharedMut::new(&mut depth);
-        let o_t = SharedMut::new(&mut final_t);
-        let o_nc = SharedMut::new(&mut n_contrib);
-        let outr = &out;
-        let bg = s.background;
+        let imgs = FwdImages {
+            rgb: SharedMut::new(&mut rgb),
+            feat: SharedMut::new(&mut feat),
+            alpha: SharedMut::new(&mut alpha),
+            depth: SharedMut::new(&mut depth),
+            final_t: SharedMut::new(&mut final_t),
+            n_contrib: SharedMut::new(&mut n_contrib),
+            bg: s.background,
+        };
+        let ctx = Ctx {
+            f: &f,
+            geo: &pre.geo,
+            vals: &pre.vals,
+            nv: 4 + nf,
+            tile_start: &bins.tile_start,
+            point_list: &bins.point_list,
+        };
+        let avx2 = has_avx2();
         (0..f.num_tiles()).into_par_iter().for_each_init(
-            || FwdScratch {
-                g: Gathered::default(),
-                t: [1.0; NPIX],
-                last: [0; NPIX],
-                done: [false; NPIX],
-                acc: vec![0.0; (4 + nf) * NPIX],
-                abuf: [0.0; TILE],
-            },
+            || FwdScratch { t: [0.0; NPIX], last: [0.0; NPIX], acc: vec![0.0; (4 + nf) * NPIX] },
             |scr, t| {
-                let (x0, x1, y0, y1) = tile_bounds(&f, t);
-                let tw = x1 - x0;
-                let np = tw * (y1 - y0);
-                let ids = &outr.point_list[outr.tile_start[t] as usize..outr.tile_start[t + 1] as usize];
-                scr.g.fill(ids, outr, inp, nf);
-                scr.t[..np].fill(1.0);
-                scr.last[..np].fill(0);
-                scr.done[..np].fill(false);
-                scr.acc.fill(0.0);
-                let mut n_done = 0usize;
-                for j in 0..ids.len() {
-                    if n_done == np {
-                        break;
-                    }
-                    let geo = &scr.g.geo[j];
-                    let Some([xs, xe, ys, ye]) = pixel_box(geo, x0, x1, y0, y1) else { continue };
-                    let col = &scr.g.col[3 * j..3 * j + 3];
-                    let fe = &scr.g.feat[nf * j..nf * j + nf];
-                    let o = geo[5];
-                    let r2 = inflated_r2(o);
-                    for y in ys..=ye {
-                        let Some((rs, re)) = row_span(geo, r2, y, xs, xe) else { continue };
-                        let len = re - rs + 1;
-                        let dy = geo[1] - y as f32;
-                        // Vectorisable pass: alpha of the whole span (0 where the kernel would skip on power > 0).
-                        for (k, av) in scr.abuf[..len].iter_mut().enumerate() {
-                            let dx = geo[0] - (rs + k) as f32;
-                            let power = -0.5 * (geo[2] * dx * dx + geo[4] * dy * dy) - geo[3] * dx * dy;
-                            let a = (o * fast_exp(power)).min(0.99);
-                            *av = if power > 0.0 { 0.0 } else { a };
-                        }
-                        let row = (y - y0) * tw + rs - x0;
-                        for k in 0..len {
-                            let a = scr.abuf[k];
-                            if a < ALPHA_MIN {
-                                continue;
-                            }
-                            let lp = row + k;
-                            if scr.done[lp] {
-                                continue;
-                            }
-                            let tp = scr.t[lp];
-                            let test_t = tp * (1.0 - a);
-                            if test_t < 1e-4 {
-                                scr.done[lp] = true;
-                                n_done += 1;
-                                continue;
-                            }
-                            let w = a * tp;
-                            scr.acc[lp] += w * col[0];
-                            scr.acc[NPIX + lp] += w * col[1];
-                            scr.acc[2 * NPIX + lp] += w * col[2];
-                            scr.acc[3 * NPIX + lp] += w * geo[6];
-                            for (c, fv) in fe.iter().enumerate() {
-                                scr.acc[(4 + c) * NPIX + lp] += w * fv;
-                            }
-                            scr.t[lp] = test_t;
-                            scr.last[lp] = j as u32 + 1;
-                        }
-                    }
-                }
-                // SAFETY: tiles cover disjoint pixels.
+                // SAFETY: tiles write disjoint pixels; AVX2 only where detected.
                 unsafe {
-                    for y in y0..y1 {
-                        for x in x0..x1 {
-                            let lp = (y - y0) * tw + (x - x0);
-                            let pix = y * f.w + x;
-                            let tf = scr.t[lp];
-                            for c in 0..3 {
-                                o_rgb.write(c * hw + pix, scr.acc[c * NPIX + lp] + tf * bg[c]);
-                            }
-                            for c in 0..nf {
-                                o_feat.write(c * hw + pix, scr.acc[(4 + c) * NPIX + lp]);
-                            }
-                            o_depth.write(pix, scr.acc[3 * NPIX + lp]);
-                            o_alpha.write(pix, 1.0 - tf);
-                            o_t.write(pix, tf);
-                            o_nc.write(pix, scr.last[lp]);
-                        }
+                    #[cfg(target_arch = "x86_64")]
+                    if avx2 {
+                        return fwd_tile_avx2(&ctx, t, scr, &imgs);
                     }
+                    let _ = avx2;
+                    fwd_tile_portable(&ctx, t, scr, &imgs)
                 }
             },
         );
@@ -289,55 +284,282 @@ pub fn forward(inp: &RasterInputs, s: &RasterSettings) -> Result<ForwardOutput> 
             (t1 - t0).as_secs_f64() * 1e3,
             (t2 - t1).as_secs_f64() * 1e3,
             t2.elapsed().as_secs_f64() * 1e3,
-            out.point_list.len()
+            bins.point_list.len()
         );
     }
-    out.rgb = rgb;
-    out.features = feat;
-    out.alpha = alpha;
-    out.depth = depth;
-    out.final_t = final_t;
-    out.n_contrib = n_contrib;
-    Ok(out)
+    Ok(ForwardOutput {
+        width: f.w,
+        height: f.h,
+        num_features: nf,
+        rgb,
+        features: feat,
+        alpha,
+        depth,
+        final_t,
+        n_contrib,
+        radii: pre.radii,
+        tiles_touched: pre.tiles_touched,
+        means2d: pre.means2d,
+        cov2d: pre.cov2d,
+        conic: pre.conic,
+        depths: pre.depths,
+        colors: pre.colors,
+        clamped: pre.clamped,
+        geo: pre.geo,
+        vals: pre.vals,
+        tile_start: bins.tile_start,
+        point_list: bins.point_list,
+        order: bins.order,
+        pstart: bins.pstart,
+        slot_of: bins.slot_of,
+    })
 }
 
-/// Channels of the per-pair gradient buffer (channel-major, `num_pairs` values each).
+/// Channels of one row of the pair-major gradient buffer (`pair_stride` values per pair).
 pub(crate) const P_MX: usize = 0;
 pub(crate) const P_MY: usize = 1;
 pub(crate) const P_CA: usize = 2;
 pub(crate) const P_CB: usize = 3;
 pub(crate) const P_CC: usize = 4;
 pub(crate) const P_OP: usize = 5;
+/// Then the `vals` channels: r, g, b, depth, features.
 pub(crate) const P_COL: usize = 6;
 pub(crate) const P_DEPTH: usize = 9;
 pub(crate) const P_FEAT: usize = 10;
 
-struct BwdScratch {
-    g: Gathered,
-    t: [f32; NPIX],
-    tfin: [f32; NPIX],
-    last: [u32; NPIX],
-    bg_dot: [f32; NPIX],
-    /// pixel grads, channel-major: rgb (3), alpha (1), depth (1), features (C)
-    dpix: Vec<f32>,
-    /// running Σ_{later} w·value, same channel order
-    s: Vec<f32>,
-    gbuf: [f32; TILE],
+/// Values per pair in the gradient buffer.
+pub(crate) fn pair_stride(nf: usize) -> usize {
+    P_FEAT + nf
 }
 
-/// Reverse traversal per tile; returns the per-pair gradient buffer (channel-major).
+struct BwdScratch {
+    t: [f32; NPIX],
+    /// -T_final
+    ntfin: [f32; NPIX],
+    /// n_contrib as raw u32 bits
+    last: [f32; NPIX],
+    bg_dot: [f32; NPIX],
+    /// Pixel grads, channel-major in `vals` order plus alpha last: r, g, b, depth, features, alpha.
+    dpix: Vec<f32>,
+    /// Running Σ_{later} w·value, same channel order.
+    s: Vec<f32>,
+    /// Per-Gaussian lane accumulators of w·dpix, one vector per `vals` channel.
+    gacc: Vec<f32>,
+}
+
+struct BwdCtx<'a> {
+    c: Ctx<'a>,
+    fwd: &'a ForwardOutput,
+    grads: &'a PixelGrads<'a>,
+    d_alpha: Option<&'a [f32]>,
+    d_depth: Option<&'a [f32]>,
+    exact: bool,
+    bg: [f32; 3],
+    buf: SharedMut<f32>,
+    ps: usize,
+}
+
+#[inline(always)]
+unsafe fn bwd_tile<V: F8>(b: &BwdCtx, tile: usize, s: &mut BwdScratch) {
+    let c = &b.c;
+    let f = c.f;
+    let fwd = b.fwd;
+    let (x0, x1, y0, y1) = tile_bounds(f, tile);
+    let (tw, th) = (x1 - x0, y1 - y0);
+    let nv = c.nv;
+    let nch = nv + 1;
+    let hw = f.w * f.h;
+    let start = c.tile_start[tile] as usize;
+    let ids = c.ids(tile);
+    let ps = b.ps;
+    s.last.fill(0.0);
+    s.t.fill(0.0);
+    s.ntfin.fill(0.0);
+    s.bg_dot.fill(0.0);
+    s.dpix[..nch * NPIX].fill(0.0);
+    s.s[..nch * NPIX].fill(0.0);
+    let mut row_max = [0u32; TILE];
+    for ly in 0..th {
+        for lx in 0..tw {
+            let l = ly * TILE + lx;
+            let pix = (y0 + ly) * f.w + x0 + lx;
+            let tf = fwd.final_t[pix];
+            s.t[l] = tf;
+            s.ntfin[l] = -tf;
+            let nc = fwd.n_contrib[pix];
+            s.last[l] = f32::from_bits(nc);
+            row_max[ly] = row_max[ly].max(nc);
+            let mut bd = 0f32;
+            for ch in 0..3 {
+                let gv = b.grads.rgb[ch * hw + pix];
+                s.dpix[ch * NPIX + l] = gv;
+                bd += b.bg[ch] * gv;
+            }
+            s.bg_dot[l] = bd;
+            if let Some(d) = b.d_depth {
+                s.dpix[3 * NPIX + l] = d[pix];
+            }
+            for ch in 0..nv - 4 {
+                s.dpix[(4 + ch) * NPIX + l] = b.grads.features[ch * hw + pix];
+            }
+            if let Some(a) = b.d_alpha {
+                s.dpix[nv * NPIX + l] = a[pix];
+            }
+        }
+    }
+    let max_last = (row_max.iter().copied().max().unwrap_or(0) as usize).min(ids.len());
+    // Pairs no pixel blended get zero rows (the buffer is reused, not zeroed).
+    let slots = &fwd.slot_of[start..start + ids.len()];
+    for &sl in &slots[max_last..] {
+        for k in 0..ps {
+            b.buf.write(sl as usize * ps + k, 0.0);
+        }
+    }
+    // Channels entering dL/dalpha: official = rgb only (features are stop-grad); exact = all incl. alpha.
+    let n_dl = if b.exact { nch } else { 3 };
+    let (zero, one) = (V::splat(0.0), V::splat(1.0));
+    let (amin, amax) = (V::splat(ALPHA_MIN), V::splat(0.99));
+    let half = V::splat(-0.5);
+    let iota = V::iota();
+    let tp = s.t.as_mut_ptr();
+    let lp = s.last.as_ptr();
+    let dp = s.dpix.as_ptr();
+    let sp = s.s.as_mut_ptr();
+    let gp = s.gacc.as_mut_ptr();
+    for j in (0..max_last).rev() {
+        if j >= 8 {
+            c.prefetch(ids, j - 8);
+        }
+        let g = ids[j] as usize;
+        let geo = &c.geo[g];
+        let row = slots[j] as usize * ps;
+        let Some((xs, xe, ys, ye)) = local_box(geo, x0, y0, tw, th) else {
+            for k in 0..ps {
+                b.buf.write(row + k, 0.0);
+            }
+            continue;
+        };
+        let [mx, my, ca, cb, cc, o, ..] = *geo;
+        let vals = &c.vals[g * nv..g * nv + nv];
+        let (mxv, cav, cbv, ccv, ov) = (V::splat(mx), V::splat(ca), V::splat(cb), V::splat(cc), V::splat(o));
+        let jv = V::splat(f32::from_bits(j as u32));
+        let (mut g_mx, mut g_my, mut g_a, mut g_b, mut g_c, mut g_o) = (zero, zero, zero, zero, zero, zero);
+        for ch in 0..nv {
+            zero.store(gp.add(ch * LANES));
+        }
+        let mut any = false;
+        for ly in ys..=ye {
+            if (j as u32) >= row_max[ly] {
+                continue;
+            }
+            let dy = my - (y0 + ly) as f32;
+            let dyv = V::splat(dy);
+            let (cdy2, bdy) = (V::splat(cc * dy * dy), V::splat(cb * dy));
+            let mut s0 = xs;
+            while s0 <= xe {
+                let ws = s0.min(WMAX);
+                let (lo, hi) = lane_range(ws, s0, xe);
+                s0 = ws + LANES;
+                let idx = ly * TILE + ws;
+                let dx = mxv.sub(V::splat((x0 + ws) as f32).add(iota));
+                let power = half.mul(cav.mul(dx).mul(dx).add(cdy2)).sub(dx.mul(bdy));
+                let gk = exp8(power);
+                let raw = ov.mul(gk);
+                let a = raw.min(amax);
+                let act = iota
+                    .ge(V::splat(lo))
+                    .and(iota.le(V::splat(hi)))
+                    .and(power.le(zero))
+                    .and(a.ge(amin))
+                    .and(V::load(lp.add(idx)).gt_i32(jv));
+                if act.bits() == 0 {
+                    continue;
+                }
+                any = true;
+                let inv = one.div(one.sub(a));
+                let tv = V::load(tp.add(idx));
+                let tpv = V::select(act, tv.mul(inv), tv);
+                tpv.store(tp.add(idx));
+                let w = a.mul(tpv).and(act);
+                let mut dl = V::load(s.ntfin.as_ptr().add(idx)).mul(inv).mul(V::load(s.bg_dot.as_ptr().add(idx)));
+                for ch in 0..n_dl {
+                    // The alpha channel's value is 1.
+                    let v = V::splat(if ch < nv { vals[ch] } else { 1.0 });
+                    let d = V::load(dp.add(ch * NPIX + idx));
+                    let sv = V::load(sp.add(ch * NPIX + idx));
+                    dl = dl.add(v.mul(tpv).sub(sv.mul(inv)).mul(d));
+                    sv.add(w.mul(v)).store(sp.add(ch * NPIX + idx));
+                }
+                for ch in 0..nv {
+                    if ch == 3 && !b.exact {
+                        continue;
+                    }
+                    let d = V::load(dp.add(ch * NPIX + idx));
+                    let q = gp.add(ch * LANES);
+                    V::load(q).add(w.mul(d)).store(q);
+                }
+                // Official: the 0.99 clamp is ignored in backward; exact: a clamped alpha is constant.
+                let mut dla = dl.and(act);
+                if b.exact {
+                    dla = dla.and_not(raw.gt(amax));
+                }
+                let gm = gk.and(act);
+                let dl_dg = ov.mul(dla);
+                let gdx = gm.mul(dx);
+                let gdy = gm.mul(dyv);
+                let dg_ddelx = zero.sub(gdx.mul(cav)).sub(gdy.mul(cbv));
+                let dg_ddely = zero.sub(gdy.mul(ccv)).sub(gdx.mul(cbv));
+                g_mx = g_mx.add(dl_dg.mul(dg_ddelx));
+                g_my = g_my.add(dl_dg.mul(dg_ddely));
+                g_a = g_a.add(half.mul(gdx).mul(dx).mul(dl_dg));
+                g_b = g_b.add(half.mul(gdx).mul(dyv).mul(dl_dg));
+                g_c = g_c.add(half.mul(gdy).mul(dyv).mul(dl_dg));
+                g_o = g_o.add(gm.mul(dla));
+            }
+        }
+        if !any {
+            for k in 0..ps {
+                b.buf.write(row + k, 0.0);
+            }
+            continue;
+        }
+        for (k, v) in [g_mx, g_my, g_a, g_b, g_c, g_o].into_iter().enumerate() {
+            b.buf.write(row + k, v.hsum());
+        }
+        for ch in 0..nv {
+            b.buf.write(row + P_COL + ch, V::load(gp.add(ch * LANES)).hsum());
+        }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn bwd_tile_avx2(b: &BwdCtx, tile: usize, s: &mut BwdScratch) {
+    bwd_tile::<super::simd::Avx>(b, tile, s)
+}
+
+unsafe fn bwd_tile_portable(b: &BwdCtx, tile: usize, s: &mut BwdScratch) {
+    bwd_tile::<Arr>(b, tile, s)
+}
+
+/// Reverse traversal per tile; fills `buf` (one row of [`pair_stride`] values per pair, in the Gaussian-major
+/// slot order of `slot_of`) completely.
 pub(crate) fn backward_pairs(
     inp: &RasterInputs,
     s: &RasterSettings,
     fwd: &ForwardOutput,
     grads: &PixelGrads,
     mode: GradMode,
-) -> Result<Vec<f32>> {
+    buf: &mut Vec<f32>,
+) -> Result<()> {
     let f = Frame::new(&s.camera);
     let nf = inp.num_features;
     let hw = f.w * f.h;
     if grads.rgb.len() != 3 * hw || grads.features.len() != nf * hw {
         return Err(input_err("pixel gradients", format!("expected 3x{hw} rgb and {nf}x{hw} feature values")));
+    }
+    if fwd.num_features != nf || fwd.vals.len() != (4 + nf) * inp.len() {
+        return Err(input_err("forward output", "does not belong to these inputs (rerun forward)"));
     }
     let exact = mode == GradMode::Exact;
     let d_alpha = if exact { grads.alpha } else { None };
@@ -347,171 +569,54 @@ pub(crate) fn backward_pairs(
             return Err(input_err("pixel gradients", format!("alpha/depth gradients need {hw} values")));
         }
     }
-    let np_total = fwd.point_list.len();
-    let nch = P_FEAT + nf;
-    let mut buf = vec![0f32; nch * np_total];
-    let bs = SharedMut::new(&mut buf);
-    let nchp = 5 + nf;
-    let bg = s.background;
+    let ps = pair_stride(nf);
+    let len = ps * fwd.point_list.len();
+    // Every row is written by its tile, so a reused buffer needs no zeroing.
+    buf.resize(len, 0.0);
+    buf.truncate(len);
+    let nv = 4 + nf;
+    let bc = BwdCtx {
+        c: Ctx {
+            f: &f,
+            geo: &fwd.geo,
+            vals: &fwd.vals,
+            nv,
+            tile_start: &fwd.tile_start,
+            point_list: &fwd.point_list,
+        },
+        fwd,
+        grads,
+        d_alpha,
+        d_depth,
+        exact,
+        bg: s.background,
+        buf: SharedMut::new(buf),
+        ps,
+    };
+    let avx2 = has_avx2();
     (0..f.num_tiles()).into_par_iter().for_each_init(
         || BwdScratch {
-            g: Gathered::default(),
             t: [0.0; NPIX],
-            tfin: [0.0; NPIX],
-            last: [0; NPIX],
+            ntfin: [0.0; NPIX],
+            last: [0.0; NPIX],
             bg_dot: [0.0; NPIX],
-            dpix: vec![0.0; nchp * NPIX],
-            s: vec![0.0; nchp * NPIX],
-            gbuf: [0.0; TILE],
+            dpix: vec![0.0; (nv + 1) * NPIX],
+            s: vec![0.0; (nv + 1) * NPIX],
+            gacc: vec![0.0; nv * LANES],
         },
         |scr, t| {
-            let (x0, x1, y0, y1) = tile_bounds(&f, t);
-            let tw = x1 - x0;
-            let start = fwd.tile_start[t] as usize;
-            let ids = &fwd.point_list[start..fwd.tile_start[t + 1] as usize];
-            let mut max_last = 0usize;
-            scr.dpix.fill(0.0);
-            scr.s.fill(0.0);
-            for y in y0..y1 {
-                for x in x0..x1 {
-                    let lp = (y - y0) * tw + (x - x0);
-                    let pix = y * f.w + x;
-                    scr.t[lp] = fwd.final_t[pix];
-                    scr.tfin[lp] = fwd.final_t[pix];
-                    scr.last[lp] = fwd.n_contrib[pix];
-                    max_last = max_last.max(fwd.n_contrib[pix] as usize);
-                    let mut bd = 0f32;
-                    for c in 0..3 {
-                        let g = grads.rgb[c * hw + pix];
-                        scr.dpix[c * NPIX + lp] = g;
-                        bd += bg[c] * g;
-                    }
-                    scr.bg_dot[lp] = bd;
-                    if let Some(a) = d_alpha {
-                        scr.dpix[3 * NPIX + lp] = a[pix];
-                    }
-                    if let Some(d) = d_depth {
-                        scr.dpix[4 * NPIX + lp] = d[pix];
-                    }
-                    for c in 0..nf {
-                        scr.dpix[(5 + c) * NPIX + lp] = grads.features[c * hw + pix];
-                    }
+            // SAFETY: each tile writes only its own pair rows; AVX2 only where detected.
+            unsafe {
+                #[cfg(target_arch = "x86_64")]
+                if avx2 {
+                    return bwd_tile_avx2(&bc, t, scr);
                 }
-            }
-            if max_last == 0 {
-                return;
-            }
-            scr.g.fill(&ids[..max_last], fwd, inp, nf);
-            let mut accf = vec![0f32; nf];
-            for j in (0..max_last).rev() {
-                let geo = scr.g.geo[j];
-                let Some([xs, xe, ys, ye]) = pixel_box(&geo, x0, x1, y0, y1) else { continue };
-                let col = [scr.g.col[3 * j], scr.g.col[3 * j + 1], scr.g.col[3 * j + 2]];
-                let fe = &scr.g.feat[nf * j..nf * j + nf];
-                let (o, z) = (geo[5], geo[6]);
-                let (mut g_mx, mut g_my, mut g_a, mut g_b, mut g_c, mut g_o) = (0f32, 0f32, 0f32, 0f32, 0f32, 0f32);
-                let mut g_col = [0f32; 3];
-                let mut g_z = 0f32;
-                accf.fill(0.0);
-                let mut any = false;
-                let r2 = inflated_r2(o);
-                for y in ys..=ye {
-                    let Some((rs, re)) = row_span(&geo, r2, y, xs, xe) else { continue };
-                    let len = re - rs + 1;
-                    let dyr = geo[1] - y as f32;
-                    for (k, gv) in scr.gbuf[..len].iter_mut().enumerate() {
-                        let dx = geo[0] - (rs + k) as f32;
-                        let power = -0.5 * (geo[2] * dx * dx + geo[4] * dyr * dyr) - geo[3] * dx * dyr;
-                        *gv = if power > 0.0 { 0.0 } else { fast_exp(power) };
-                    }
-                    for k in 0..len {
-                        let x = rs + k;
-                        let lp = (y - y0) * tw + (x - x0);
-                        if j as u32 >= scr.last[lp] {
-                            continue;
-                        }
-                        let gk = scr.gbuf[k];
-                        let raw = o * gk;
-                        let a = raw.min(0.99);
-                        if a < ALPHA_MIN {
-                            continue;
-                        }
-                        let dx = geo[0] - x as f32;
-                        let dy = dyr;
-                        any = true;
-                        let one_m = 1.0 - a;
-                        let tp = scr.t[lp] / one_m;
-                        scr.t[lp] = tp;
-                        let w = a * tp;
-                        let mut dl_da = 0f32;
-                        for c in 0..3 {
-                            let dp = scr.dpix[c * NPIX + lp];
-                            g_col[c] += w * dp;
-                            let sc = &mut scr.s[c * NPIX + lp];
-                            dl_da += (col[c] * tp - *sc / one_m) * dp;
-                            *sc += w * col[c];
-                        }
-                        dl_da += -scr.tfin[lp] / one_m * scr.bg_dot[lp];
-                        for c in 0..nf {
-                            let dp = scr.dpix[(5 + c) * NPIX + lp];
-                            accf[c] += w * dp;
-                        }
-                        if exact {
-                            for c in 0..nf {
-                                let dp = scr.dpix[(5 + c) * NPIX + lp];
-                                let sc = &mut scr.s[(5 + c) * NPIX + lp];
-                                dl_da += (fe[c] * tp - *sc / one_m) * dp;
-                                *sc += w * fe[c];
-                            }
-                            let da = scr.dpix[3 * NPIX + lp];
-                            let sa = &mut scr.s[3 * NPIX + lp];
-                            dl_da += (tp - *sa / one_m) * da;
-                            *sa += w;
-                            let dd = scr.dpix[4 * NPIX + lp];
-                            let sd = &mut scr.s[4 * NPIX + lp];
-                            dl_da += (z * tp - *sd / one_m) * dd;
-                            *sd += w * z;
-                            g_z += w * dd;
-                        }
-                        // Official: the 0.99 clamp is ignored in backward; exact: clamped alpha is constant.
-                        let dl_dalpha = if exact && raw > 0.99 { 0.0 } else { dl_da };
-                        let dl_dg = o * dl_dalpha;
-                        let gdx = gk * dx;
-                        let gdy = gk * dy;
-                        let dg_ddelx = -gdx * geo[2] - gdy * geo[3];
-                        let dg_ddely = -gdy * geo[4] - gdx * geo[3];
-                        g_mx += dl_dg * dg_ddelx;
-                        g_my += dl_dg * dg_ddely;
-                        g_a += -0.5 * gdx * dx * dl_dg;
-                        g_b += -0.5 * gdx * dy * dl_dg;
-                        g_c += -0.5 * gdy * dy * dl_dg;
-                        g_o += gk * dl_dalpha;
-                    }
-                }
-                if !any {
-                    continue;
-                }
-                let pi = start + j;
-                // SAFETY: pair index pi belongs to this tile only.
-                unsafe {
-                    bs.write(P_MX * np_total + pi, g_mx);
-                    bs.write(P_MY * np_total + pi, g_my);
-                    bs.write(P_CA * np_total + pi, g_a);
-                    bs.write(P_CB * np_total + pi, g_b);
-                    bs.write(P_CC * np_total + pi, g_c);
-                    bs.write(P_OP * np_total + pi, g_o);
-                    for c in 0..3 {
-                        bs.write((P_COL + c) * np_total + pi, g_col[c]);
-                    }
-                    bs.write(P_DEPTH * np_total + pi, g_z);
-                    for c in 0..nf {
-                        bs.write((P_FEAT + c) * np_total + pi, accf[c]);
-                    }
-                }
+                let _ = avx2;
+                bwd_tile_portable(&bc, t, scr)
             }
         },
     );
-    Ok(buf)
+    Ok(())
 }
 
 #[cfg(test)]
@@ -529,5 +634,54 @@ mod tests {
         assert!(worst < 3e-7, "relative error {worst:.3e}");
         assert_eq!(fast_exp(0.0), 1.0);
         assert!(fast_exp(-200.0) >= 0.0 && fast_exp(-200.0) < 1e-37);
+    }
+}
+
+#[cfg(test)]
+mod simd_paths {
+    use crate::bench::synthetic_scene;
+    use crate::cpu::simd::{has_avx2, FORCE_PORTABLE};
+    use crate::cpu::{backward, forward, GradMode, PixelGrads, RasterSettings};
+    use std::sync::atomic::Ordering;
+
+    /// The AVX2 kernels and the portable ones must agree bit for bit (same operations, no FMA contraction),
+    /// and repeated runs must be identical (determinism).
+    #[test]
+    fn avx2_and_portable_kernels_agree_bitwise() {
+        let sc = synthetic_scene(3 * 40 * 24, 40, 24, 3);
+        let inp = sc.inputs();
+        let st = RasterSettings { camera: sc.camera, background: [0.2, 0.4, 0.6] };
+        let hw = 40 * 24;
+        let ones = vec![0.5f32; hw];
+        let run = |portable: bool, mode: GradMode| {
+            FORCE_PORTABLE.store(portable, Ordering::SeqCst);
+            let out = forward(&inp, &st).unwrap();
+            let pg = PixelGrads { rgb: &sc.w1, features: &sc.w2, alpha: Some(&ones), depth: Some(&ones) };
+            let g = backward(&inp, &st, &out, &pg, mode).unwrap();
+            FORCE_PORTABLE.store(false, Ordering::SeqCst);
+            (out, g)
+        };
+        for mode in [GradMode::Official, GradMode::Exact] {
+            let (a, ga) = run(false, mode);
+            let (a2, ga2) = run(false, mode);
+            let (b, gb) = run(true, mode);
+            assert!(a.n_contrib.iter().any(|&c| c > 0), "scene renders nothing");
+            let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            for (x, y) in [(&a, &a2), (&a, &b)] {
+                assert_eq!(bits(&x.rgb), bits(&y.rgb));
+                assert_eq!(bits(&x.features), bits(&y.features));
+                assert_eq!(bits(&x.depth), bits(&y.depth));
+                assert_eq!(bits(&x.final_t), bits(&y.final_t));
+                assert_eq!(x.n_contrib, y.n_contrib);
+            }
+            for (x, y) in [(&ga, &ga2), (&ga, &gb)] {
+                assert_eq!(bits(&x.means), bits(&y.means));
+                assert_eq!(bits(&x.opacities), bits(&y.opacities));
+                assert_eq!(bits(&x.cov3d), bits(&y.cov3d));
+                assert_eq!(bits(&x.sh), bits(&y.sh));
+                assert_eq!(bits(&x.features), bits(&y.features));
+            }
+        }
+        eprintln!("avx2 available: {}", has_avx2());
     }
 }

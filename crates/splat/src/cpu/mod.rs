@@ -5,9 +5,11 @@ mod backward;
 mod binning;
 mod composite;
 mod preprocess;
+mod simd;
 
 use crate::camera::RasterCamera;
 use crate::error::{input_err, Result};
+use crate::util::Pooled;
 
 pub use backward::backward;
 pub use composite::forward;
@@ -139,9 +141,19 @@ pub struct ForwardOutput {
     pub colors: Vec<f32>,
     pub(crate) clamped: Vec<u8>,
     /// Per-tile ranges into `point_list` (len tiles + 1).
-    pub(crate) tile_start: Vec<u32>,
+    pub(crate) tile_start: Pooled<u32>,
     /// Gaussian index per (tile, depth)-sorted pair.
-    pub(crate) point_list: Vec<u32>,
+    pub(crate) point_list: Pooled<u32>,
+    /// Packed kernel records (mx, my, conic, opacity, alpha-box half-extents) per Gaussian.
+    pub(crate) geo: Pooled<[f32; preprocess::GEO_LEN]>,
+    /// (N, 4+C) composited values: r, g, b, depth, features.
+    pub(crate) vals: Pooled<f32>,
+    /// Visible Gaussians in depth order.
+    pub(crate) order: Pooled<u32>,
+    /// (M+1) first Gaussian-major pair slot of each `order` entry.
+    pub(crate) pstart: Pooled<u32>,
+    /// Gaussian-major slot of each pair of `point_list` (where the backward writes its partial gradients).
+    pub(crate) slot_of: Pooled<u32>,
 }
 
 impl ForwardOutput {

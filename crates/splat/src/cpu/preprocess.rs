@@ -4,7 +4,7 @@ use rayon::prelude::*;
 
 use super::{tile_rect, CovInput, Frame, RasterInputs};
 use crate::sh;
-use crate::util::SharedMut;
+use crate::util::{Pooled, SharedMut, POOL_F32, POOL_GEO};
 
 /// Projected per-Gaussian data (SoA).
 pub(crate) struct Projected {
@@ -16,6 +16,32 @@ pub(crate) struct Projected {
     pub clamped: Vec<u8>,
     pub radii: Vec<i32>,
     pub tiles_touched: Vec<u32>,
+    /// Packed per-Gaussian record for the tile kernels (see [`GEO_LEN`]).
+    pub geo: Pooled<[f32; GEO_LEN]>,
+    /// (N, 4+C) values composited per Gaussian: r, g, b, view depth, features.
+    pub vals: Pooled<f32>,
+}
+
+/// Kernel record: mx, my, conic A, B, C, opacity, and the half-extents (px) of the alpha ≥ 1/255 ellipse's
+/// bounding box (negative = never visible, infinite = unknown, use the whole tile).
+pub(crate) const GEO_LEN: usize = 8;
+
+/// Conservative half-extents of the region where `o·exp(-q/2) ≥ 1/255` (q the conic quadratic form).
+#[inline]
+pub(crate) fn alpha_extent(conic: [f32; 3], o: f32) -> (f32, f32) {
+    if !(o >= 1.0 / 255.0) {
+        return (-1.0, -1.0);
+    }
+    let [a, b, c] = conic;
+    let r2 = 2.0 * (255.0 * o).ln().max(0.0);
+    let detq = a * c - b * b;
+    if detq > 0.0 && a > 0.0 && c > 0.0 {
+        // 1 % (2 % in q, i.e. alpha ≥ 2 % below the threshold at the edge) + 0.05 px margin, far above the f32
+        // rounding of the per-pixel test, so no pixel with alpha ≥ 1/255 falls outside the box.
+        ((r2 * c / detq).sqrt() * 1.01 + 0.05, (r2 * a / detq).sqrt() * 1.01 + 0.05)
+    } else {
+        (f32::INFINITY, f32::INFINITY)
+    }
 }
 
 #[inline]
@@ -123,6 +149,23 @@ pub(crate) fn view_dir(f: &Frame, p: [f32; 3]) -> ([f32; 3], [f32; 3]) {
 }
 
 pub(crate) fn preprocess(f: &Frame, inp: &RasterInputs) -> Projected {
+    #[cfg(target_arch = "x86_64")]
+    if super::simd::has_avx2() {
+        // SAFETY: AVX2/FMA detected (FMA is not contracted into mul+add, so results equal the portable build).
+        return unsafe { preprocess_avx2(f, inp) };
+    }
+    preprocess_impl(f, inp)
+}
+
+/// Same code with AVX2 enabled (inline rounding instructions instead of libm calls, wider moves).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn preprocess_avx2(f: &Frame, inp: &RasterInputs) -> Projected {
+    preprocess_impl(f, inp)
+}
+
+#[inline(always)]
+fn preprocess_impl(f: &Frame, inp: &RasterInputs) -> Projected {
     let n = inp.len();
     let mut out = Projected {
         means2d: vec![0.0; 2 * n],
@@ -133,7 +176,12 @@ pub(crate) fn preprocess(f: &Frame, inp: &RasterInputs) -> Projected {
         clamped: vec![0; n],
         radii: vec![0; n],
         tiles_touched: vec![0; n],
+        // Culled Gaussians' records are never read, so reused (stale) buffers need no clearing.
+        geo: Pooled::new(POOL_GEO.take(n, [0.0; GEO_LEN]), &POOL_GEO),
+        vals: Pooled::new(POOL_F32.take((4 + inp.num_features) * n, 0.0), &POOL_F32),
     };
+    let nf = inp.num_features;
+    let nv = 4 + nf;
     let deg = inp.eval_degree();
     let ncoef = sh::num_coeffs(deg);
     let (w, h) = (f.w as f64, f.h as f64);
@@ -145,6 +193,8 @@ pub(crate) fn preprocess(f: &Frame, inp: &RasterInputs) -> Projected {
     let cm = SharedMut::new(&mut out.clamped);
     let ra = SharedMut::new(&mut out.radii);
     let tt = SharedMut::new(&mut out.tiles_touched);
+    let ge = SharedMut::new(&mut out.geo);
+    let va = SharedMut::new(&mut out.vals);
     (0..n).into_par_iter().with_min_len(2048).for_each(|i| {
         let p = mean_of(inp, i);
         let t = view_point(&f.v, p);
@@ -186,6 +236,8 @@ pub(crate) fn preprocess(f: &Frame, inp: &RasterInputs) -> Projected {
         sh::basis(dir, deg, &mut basis);
         let shi = &inp.sh[i * inp.sh_coeffs * 3..];
         let mut mask = 0u8;
+        let o = inp.opacities[i];
+        let (ex, ey) = alpha_extent(conic, o);
         // SAFETY: iteration i writes only index i (or 2i.., 3i..) of every buffer.
         unsafe {
             for ch in 0..3 {
@@ -198,7 +250,13 @@ pub(crate) fn preprocess(f: &Frame, inp: &RasterInputs) -> Projected {
                     mask |= 1 << ch;
                 }
                 cl.write(3 * i + ch, acc.max(0.0));
+                va.write(nv * i + ch, acc.max(0.0));
             }
+            va.write(nv * i + 3, t[2]);
+            for c in 0..nf {
+                va.write(nv * i + 4 + c, inp.features[nf * i + c]);
+            }
+            ge.write(i, [px[0], px[1], conic[0], conic[1], conic[2], o, ex, ey]);
             cm.write(i, mask);
             m2.write(2 * i, px[0]);
             m2.write(2 * i + 1, px[1]);
