@@ -144,7 +144,9 @@ impl EncoderCostVolume {
         } else {
             self.depth_predictor.forward(&inp)?
         };
+        let mut t = std::time::Instant::now();
         let gaussians = gaussians_from_prediction(&self.cfg, &depth, extrinsics, intrinsics, (h, w))?;
+        crate::prof("gaussian adapter", &mut t);
         Ok(EncoderOutput { gaussians, ranking, backbone, depth })
     }
 }

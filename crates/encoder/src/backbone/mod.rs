@@ -64,13 +64,16 @@ impl BackboneMultiview {
         if c3 != 3 {
             candle_core::bail!("backbone expects RGB images [B,V,3,H,W], got {:?}", images.dims());
         }
+        let mut t = std::time::Instant::now();
         let x = normalize_images(images)?.reshape((b * v, 3, hh, ww))?;
         let f = self.backbone.forward(&x)?;
+        crate::prof("cnn", &mut t);
         let (_, c, h, w) = f.dims4()?;
         let cnn_features = f.reshape((b, v, c, h, w))?;
         let pos = windowed_position_embedding(self.feature_channels, h, w, splits, images.device())?;
         let input = cnn_features.broadcast_add(&pos)?;
         let (trans_features, block_outputs) = self.transformer.forward(&input, splits, nn, intermediates)?;
+        crate::prof("transformer", &mut t);
         Ok(BackboneOutput {
             trans_features,
             cnn_features,

@@ -6,7 +6,34 @@ use candle_core::{Device, Module, Result, Tensor};
 use candle_nn::VarBuilder;
 
 use crate::backbone::nn::{gelu, masked_softmax, LayerNorm, LinearNoBias};
-use crate::backbone::unimatch::utils::shifted_window_mask;
+use crate::backbone::unimatch::utils::{shifted_window_labels, shifted_window_mask};
+use crate::ops::attention::{fused_attention, fused_attention_applies, RegionMask};
+
+/// Shifted-window mask for `m` key views: region labels for the fused inference kernel, and the dense additive
+/// mask `[K·K, Lw, m·Lw]` (built only if the differentiable path asks for it).
+#[derive(Debug)]
+pub struct ShiftMask {
+    region: RegionMask,
+    geom: (usize, usize, usize, usize),
+    device: Device,
+    dense: std::sync::OnceLock<Tensor>,
+}
+
+impl ShiftMask {
+    pub fn new(h: usize, w: usize, k: usize, m: usize, device: &Device) -> Self {
+        let (q_labels, k_labels) = shifted_window_labels(h, w, k, m);
+        Self { region: RegionMask { q_labels, k_labels, p: k * k }, geom: (h, w, k, m), device: device.clone(), dense: Default::default() }
+    }
+
+    fn dense(&self) -> Result<&Tensor> {
+        if let Some(t) = self.dense.get() {
+            return Ok(t);
+        }
+        let (h, w, k, m) = self.geom;
+        let t = shifted_window_mask(h, w, k, m, &self.device)?;
+        Ok(self.dense.get_or_init(|| t))
+    }
+}
 
 /// Largest attention-score tensor (elements) materialised at once; bigger inputs are processed in view chunks.
 const SCORE_CHUNK_ELEMS: usize = 48 << 20;
@@ -58,7 +85,7 @@ impl TransformerLayer {
     /// `source` and `rows` is `None`; for cross-attention `rows = (indices, m)` picks m key rows per query row
     /// (the projections are computed once per view and then gathered, which equals projecting the gathered
     /// features). `mask` is the shifted-window mask for this `m` (used only by shifted layers).
-    pub fn forward(&self, source: &Tensor, kv_source: &Tensor, rows: Option<(&Tensor, usize)>, g: WindowGeom, mask: Option<&Tensor>) -> Result<Tensor> {
+    pub fn forward(&self, source: &Tensor, kv_source: &Tensor, rows: Option<(&Tensor, usize)>, g: WindowGeom, mask: Option<&ShiftMask>) -> Result<Tensor> {
         let (n, l, c) = source.dims3()?;
         // Scale q rather than the scores (fewer elements; same value up to f32 rounding).
         let q = (self.q_proj.forward(source)? * (1.0 / (c as f64).sqrt()))?;
@@ -90,9 +117,16 @@ impl TransformerLayer {
 }
 
 /// Single-head windowed attention. `q [N, L, C]`, `k, v [N, m, L, C]`, L = h·w row-major.
-pub fn window_attention(q: &Tensor, k: &Tensor, v: &Tensor, g: WindowGeom, shift: bool, mask: Option<&Tensor>) -> Result<Tensor> {
+pub fn window_attention(q: &Tensor, k: &Tensor, v: &Tensor, g: WindowGeom, shift: bool, mask: Option<&ShiftMask>) -> Result<Tensor> {
     let (n, l, c) = q.dims3()?;
     let m = k.dim(1)?;
+    if fused_attention_applies(&[q, k, v]) {
+        return window_attention_fused(q, k, v, g, shift, mask);
+    }
+    let mask = match mask {
+        Some(mk) if shift => Some(mk.dense()?),
+        _ => None,
+    };
     let (kw, lw) = (g.splits, l / (g.splits * g.splits));
     let rows_per_chunk = (SCORE_CHUNK_ELEMS / (kw * kw * lw * m * lw).max(1)).clamp(1, n.max(1));
     let mut outs = Vec::new();
@@ -145,6 +179,27 @@ fn invert(perm: &[u32]) -> Vec<u32> {
         inv[p as usize] = i as u32;
     }
     inv
+}
+
+/// Inference path: the same window gathers, then one fused attention call (no score tensor).
+fn window_attention_fused(q: &Tensor, k: &Tensor, v: &Tensor, g: WindowGeom, shift: bool, mask: Option<&ShiftMask>) -> Result<Tensor> {
+    let (n, l, c) = q.dims3()?;
+    let m = k.dim(1)?;
+    let WindowGeom { h, w, splits } = g;
+    let (sh, sw) = if shift { (h / splits / 2, w / splits / 2) } else { (0, 0) };
+    let kk = splits * splits;
+    let lw = l / kk;
+    let dev = q.device();
+    let q_rows = window_rows(n, 1, g, sh, sw);
+    let q_inv = Tensor::from_vec(invert(&q_rows), n * l, dev)?;
+    let q_rows = Tensor::from_vec(q_rows, n * l, dev)?;
+    let kv_rows = Tensor::from_vec(window_rows(n, m, g, sh, sw), n * m * l, dev)?;
+    let qw = q.reshape((n * l, c))?.index_select(&q_rows, 0)?.reshape((n * kk, lw, c))?;
+    let kw = k.reshape((n * m * l, c))?.index_select(&kv_rows, 0)?.reshape((n * kk, m * lw, c))?;
+    let vw = v.reshape((n * m * l, c))?.index_select(&kv_rows, 0)?.reshape((n * kk, m * lw, c))?;
+    let region = if shift { mask.map(|mk| &mk.region) } else { None };
+    let out = fused_attention(&qw, &kw, &vw, region)?;
+    out.reshape((n * l, c))?.index_select(&q_inv, 0)?.reshape((n, l, c))
 }
 
 fn window_attention_chunk(q: &Tensor, k: &Tensor, v: &Tensor, g: WindowGeom, shift: bool, mask: Option<&Tensor>) -> Result<Tensor> {
@@ -251,8 +306,8 @@ impl MultiViewFeatureTransformer {
         let mut x = features.permute((1, 0, 3, 4, 2))?.reshape((v * b, h * w, c))?;
         let (rows, m) = key_view_rows(b, v, nn)?;
         let rows = Tensor::from_vec(rows, v * b * m, device)?;
-        let self_mask = shifted_window_mask(h, w, splits, 1, device)?;
-        let cross_mask = shifted_window_mask(h, w, splits, m, device)?;
+        let self_mask = ShiftMask::new(h, w, splits, 1, device);
+        let cross_mask = ShiftMask::new(h, w, splits, m, device);
         let mut kept = Vec::new();
         for block in &self.layers {
             let s = block.self_attn.forward(&x, &x, None, g, Some(&self_mask))?;
@@ -337,6 +392,28 @@ mod tests {
         assert_eq!(d, 0.0);
         let d = (back_lit - &q)?.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?;
         assert_eq!(d, 0.0);
+        Ok(())
+    }
+
+    /// The region labels used by the fused kernel give exactly the dense shifted-window mask (m = 1 and 2).
+    #[test]
+    fn shift_labels_equal_dense_mask() -> Result<()> {
+        let (h, w, k) = (8, 12, 2);
+        for m in [1usize, 2] {
+            let dense: Vec<f32> = shifted_window_mask(h, w, k, m, &Device::Cpu)?.flatten_all()?.to_vec1()?;
+            let (ql, kl) = shifted_window_labels(h, w, k, m);
+            let lw = h * w / (k * k);
+            let mut want = Vec::with_capacity(dense.len());
+            for win in 0..k * k {
+                for i in 0..lw {
+                    for j in 0..m * lw {
+                        want.push(if ql[win * lw + i] != kl[win * m * lw + j] { -100.0f32 } else { 0.0 });
+                    }
+                }
+            }
+            assert_eq!(dense, want, "m = {m}");
+            assert!(dense.iter().any(|&x| x != 0.0));
+        }
         Ok(())
     }
 

@@ -79,6 +79,39 @@ pub fn gaussians_from_prediction(
     Ok(gaussians_from_prediction_at_step(cfg, pred, extrinsics, intrinsics, image_hw, 0)?.0)
 }
 
+/// `[B, V, C, H, W]` → `[B, V, H, W, C]` contiguous. Inference on CPU f32 uses a multi-threaded blocked
+/// transpose (candle's strided copy is single-threaded; this tensor is ~275 MB at the DL3DV bench size).
+fn channels_last(x: &Tensor) -> Result<Tensor> {
+    let (b, v, c, h, w) = x.dims5()?;
+    if x.track_op() || !x.device().is_cpu() || x.dtype() != DType::F32 {
+        return x.permute((0, 1, 3, 4, 2))?.contiguous();
+    }
+    use rayon::prelude::*;
+    let x = x.contiguous()?;
+    let p = h * w;
+    let mut out = vec![0f32; x.elem_count()];
+    {
+        let (st, l) = x.storage_and_layout();
+        let src = match (&*st, l.contiguous_offsets()) {
+            (candle_core::Storage::Cpu(candle_core::CpuStorage::F32(d)), Some((a, e))) => &d[a..e],
+            _ => candle_core::bail!("gaussian adapter: expected contiguous CPU f32 raw Gaussians"),
+        };
+        const TILE: usize = 256;
+        out.par_chunks_mut(c * p).zip(src.par_chunks(c * p)).for_each(|(dimg, simg)| {
+            dimg.par_chunks_mut(TILE * c).enumerate().for_each(|(t, dst)| {
+                let p0 = t * TILE;
+                let np = dst.len() / c;
+                for ci in 0..c {
+                    for (j, &val) in simg[ci * p + p0..ci * p + p0 + np].iter().enumerate() {
+                        dst[j * c + ci] = val;
+                    }
+                }
+            });
+        });
+    }
+    Tensor::from_vec(out, (b, v, h, w, c), x.device())
+}
+
 fn inv3(m: &[f64]) -> Option<[f64; 9]> {
     let det = m[0] * (m[4] * m[8] - m[5] * m[7]) - m[1] * (m[3] * m[8] - m[5] * m[6]) + m[2] * (m[3] * m[7] - m[4] * m[6]);
     if det.abs() < 1e-20 {
@@ -129,7 +162,7 @@ pub fn gaussians_from_prediction_at_step(
     }
     let dev = pred.raw_gaussians.device();
     let p = h * w;
-    let raw = pred.raw_gaussians.permute((0, 1, 3, 4, 2))?.contiguous()?.reshape((b, v, p, craw))?.to_dtype(DType::F32)?;
+    let raw = channels_last(&pred.raw_gaussians)?.reshape((b, v, p, craw))?.to_dtype(DType::F32)?;
     let depths = pred.depths.reshape((b, v, p, 1))?;
 
     // Ray coordinates: pixel centre plus a sub-pixel offset of at most half a pixel.

@@ -38,6 +38,27 @@ fn region_labels(h: usize, w: usize, wh: usize, ww: usize, sh: usize, sw: usize)
     m
 }
 
+/// Region labels behind [`shifted_window_mask`]: `(q [K·K, Lw], k [K·K, m·Lw])`; mask entry `(win, i, j)` is −100
+/// exactly where `q[win][i] != k[win][j]`.
+pub fn shifted_window_labels(h: usize, w: usize, k: usize, m: usize) -> (Vec<u8>, Vec<u8>) {
+    let (wh, ww) = (h / k, w / k);
+    let (sh, sw) = (wh / 2, ww / 2);
+    let labels = region_labels(h, w, wh, ww, sh, sw);
+    let lw = wh * ww;
+    let mut ql = Vec::with_capacity(k * k * lw);
+    let mut kl = Vec::with_capacity(k * k * m * lw);
+    for wy in 0..k {
+        for wx in 0..k {
+            let label = |p: usize| labels[(wy * wh + p / ww) * w + wx * ww + p % ww] as u8;
+            ql.extend((0..lw).map(label));
+            for v in 0..m {
+                kl.extend((0..lw).map(|pos| label((pos * m + v) % lw)));
+            }
+        }
+    }
+    (ql, kl)
+}
+
 /// Additive mask for shifted-window attention with `m` key views per query: `[K·K, Lw, m·Lw]`, keys ordered
 /// view-major (key `j = view·Lw + pos`).
 ///

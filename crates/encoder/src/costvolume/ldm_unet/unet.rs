@@ -7,7 +7,8 @@
 use candle_core::{Module, Result, Tensor, D};
 use candle_nn::VarBuilder;
 
-use super::util::{Conv1x1, Conv2d, GroupNorm};
+use super::util::{Act, Conv1x1, Conv2d, GroupNorm};
+use crate::ops::attention::{fused_attention, fused_attention_applies};
 use crate::ops::upsample_nearest;
 
 /// Post-norm residual block: `skip(x) + SiLU(GN(conv(SiLU(GN(conv(x))))))`.
@@ -34,8 +35,8 @@ impl ResBlock {
 
 impl Module for ResBlock {
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        let h = self.in_norm.forward(&self.in_conv.forward(x)?)?.silu()?;
-        let h = self.out_norm.forward(&self.out_conv.forward(&h)?)?.silu()?;
+        let h = self.in_norm.forward_act(&self.in_conv.forward(x)?, Act::Silu)?;
+        let h = self.out_norm.forward_act(&self.out_conv.forward(&h)?, Act::Silu)?;
         match &self.skip {
             Some(s) => s.forward(x)? + h,
             None => x + h,
@@ -85,11 +86,17 @@ impl AttentionBlock {
         let q = (qkv.narrow(1, 0, ch)? * scale)?;
         let k = (qkv.narrow(1, ch, ch)? * scale)?;
         let vv = qkv.narrow(1, 2 * ch, ch)?;
-        // weight[b, t, s] = Σ_c q[b,c,t] k[b,c,s]
-        let w = q.transpose(1, 2)?.contiguous()?.matmul(&k.contiguous()?)?;
-        let w = softmax_last(&w)?;
-        // a[b, c, t] = Σ_s w[b,t,s] v[b,c,s]
-        let a = vv.contiguous()?.matmul(&w.transpose(1, 2)?.contiguous()?)?;
+        let a = if fused_attention_applies(&[&q, &k, &vv]) {
+            // Inference: token-major operands, scores never materialised.
+            let tok = |x: &Tensor| x.transpose(1, 2)?.contiguous();
+            fused_attention(&tok(&q)?, &tok(&k)?, &tok(&vv)?, None)?.transpose(1, 2)?.contiguous()?
+        } else {
+            // weight[b, t, s] = Σ_c q[b,c,t] k[b,c,s]
+            let w = q.transpose(1, 2)?.contiguous()?.matmul(&k.contiguous()?)?;
+            let w = softmax_last(&w)?;
+            // a[b, c, t] = Σ_s w[b,t,s] v[b,c,s]
+            vv.contiguous()?.matmul(&w.transpose(1, 2)?.contiguous()?)?
+        };
         let a = a.reshape((b, self.num_heads * ch, l))?;
         // "b n (v t) -> (v b) n t"
         a.reshape((b, self.num_heads * ch, v, t))?.permute((2, 0, 1, 3))?.reshape((vb, self.num_heads * ch, t))
@@ -112,7 +119,7 @@ impl AttentionBlock {
         let (n, c) = (dims[0], dims[1]);
         let xf = x.reshape((n, c, ()))?;
         let h = self.attention(&self.qkv.forward(&xf)?, num_frames)?;
-        let h = self.norm.forward(&self.proj_out.forward(&h)?)?;
+        let h = self.norm.forward_act(&self.proj_out.forward(&h)?, Act::None)?;
         (xf + h)?.reshape(dims.as_slice())
     }
 }
@@ -264,6 +271,6 @@ impl UNetModel {
                 h = l.forward(&h, num_frames)?;
             }
         }
-        self.out_norm.forward(&self.out_conv.forward(&h)?)?.silu()
+        self.out_norm.forward_act(&self.out_conv.forward(&h)?, Act::Silu)
     }
 }
