@@ -112,25 +112,6 @@ fn channels_last(x: &Tensor) -> Result<Tensor> {
     Tensor::from_vec(out, (b, v, h, w, c), x.device())
 }
 
-fn inv3(m: &[f64]) -> Option<[f64; 9]> {
-    let det = m[0] * (m[4] * m[8] - m[5] * m[7]) - m[1] * (m[3] * m[8] - m[5] * m[6]) + m[2] * (m[3] * m[7] - m[4] * m[6]);
-    if det.abs() < 1e-20 {
-        return None;
-    }
-    let id = 1.0 / det;
-    Some([
-        (m[4] * m[8] - m[5] * m[7]) * id,
-        (m[2] * m[7] - m[1] * m[8]) * id,
-        (m[1] * m[5] - m[2] * m[4]) * id,
-        (m[5] * m[6] - m[3] * m[8]) * id,
-        (m[0] * m[8] - m[2] * m[6]) * id,
-        (m[2] * m[3] - m[0] * m[5]) * id,
-        (m[3] * m[7] - m[4] * m[6]) * id,
-        (m[1] * m[6] - m[0] * m[7]) * id,
-        (m[0] * m[4] - m[1] * m[3]) * id,
-    ])
-}
-
 /// As [`gaussians_from_prediction`] at a given training step (opacity mapping), also returning internals.
 pub fn gaussians_from_prediction_at_step(
     cfg: &EncoderCostVolumeCfg,
@@ -184,7 +165,7 @@ pub fn gaussians_from_prediction_at_step(
     let (mut kinv, mut mult, mut rot, mut origin) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
     for i in 0..b * v {
         let k: Vec<f64> = intr[i * 9..i * 9 + 9].iter().map(|&x| x as f64).collect();
-        let ki = inv3(&k).ok_or_else(|| candle_core::Error::Msg(format!("gaussian adapter: intrinsics of item {i} are singular")))?;
+        let ki = crate::costvolume::depth_predictor_multiview::inv3(&k, 1e-20).ok_or_else(|| candle_core::Error::Msg(format!("gaussian adapter: intrinsics of item {i} are singular")))?;
         kinv.extend(ki.iter().map(|&x| x as f32));
         // 0.1 · Σᵢ (K[:2,:2]⁻¹ · (1/W, 1/H))ᵢ
         let det2 = k[0] * k[4] - k[1] * k[3];

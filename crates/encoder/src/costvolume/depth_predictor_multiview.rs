@@ -332,9 +332,10 @@ fn inv4(m: &[f64; 16]) -> Option<[f64; 16]> {
     Some(inv)
 }
 
-fn inv3(m: &[f64; 9]) -> Option<[f64; 9]> {
+/// Inverse of a row-major 3×3 matrix, `None` when |det| < `eps` (callers pick the singularity threshold).
+pub(crate) fn inv3(m: &[f64], eps: f64) -> Option<[f64; 9]> {
     let det = m[0] * (m[4] * m[8] - m[5] * m[7]) - m[1] * (m[3] * m[8] - m[5] * m[6]) + m[2] * (m[3] * m[7] - m[4] * m[6]);
-    if det.abs() < 1e-15 {
+    if det.abs() < eps {
         return None;
     }
     let id = 1.0 / det;
@@ -421,7 +422,7 @@ impl CostVolumeGeometry {
                         k[cc] *= w as f64;
                         k[3 + cc] *= h as f64;
                     }
-                    let kinv = inv3(&k).ok_or_else(|| candle_core::Error::Msg(format!("cost volume: intrinsics of view {vi} are singular")))?;
+                    let kinv = inv3(&k, 1e-15).ok_or_else(|| candle_core::Error::Msg(format!("cost volume: intrinsics of view {vi} are singular")))?;
                     for di in 0..d {
                         let depth = (1.0f32 / disparities[item * d + di]) as f64;
                         for y in 0..h {
