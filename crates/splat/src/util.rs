@@ -16,6 +16,12 @@ impl<T> SharedMut<T> {
     }
 
     /// # Safety
+    /// `ptr` must be valid for writing `len` values while the view is used.
+    pub unsafe fn from_raw(ptr: *mut T, len: usize) -> Self {
+        Self { ptr, len }
+    }
+
+    /// # Safety
     /// No other thread may access index `i` concurrently.
     #[inline(always)]
     pub unsafe fn write(&self, i: usize, v: T) {
@@ -102,7 +108,7 @@ pub(crate) static POOL_U32: Pool<u32> = Pool::new();
 pub(crate) static POOL_F32: Pool<f32> = Pool::new();
 pub(crate) static POOL_U64: Pool<u64> = Pool::new();
 pub(crate) static POOL_GEO: Pool<[f32; 8]> = Pool::new();
-pub(crate) static POOL_RECT: Pool<[u32; 4]> = Pool::new();
+pub(crate) static POOL_REC: Pool<[u64; 2]> = Pool::new();
 
 /// A zero-filled vector. Large ones are advised to use transparent huge pages and filled in parallel: with
 /// 4 KiB pages, first-touching the ~100-200 MB of gradient outputs costs tens of thousands of page faults.

@@ -4,8 +4,9 @@
 
 use rayon::prelude::*;
 
-use super::{tile_rect, Frame};
-use crate::util::{Pooled, SharedMut, POOL_RECT, POOL_U32, POOL_U64};
+use super::preprocess::unpack_rect;
+use super::Frame;
+use crate::util::{Pooled, SharedMut, POOL_REC, POOL_U32};
 
 pub(crate) struct Bins {
     /// len tiles + 1
@@ -25,8 +26,13 @@ fn num_chunks(n: usize) -> usize {
     (n / 16_384).clamp(1, 4 * rayon::current_num_threads().max(1))
 }
 
-/// Stable LSD radix sort of `v` by the upper 32 bits (11-bit digits, digits shared by all keys skipped).
-fn radix_sort_hi32(v: &mut Vec<u64>) {
+/// A visible Gaussian in the depth sort: (depth bits << 32 | index, packed tile rect). Carrying the rect avoids
+/// a random gather in depth order afterwards.
+type Rec = [u64; 2];
+
+/// Stable LSD radix sort of `v` by the upper 32 bits of the first word (11-bit digits, digits shared by all
+/// keys skipped).
+fn radix_sort_hi32(v: &mut Vec<Rec>) {
     const BITS: u32 = 11;
     const NB: usize = 1 << BITS;
     let n = v.len();
@@ -35,16 +41,16 @@ fn radix_sort_hi32(v: &mut Vec<u64>) {
     }
     let nch = num_chunks(n);
     let chunk = n.div_ceil(nch);
-    let mut tmp = POOL_U64.take(n, 0);
+    let mut tmp = POOL_REC.take(n, [0; 2]);
     for pass in 0..3u32 {
         let shift = 32 + pass * BITS;
-        let digit = |k: u64| ((k >> shift) as usize) & (NB - 1);
-        let src: &[u64] = v;
+        let digit = |k: &Rec| ((k[0] >> shift) as usize) & (NB - 1);
+        let src: &[Rec] = v;
         let hists: Vec<Vec<u32>> = src
             .par_chunks(chunk)
             .map(|c| {
                 let mut h = vec![0u32; NB];
-                for &k in c {
+                for k in c {
                     h[digit(k)] += 1;
                 }
                 h
@@ -69,50 +75,45 @@ fn radix_sort_hi32(v: &mut Vec<u64>) {
         }
         let dst = SharedMut::new(&mut tmp);
         src.par_chunks(chunk).zip(offs.par_iter_mut()).for_each(|(c, off)| {
-            for &k in c {
+            for k in c {
                 let d = digit(k);
                 // SAFETY: chunk c owns slots [offs[c][d], offs[c][d] + hist[c][d]) for every digit d.
-                unsafe { dst.write(off[d] as usize, k) };
+                unsafe { dst.write(off[d] as usize, *k) };
                 off[d] += 1;
             }
         });
         std::mem::swap(v, &mut tmp);
     }
-    POOL_U64.put(tmp);
+    POOL_REC.put(tmp);
 }
 
-pub(crate) fn bin(f: &Frame, means2d: &[f32], radii: &[i32], depths: &[f32]) -> Bins {
+/// `rects`: per Gaussian, its tile rect packed by [`pack_rect`] (read only where `radii > 0`).
+pub(crate) fn bin(f: &Frame, radii: &[i32], depths: &[f32], rects: &[u64]) -> Bins {
     let n = radii.len();
     let nt = f.num_tiles();
     // Depths of visible Gaussians are > 0.2, so their f32 bits order like the values.
-    let mut keys = POOL_U64.take(0, 0);
-    keys.reserve(n);
+    let mut recs = POOL_REC.take(0, [0; 2]);
+    recs.reserve(n);
     for i in 0..n {
         if radii[i] > 0 {
-            keys.push(((depths[i].to_bits() as u64) << 32) | i as u64);
+            recs.push([((depths[i].to_bits() as u64) << 32) | i as u64, rects[i]]);
         }
     }
-    radix_sort_hi32(&mut keys);
-    let m = keys.len();
+    radix_sort_hi32(&mut recs);
+    let m = recs.len();
     let mut order = Pooled::new(POOL_U32.take(m, 0), &POOL_U32);
-    for (o, &k) in order.iter_mut().zip(keys.iter()) {
-        *o = k as u32;
+    for (o, r) in order.iter_mut().zip(recs.iter()) {
+        *o = r[0] as u32;
     }
-    POOL_U64.put(keys);
 
     let nch = num_chunks(m);
     let chunk = m.div_ceil(nch).max(1);
-    // Tile rects in depth order (one random gather), tile counts per chunk.
-    let mut rects = POOL_RECT.take(m, [0; 4]);
-    let counts: Vec<Vec<u32>> = order
+    let counts: Vec<Vec<u32>> = recs
         .par_chunks(chunk)
-        .zip(rects.par_chunks_mut(chunk))
-        .map(|(ids, rs)| {
+        .map(|rs| {
             let mut cnt = vec![0u32; nt];
-            for (&g, r) in ids.iter().zip(rs.iter_mut()) {
-                let g = g as usize;
-                let t = tile_rect([means2d[2 * g], means2d[2 * g + 1]], radii[g], f.grid);
-                *r = [t[0] as u32, t[1] as u32, t[2] as u32, t[3] as u32];
+            for r in rs {
+                let t = unpack_rect(r[1]);
                 for ty in t[1]..t[3] {
                     for tx in t[0]..t[2] {
                         cnt[ty * f.grid[0] + tx] += 1;
@@ -124,9 +125,10 @@ pub(crate) fn bin(f: &Frame, means2d: &[f32], radii: &[i32], depths: &[f32]) -> 
         .collect();
     let mut pstart = Pooled::new(POOL_U32.take(m + 1, 0), &POOL_U32);
     let mut acc = 0u32;
-    for (p, r) in pstart.iter_mut().zip(rects.iter()) {
+    for (p, r) in pstart.iter_mut().zip(recs.iter()) {
         *p = acc;
-        acc += (r[2] - r[0]) * (r[3] - r[1]);
+        let t = unpack_rect(r[1]);
+        acc += ((t[2] - t[0]) * (t[3] - t[1])) as u32;
     }
     pstart[m] = acc;
     let total = acc as usize;
@@ -147,27 +149,27 @@ pub(crate) fn bin(f: &Frame, means2d: &[f32], radii: &[i32], depths: &[f32]) -> 
     let pl = SharedMut::new(&mut point_list);
     let so = SharedMut::new(&mut slot_of);
     let gw = f.grid[0];
-    order.par_chunks(chunk).zip(rects.par_chunks(chunk)).zip(pstart.par_chunks(chunk)).zip(cursors.par_iter_mut()).for_each(
-        |(((ids, rs), ps), cur)| {
-            for ((&g, r), &p0) in ids.iter().zip(rs).zip(ps) {
-                let mut slot = p0;
-                for ty in r[1] as usize..r[3] as usize {
-                    for tx in r[0] as usize..r[2] as usize {
-                        let t = ty * gw + tx;
-                        let pos = cur[t] as usize;
-                        cur[t] += 1;
-                        // SAFETY: chunk c owns slots [cursor_c[t], cursor_c[t] + count_c[t]) of every tile t.
-                        unsafe {
-                            pl.write(pos, g);
-                            so.write(pos, slot);
-                        }
-                        slot += 1;
+    recs.par_chunks(chunk).zip(pstart.par_chunks(chunk)).zip(cursors.par_iter_mut()).for_each(|((rs, ps), cur)| {
+        for (r, &p0) in rs.iter().zip(ps) {
+            let g = r[0] as u32;
+            let t = unpack_rect(r[1]);
+            let mut slot = p0;
+            for ty in t[1]..t[3] {
+                for tx in t[0]..t[2] {
+                    let t = ty * gw + tx;
+                    let pos = cur[t] as usize;
+                    cur[t] += 1;
+                    // SAFETY: chunk c owns slots [cursor_c[t], cursor_c[t] + count_c[t]) of every tile t.
+                    unsafe {
+                        pl.write(pos, g);
+                        so.write(pos, slot);
                     }
+                    slot += 1;
                 }
             }
-        },
-    );
-    POOL_RECT.put(rects);
+        }
+    });
+    POOL_REC.put(recs);
     Bins { tile_start, point_list, order, pstart, slot_of }
 }
 
@@ -178,15 +180,15 @@ mod tests {
     #[test]
     fn radix_sort_is_stable_and_sorted() {
         let mut x = 12345u64;
-        let mut v: Vec<u64> = (0..100_000u64)
+        let mut v: Vec<[u64; 2]> = (0..100_000u64)
             .map(|i| {
                 x = x.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
                 // Few distinct keys so ties are common.
-                ((((x >> 40) % 5000) * 858_993) << 32) | i
+                [((((x >> 40) % 5000) * 858_993) << 32) | i, x]
             })
             .collect();
         let mut want = v.clone();
-        want.sort_by_key(|k| (k >> 32, k & 0xffff_ffff));
+        want.sort_by_key(|k| (k[0] >> 32, k[0] & 0xffff_ffff));
         radix_sort_hi32(&mut v);
         assert_eq!(v, want);
     }

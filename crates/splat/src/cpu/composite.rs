@@ -137,7 +137,9 @@ unsafe fn fwd_tile<V: F8>(c: &Ctx, tile: usize, s: &mut FwdScratch, out: &FwdIma
         c.prefetch(ids, j + 8);
         let g = g as usize;
         let geo = &c.geo[g];
-        let Some((xs, xe, ys, ye)) = local_box(geo, x0, y0, tw, th) else { continue };
+        let Some((xs, xe, ys, ye)) = local_box(geo, x0, y0, tw, th) else {
+            continue;
+        };
         let span = ((1u32 << (xe + 1)) - 1) & !((1u32 << xs) - 1);
         let [mx, my, ca, cb, cc, o, ..] = *geo;
         let vals = &c.vals[g * nv..g * nv + nv];
@@ -235,7 +237,7 @@ pub fn forward(inp: &RasterInputs, s: &RasterSettings) -> Result<ForwardOutput> 
     let t0 = std::time::Instant::now();
     let pre = preprocess(&f, inp);
     let t1 = std::time::Instant::now();
-    let bins = bin(&f, &pre.means2d, &pre.radii, &pre.depths);
+    let bins = bin(&f, &pre.radii, &pre.depths, &pre.rects);
     let t2 = std::time::Instant::now();
     let hw = f.w * f.h;
     let mut rgb = vec![0.0; 3 * hw];
@@ -576,14 +578,7 @@ pub(crate) fn backward_pairs(
     buf.truncate(len);
     let nv = 4 + nf;
     let bc = BwdCtx {
-        c: Ctx {
-            f: &f,
-            geo: &fwd.geo,
-            vals: &fwd.vals,
-            nv,
-            tile_start: &fwd.tile_start,
-            point_list: &fwd.point_list,
-        },
+        c: Ctx { f: &f, geo: &fwd.geo, vals: &fwd.vals, nv, tile_start: &fwd.tile_start, point_list: &fwd.point_list },
         fwd,
         grads,
         d_alpha,

@@ -19,6 +19,10 @@ pub(crate) trait F8: Copy {
     fn sub(self, o: Self) -> Self;
     fn mul(self, o: Self) -> Self;
     fn div(self, o: Self) -> Self;
+    /// Correctly rounded square root (IEEE, as `f32::sqrt`).
+    fn sqrt(self) -> Self;
+    /// Round towards +infinity (as `f32::ceil`).
+    fn ceil(self) -> Self;
     /// Like `f32::min`: the non-NaN operand `o` wins when `self` is NaN.
     fn min(self, o: Self) -> Self;
     fn max(self, o: Self) -> Self;
@@ -140,6 +144,14 @@ impl F8 for Arr {
         self.zip(o, |a, b| a / b)
     }
     #[inline(always)]
+    fn sqrt(self) -> Self {
+        self.map(f32::sqrt)
+    }
+    #[inline(always)]
+    fn ceil(self) -> Self {
+        self.map(f32::ceil)
+    }
+    #[inline(always)]
     fn min(self, o: Self) -> Self {
         // minps semantics: the second operand when either is NaN or they compare equal.
         self.zip(o, |a, b| if a < b { a } else { b })
@@ -253,6 +265,14 @@ mod avx {
         #[inline(always)]
         fn div(self, o: Self) -> Self {
             unsafe { Avx(_mm256_div_ps(self.0, o.0)) }
+        }
+        #[inline(always)]
+        fn sqrt(self) -> Self {
+            unsafe { Avx(_mm256_sqrt_ps(self.0)) }
+        }
+        #[inline(always)]
+        fn ceil(self) -> Self {
+            unsafe { Avx(_mm256_round_ps::<{ _MM_FROUND_TO_POS_INF | _MM_FROUND_NO_EXC }>(self.0)) }
         }
         #[inline(always)]
         fn min(self, o: Self) -> Self {
