@@ -42,12 +42,14 @@ pub fn set_threads(threads: usize) -> Result<(), BenchError> {
 /// Make glibc malloc reuse freed memory instead of mapping and unmapping every large tensor buffer: candle
 /// allocates a fresh `Vec` per op, and with glibc's defaults each buffer over 32 MiB is a new `mmap` whose pages
 /// the kernel faults in and zeroes (≈ 25% of the encoder's forward time on 2 cores). Serving large blocks from
-/// the heap and never trimming it turns that into plain reuse; peak RSS stays about the same. Process-wide:
-/// call once at startup of a compute-heavy command (no-op off glibc).
+/// the heap and never trimming it turns that into plain reuse; peak RSS stays about the same. One arena: a
+/// non-main arena cannot hold blocks over 64 MiB and maps them afresh (e.g. the rasterizer's 170 MB SH gradient
+/// allocated on a worker thread). Process-wide: call once at startup of a compute-heavy command (no-op off glibc).
 pub fn tune_allocator() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     // SAFETY: mallopt only changes allocator parameters; it is called before the heavy work starts.
     unsafe {
+        libc::mallopt(libc::M_ARENA_MAX, 1);
         libc::mallopt(libc::M_MMAP_MAX, 0);
         libc::mallopt(libc::M_TRIM_THRESHOLD, i32::MAX);
         libc::mallopt(libc::M_TOP_PAD, 256 << 20);

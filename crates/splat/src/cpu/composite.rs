@@ -11,7 +11,7 @@ use rayon::prelude::*;
 
 use super::binning::bin;
 use super::preprocess::{preprocess, GEO_LEN};
-use super::simd::{exp8, has_avx2, Arr, F8, LANES};
+use super::simd::{exp8, isa, Arr, Isa, F8, LANES};
 use super::{ForwardOutput, Frame, GradMode, PixelGrads, RasterInputs, RasterSettings, TILE};
 use crate::error::{input_err, Result};
 use crate::util::SharedMut;
@@ -223,6 +223,12 @@ unsafe fn fwd_tile_avx2(c: &Ctx, tile: usize, s: &mut FwdScratch, out: &FwdImage
     fwd_tile::<super::simd::Avx>(c, tile, s, out)
 }
 
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,avx512f,avx512vl")]
+unsafe fn fwd_tile_avx512(c: &Ctx, tile: usize, s: &mut FwdScratch, out: &FwdImages) {
+    fwd_tile::<super::simd::Avx>(c, tile, s, out)
+}
+
 unsafe fn fwd_tile_portable(c: &Ctx, tile: usize, s: &mut FwdScratch, out: &FwdImages) {
     fwd_tile::<Arr>(c, tile, s, out)
 }
@@ -264,17 +270,18 @@ pub fn forward(inp: &RasterInputs, s: &RasterSettings) -> Result<ForwardOutput> 
             tile_start: &bins.tile_start,
             point_list: &bins.point_list,
         };
-        let avx2 = has_avx2();
+        let isa = isa();
         (0..f.num_tiles()).into_par_iter().for_each_init(
             || FwdScratch { t: [0.0; NPIX], last: [0.0; NPIX], acc: vec![0.0; (4 + nf) * NPIX] },
             |scr, t| {
-                // SAFETY: tiles write disjoint pixels; AVX2 only where detected.
+                // SAFETY: tiles write disjoint pixels; each ISA only where detected.
                 unsafe {
                     #[cfg(target_arch = "x86_64")]
-                    if avx2 {
-                        return fwd_tile_avx2(&ctx, t, scr, &imgs);
+                    match isa {
+                        Isa::Avx512 => return fwd_tile_avx512(&ctx, t, scr, &imgs),
+                        Isa::Avx2 => return fwd_tile_avx2(&ctx, t, scr, &imgs),
+                        Isa::Portable => {}
                     }
-                    let _ = avx2;
                     fwd_tile_portable(&ctx, t, scr, &imgs)
                 }
             },
@@ -535,6 +542,12 @@ unsafe fn bwd_tile<V: F8>(b: &BwdCtx, tile: usize, s: &mut BwdScratch) {
 }
 
 #[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,avx512f,avx512vl")]
+unsafe fn bwd_tile_avx512(b: &BwdCtx, tile: usize, s: &mut BwdScratch) {
+    bwd_tile::<super::simd::Avx>(b, tile, s)
+}
+
+#[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 unsafe fn bwd_tile_avx2(b: &BwdCtx, tile: usize, s: &mut BwdScratch) {
     bwd_tile::<super::simd::Avx>(b, tile, s)
@@ -588,7 +601,7 @@ pub(crate) fn backward_pairs(
         buf: SharedMut::new(buf),
         ps,
     };
-    let avx2 = has_avx2();
+    let isa = isa();
     (0..f.num_tiles()).into_par_iter().for_each_init(
         || BwdScratch {
             t: [0.0; NPIX],
@@ -600,13 +613,14 @@ pub(crate) fn backward_pairs(
             gacc: vec![0.0; nv * LANES],
         },
         |scr, t| {
-            // SAFETY: each tile writes only its own pair rows; AVX2 only where detected.
+            // SAFETY: each tile writes only its own pair rows; each ISA only where detected.
             unsafe {
                 #[cfg(target_arch = "x86_64")]
-                if avx2 {
-                    return bwd_tile_avx2(&bc, t, scr);
+                match isa {
+                    Isa::Avx512 => return bwd_tile_avx512(&bc, t, scr),
+                    Isa::Avx2 => return bwd_tile_avx2(&bc, t, scr),
+                    Isa::Portable => {}
                 }
-                let _ = avx2;
                 bwd_tile_portable(&bc, t, scr)
             }
         },
@@ -635,41 +649,42 @@ mod tests {
 #[cfg(test)]
 mod simd_paths {
     use crate::bench::synthetic_scene;
-    use crate::cpu::simd::{has_avx2, FORCE_PORTABLE};
+    use crate::cpu::simd::{isa, set_max_isa, Isa, ISA_TEST_LOCK};
     use crate::cpu::{backward, forward, GradMode, PixelGrads, RasterSettings};
-    use std::sync::atomic::Ordering;
 
-    /// The AVX2 kernels and the portable ones must agree bit for bit (same operations, no FMA contraction),
+    /// The AVX-512VL, AVX2 and portable kernels must agree bit for bit (same operations, no FMA contraction),
     /// and repeated runs must be identical (determinism).
     #[test]
-    fn avx2_and_portable_kernels_agree_bitwise() {
+    fn isa_variants_agree_bitwise() {
+        let _lock = ISA_TEST_LOCK.lock().unwrap_or_else(|e| e.into_inner());
         let sc = synthetic_scene(3 * 40 * 24, 40, 24, 3);
         let inp = sc.inputs();
         let st = RasterSettings { camera: sc.camera, background: [0.2, 0.4, 0.6] };
         let hw = 40 * 24;
         let ones = vec![0.5f32; hw];
-        let run = |portable: bool, mode: GradMode| {
-            FORCE_PORTABLE.store(portable, Ordering::SeqCst);
+        let run = |max: Isa, mode: GradMode| {
+            set_max_isa(max);
             let out = forward(&inp, &st).unwrap();
             let pg = PixelGrads { rgb: &sc.w1, features: &sc.w2, alpha: Some(&ones), depth: Some(&ones) };
             let g = backward(&inp, &st, &out, &pg, mode).unwrap();
-            FORCE_PORTABLE.store(false, Ordering::SeqCst);
+            set_max_isa(Isa::Avx512);
             (out, g)
         };
         for mode in [GradMode::Official, GradMode::Exact] {
-            let (a, ga) = run(false, mode);
-            let (a2, ga2) = run(false, mode);
-            let (b, gb) = run(true, mode);
+            let (a, ga) = run(Isa::Avx512, mode);
+            let (a2, ga2) = run(Isa::Avx512, mode);
+            let (b, gb) = run(Isa::Portable, mode);
+            let (c, gc) = run(Isa::Avx2, mode);
             assert!(a.n_contrib.iter().any(|&c| c > 0), "scene renders nothing");
             let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
-            for (x, y) in [(&a, &a2), (&a, &b)] {
+            for (x, y) in [(&a, &a2), (&a, &b), (&a, &c)] {
                 assert_eq!(bits(&x.rgb), bits(&y.rgb));
                 assert_eq!(bits(&x.features), bits(&y.features));
                 assert_eq!(bits(&x.depth), bits(&y.depth));
                 assert_eq!(bits(&x.final_t), bits(&y.final_t));
                 assert_eq!(x.n_contrib, y.n_contrib);
             }
-            for (x, y) in [(&ga, &ga2), (&ga, &gb)] {
+            for (x, y) in [(&ga, &ga2), (&ga, &gb), (&ga, &gc)] {
                 assert_eq!(bits(&x.means), bits(&y.means));
                 assert_eq!(bits(&x.opacities), bits(&y.opacities));
                 assert_eq!(bits(&x.cov3d), bits(&y.cov3d));
@@ -677,6 +692,6 @@ mod simd_paths {
                 assert_eq!(bits(&x.features), bits(&y.features));
             }
         }
-        eprintln!("avx2 available: {}", has_avx2());
+        eprintln!("best instruction set here: {:?}", isa());
     }
 }

@@ -2,7 +2,7 @@
 
 use rayon::prelude::*;
 
-use super::simd::{Arr, F8, LANES};
+use super::simd::{Arr, Isa, F8, LANES};
 use super::{tile_rect, CovInput, Frame, RasterInputs};
 use crate::sh;
 use crate::util::{Pooled, SharedMut, POOL_F32, POOL_GEO, POOL_U64};
@@ -163,7 +163,7 @@ pub(crate) fn view_dir(f: &Frame, p: [f32; 3]) -> ([f32; 3], [f32; 3]) {
 }
 
 pub(crate) fn preprocess(f: &Frame, inp: &RasterInputs) -> Projected {
-    preprocess_lanes(f, inp, super::simd::has_avx2())
+    preprocess_lanes(f, inp, super::simd::isa())
 }
 
 /// A vector of `len` values that the caller fully writes (in parallel) before reading.
@@ -381,7 +381,7 @@ fn project_lanes<V: F8>(f: &Frame, inp: &RasterInputs, idx: &[usize; LANES], deg
     }
 }
 
-fn preprocess_lanes(f: &Frame, inp: &RasterInputs, avx2: bool) -> Projected {
+fn preprocess_lanes(f: &Frame, inp: &RasterInputs, isa: Isa) -> Projected {
     let n = inp.len();
     let nf = inp.num_features;
     let nv = 4 + nf;
@@ -410,13 +410,14 @@ fn preprocess_lanes(f: &Frame, inp: &RasterInputs, avx2: bool) -> Projected {
         va: SharedMut::new(&mut vals),
         re: SharedMut::new(&mut rects),
     };
-    let _ = avx2;
     (0..n.div_ceil(LANES)).into_par_iter().with_min_len(256).for_each(|blk| {
-        // SAFETY: blocks write disjoint Gaussians; AVX2 only where detected.
+        // SAFETY: blocks write disjoint Gaussians; each ISA only where detected.
         unsafe {
             #[cfg(target_arch = "x86_64")]
-            if avx2 {
-                return block_avx2(f, inp, &out, blk);
+            match isa {
+                Isa::Avx512 => return block_avx512(f, inp, &out, blk),
+                Isa::Avx2 => return block_avx2(f, inp, &out, blk),
+                Isa::Portable => {}
             }
             block::<Arr>(f, inp, &out, blk)
         }
@@ -455,6 +456,12 @@ struct Outs {
 }
 
 #[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,avx512f,avx512vl")]
+unsafe fn block_avx512(f: &Frame, inp: &RasterInputs, out: &Outs, blk: usize) {
+    block::<super::simd::Avx>(f, inp, out, blk)
+}
+
+#[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 unsafe fn block_avx2(f: &Frame, inp: &RasterInputs, out: &Outs, blk: usize) {
     block::<super::simd::Avx>(f, inp, out, blk)
@@ -475,6 +482,7 @@ unsafe fn block<V: F8>(f: &Frame, inp: &RasterInputs, out: &Outs, blk: usize) {
     let i0 = blk * LANES;
     // Tail lanes repeat the last Gaussian and are not stored.
     let idx: [usize; LANES] = std::array::from_fn(|l| (i0 + l).min(n - 1));
+    prefetch_sh(inp, i0 + 2 * LANES, deg);
     let r = project_lanes::<V>(f, inp, &idx, deg);
     for l in 0..LANES.min(n - i0) {
         let i = i0 + l;
@@ -528,6 +536,29 @@ unsafe fn block<V: F8>(f: &Frame, inp: &RasterInputs, out: &Outs, blk: usize) {
     }
 }
 
+/// The SH rows (stride 3K floats, e.g. 300 bytes) of a later block: eight interleaved streams that the hardware
+/// prefetcher follows poorly.
+#[inline(always)]
+fn prefetch_sh(inp: &RasterInputs, i0: usize, deg: usize) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+        let row = inp.sh_coeffs * 3;
+        let used = sh::num_coeffs(deg) * 3;
+        for i in i0..(i0 + LANES).min(inp.len()) {
+            let base = i * row;
+            let mut k = 0;
+            while k < used {
+                // SAFETY: prefetching never faults; the address is inside the slice.
+                unsafe { _mm_prefetch::<_MM_HINT_T0>(inp.sh.as_ptr().add(base + k) as *const i8) };
+                k += 16;
+            }
+            // SAFETY: as above (last used value of the row).
+            unsafe { _mm_prefetch::<_MM_HINT_T0>(inp.sh.as_ptr().add(base + used - 1) as *const i8) };
+        }
+    }
+}
+
 /// Culling and the pixel-space quantities of lane `l`: `None` if the Gaussian is not rendered.
 #[inline(always)]
 fn project_lane_finish(f: &Frame, w: f64, h: f64, r: &Lanes, l: usize) -> Option<([f32; 2], i32, [usize; 4])> {
@@ -558,7 +589,7 @@ fn project_lane_finish(f: &Frame, w: f64, h: f64, r: &Lanes, l: usize) -> Option
 mod tests {
     use super::*;
     use crate::bench::synthetic_scene;
-    use crate::cpu::simd::FORCE_PORTABLE;
+    use crate::cpu::simd::{set_max_isa, ISA_TEST_LOCK};
 
     /// The reference: one Gaussian at a time in plain scalar code.
     fn preprocess_scalar(f: &Frame, inp: &RasterInputs) -> Projected {
@@ -676,6 +707,7 @@ mod tests {
     /// culled, degenerate and non-finite Gaussians and a partial last block.
     #[test]
     fn lanes_equal_scalar_reference() {
+        let _lock = ISA_TEST_LOCK.lock().unwrap_or_else(|e| e.into_inner());
         let mut sc = synthetic_scene(3 * 40 * 24 + 5, 40, 24, 3);
         let n = sc.opacities.len();
         // At the camera centre, NaN mean, zero scale, infinite scale, NaN quaternion, zero opacity.
@@ -701,10 +733,10 @@ mod tests {
         for inp in &inputs {
             let want = preprocess_scalar(&f, inp);
             assert!(want.radii.iter().filter(|&&r| r > 0).count() > n / 2, "scene mostly culled");
-            for portable in [false, true] {
-                FORCE_PORTABLE.store(portable, std::sync::atomic::Ordering::SeqCst);
+            for max in [Isa::Avx512, Isa::Avx2, Isa::Portable] {
+                set_max_isa(max);
                 let got = preprocess(&f, inp);
-                FORCE_PORTABLE.store(false, std::sync::atomic::Ordering::SeqCst);
+                set_max_isa(Isa::Avx512);
                 assert_eq!(got.radii, want.radii);
                 assert_eq!(got.tiles_touched, want.tiles_touched);
                 assert_eq!(got.clamped, want.clamped);

@@ -347,24 +347,45 @@ mod avx {
     const _: () = assert!(LANES == 8);
 }
 
-/// Whether the AVX2 (+FMA, for the preprocess build) paths can run on this machine.
-#[inline]
-pub(crate) fn has_avx2() -> bool {
-    #[cfg(target_arch = "x86_64")]
-    {
-        if FORCE_PORTABLE.load(std::sync::atomic::Ordering::Relaxed) {
-            return false;
-        }
-        std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma")
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    {
-        false
-    }
+/// Instruction sets the kernels are compiled for. `Avx512` runs the same 8-lane AVX2 code with AVX-512VL
+/// enabled: 32 vector registers keep the kernels' constants out of memory (same operations, same results).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+pub(crate) enum Isa {
+    Portable = 0,
+    Avx2 = 1,
+    Avx512 = 2,
 }
 
-/// Test hook: run the portable kernels even where AVX2 exists.
-pub(crate) static FORCE_PORTABLE: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+/// Test hook: the highest instruction set the dispatchers may pick.
+static MAX_ISA: std::sync::atomic::AtomicU8 = std::sync::atomic::AtomicU8::new(Isa::Avx512 as u8);
+
+/// Serialises the tests that switch instruction sets (the hook is global).
+#[cfg(test)]
+pub(crate) static ISA_TEST_LOCK: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+#[cfg(test)]
+pub(crate) fn set_max_isa(isa: Isa) {
+    MAX_ISA.store(isa as u8, std::sync::atomic::Ordering::SeqCst);
+}
+
+/// The best instruction set available here (and allowed by the test hook).
+#[inline]
+pub(crate) fn isa() -> Isa {
+    let max = MAX_ISA.load(std::sync::atomic::Ordering::Relaxed);
+    #[cfg(target_arch = "x86_64")]
+    {
+        let avx2 = std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma");
+        let avx512 = avx2 && std::is_x86_feature_detected!("avx512f") && std::is_x86_feature_detected!("avx512vl");
+        if avx512 && max >= Isa::Avx512 as u8 {
+            return Isa::Avx512;
+        }
+        if avx2 && max >= Isa::Avx2 as u8 {
+            return Isa::Avx2;
+        }
+    }
+    let _ = max;
+    Isa::Portable
+}
 
 #[cfg(test)]
 mod tests {

@@ -1,0 +1,403 @@
+//! CUDA rasterizer (feature `cuda`): the kernels of `cuda/rasterize.cu`, compiled to PTX by build.rs and
+//! embedded, driven through cudarc with the launch sequence of `cuda/emulate_main.cpp` (whose CPU emulation
+//! tests/cuda_emulated.rs checks against [`crate::cpu`]). Slice-level API like `cpu`: host slices in, host
+//! vectors out; official gradients only ([`crate::GradMode::Official`]).
+//!
+//! Gradients are accumulated with atomicAdd, so they vary in the last bits from run to run.
+
+use std::sync::Arc;
+
+use cudarc::driver::{
+    CudaContext, CudaFunction, CudaModule, CudaSlice, CudaStream, DeviceRepr, LaunchConfig, PushKernelArg,
+    ValidAsZeroBits,
+};
+use cudarc::nvrtc::Ptx;
+
+use crate::cpu::{CovInput, Gradients, PixelGrads, RasterInputs, RasterSettings, TILE};
+use crate::error::{input_err, Result, SplatError};
+
+/// PTX of `cuda/rasterize.cu` for sm_80 (built by build.rs).
+pub const PTX: &str = include_str!(concat!(env!("OUT_DIR"), "/rasterize.ptx"));
+
+/// Threads per 1-D block; the scan kernel assumes exactly this (BLOCK_SIZE in rasterize.cu).
+const BLOCK: u32 = 256;
+/// Feature channels the tile kernels support (MAX_FEAT in rasterize.cu).
+pub const MAX_FEATURES: usize = 16;
+
+fn cuda_err(e: impl std::fmt::Display) -> SplatError {
+    SplatError::Candle(candle_core::Error::msg(format!("CUDA rasterizer: {e}")))
+}
+
+/// 1-D launch over `n` threads.
+fn lin(n: usize) -> LaunchConfig {
+    LaunchConfig { grid_dim: ((n as u32).div_ceil(BLOCK).max(1), 1, 1), block_dim: (BLOCK, 1, 1), shared_mem_bytes: 0 }
+}
+
+/// Camera and background in the kernels' `params` layout (P_* in rasterize.cu).
+fn params_of(s: &RasterSettings) -> Vec<f32> {
+    let cam = &s.camera;
+    let mut p = Vec::with_capacity(42);
+    p.extend(cam.viewmatrix.iter().flatten());
+    p.extend(cam.full_proj().iter().flatten());
+    p.extend(cam.campos());
+    p.extend(cam.focal());
+    p.extend(cam.tanfov());
+    p.extend(s.background);
+    p
+}
+
+struct Kernels {
+    preprocess: CudaFunction,
+    scan_block: CudaFunction,
+    scan_add: CudaFunction,
+    duplicate: CudaFunction,
+    fill_pad: CudaFunction,
+    bitonic_step: CudaFunction,
+    tile_ranges: CudaFunction,
+    render_fwd: CudaFunction,
+    render_bwd: CudaFunction,
+    preprocess_bwd: CudaFunction,
+}
+
+/// The loaded kernels and the stream they run on.
+pub struct CudaRasterizer {
+    stream: Arc<CudaStream>,
+    k: Kernels,
+    _module: Arc<CudaModule>,
+}
+
+/// Device copies of the inputs and the forward state the backward reuses.
+struct DeviceState {
+    n: usize,
+    k: usize,
+    deg: i32,
+    nf: usize,
+    params: CudaSlice<f32>,
+    means: CudaSlice<f32>,
+    /// cov3d (6 per Gaussian) or scales (3) + quats (4).
+    cov: CudaSlice<f32>,
+    rot: Option<CudaSlice<f32>>,
+    sh: CudaSlice<f32>,
+    features: CudaSlice<f32>,
+    radii: CudaSlice<i32>,
+    clamped: CudaSlice<i32>,
+    means2d: CudaSlice<f32>,
+    conic_opacity: CudaSlice<f32>,
+    colors: CudaSlice<f32>,
+    ranges: CudaSlice<u32>,
+    point_list: CudaSlice<u32>,
+    final_t: CudaSlice<f32>,
+    n_contrib: CudaSlice<u32>,
+}
+
+/// Forward results (host copies, planar images) plus the device state for [`CudaRasterizer::backward`].
+pub struct CudaForward {
+    pub width: usize,
+    pub height: usize,
+    pub num_features: usize,
+    /// (3,H,W) incl. background.
+    pub rgb: Vec<f32>,
+    /// (C,H,W), no background.
+    pub features: Vec<f32>,
+    /// (H,W)
+    pub alpha: Vec<f32>,
+    /// (H,W) Σ w z.
+    pub depth: Vec<f32>,
+    /// (H,W)
+    pub final_t: Vec<f32>,
+    /// (H,W)
+    pub n_contrib: Vec<u32>,
+    /// (N,) 0 = culled.
+    pub radii: Vec<i32>,
+    pub tiles_touched: Vec<u32>,
+    /// (N,2)
+    pub means2d: Vec<f32>,
+    pub depths: Vec<f32>,
+    /// (N,3)
+    pub cov2d: Vec<f32>,
+    /// (N,3) A, B, C (the device keeps A, B, C, opacity).
+    pub conic: Vec<f32>,
+    /// (N,3)
+    pub colors: Vec<f32>,
+    pub num_pairs: usize,
+    dev: DeviceState,
+}
+
+impl CudaRasterizer {
+    /// Load the kernels on GPU `ordinal` (own stream).
+    pub fn new(ordinal: usize) -> Result<Self> {
+        let ctx = CudaContext::new(ordinal).map_err(cuda_err)?;
+        let stream = ctx.new_stream().map_err(cuda_err)?;
+        let module = ctx.load_module(Ptx::from_src(PTX)).map_err(cuda_err)?;
+        let f = |name: &str| module.load_function(name).map_err(cuda_err);
+        let k = Kernels {
+            preprocess: f("rast_preprocess")?,
+            scan_block: f("rast_scan_block")?,
+            scan_add: f("rast_scan_add")?,
+            duplicate: f("rast_duplicate")?,
+            fill_pad: f("rast_fill_pad")?,
+            bitonic_step: f("rast_bitonic_step")?,
+            tile_ranges: f("rast_tile_ranges")?,
+            render_fwd: f("rast_render_fwd")?,
+            render_bwd: f("rast_render_bwd")?,
+            preprocess_bwd: f("rast_preprocess_bwd")?,
+        };
+        Ok(Self { stream, k, _module: module })
+    }
+
+    /// Upload; empty slices become one zero so every pointer is valid.
+    fn up<T: DeviceRepr + ValidAsZeroBits + Copy>(&self, v: &[T]) -> Result<CudaSlice<T>> {
+        if v.is_empty() {
+            self.zeros(1)
+        } else {
+            self.stream.clone_htod(v).map_err(cuda_err)
+        }
+    }
+
+    fn zeros<T: DeviceRepr + ValidAsZeroBits>(&self, len: usize) -> Result<CudaSlice<T>> {
+        self.stream.alloc_zeros::<T>(len.max(1)).map_err(cuda_err)
+    }
+
+    fn down<T: DeviceRepr + Default + Clone>(&self, d: &CudaSlice<T>, len: usize) -> Result<Vec<T>> {
+        if len == 0 {
+            return Ok(Vec::new());
+        }
+        self.stream.clone_dtoh(&d.slice(..len)).map_err(cuda_err)
+    }
+
+    /// Exclusive scan of `input[..n]` into `out` (block scans, block sums scanned recursively, added back).
+    fn exclusive_scan(&self, input: &CudaSlice<u32>, out: &mut CudaSlice<u32>, n: usize) -> Result<()> {
+        let nb = n.div_ceil(BLOCK as usize);
+        let mut sums = self.zeros::<u32>(nb)?;
+        let n_i = n as i32;
+        let mut b = self.stream.launch_builder(&self.k.scan_block);
+        b.arg(input).arg(&mut *out).arg(&mut sums).arg(&n_i);
+        // SAFETY: argument types and lengths match rast_scan_block.
+        unsafe { b.launch(lin(n)) }.map_err(cuda_err)?;
+        if nb > 1 {
+            let mut scanned = self.zeros::<u32>(nb)?;
+            self.exclusive_scan(&sums, &mut scanned, nb)?;
+            let mut b = self.stream.launch_builder(&self.k.scan_add);
+            b.arg(&mut *out).arg(&scanned).arg(&n_i);
+            // SAFETY: as above.
+            unsafe { b.launch(lin(n)) }.map_err(cuda_err)?;
+        }
+        Ok(())
+    }
+
+    /// Forward rasterization of one view.
+    pub fn forward(&self, inp: &RasterInputs, s: &RasterSettings) -> Result<CudaForward> {
+        inp.validate()?;
+        s.camera.validate()?;
+        let (n, nf, kc) = (inp.len(), inp.num_features, inp.sh_coeffs);
+        if nf > MAX_FEATURES {
+            return Err(input_err("features", format!("the CUDA kernels take at most {MAX_FEATURES} channels")));
+        }
+        let (w, h) = (s.camera.width, s.camera.height);
+        let (gx, gy) = (w.div_ceil(TILE), h.div_ceil(TILE));
+        let hw = w * h;
+        let deg = inp.eval_degree() as i32;
+        let (n_i, k_i, nf_i, w_i, h_i) = (n as i32, kc as i32, nf as i32, w as i32, h as i32);
+
+        let params = self.up(&params_of(s))?;
+        let means = self.up(inp.means)?;
+        let (cov, rot) = match inp.cov {
+            CovInput::Cov3d(c) => (self.up(c)?, None),
+            CovInput::ScaleRot { scales, quats } => (self.up(scales)?, Some(self.up(quats)?)),
+        };
+        let opac = self.up(inp.opacities)?;
+        let sh = self.up(inp.sh)?;
+        let features = self.up(inp.features)?;
+
+        let mut radii = self.zeros::<i32>(n)?;
+        let mut means2d = self.zeros::<f32>(2 * n)?;
+        let mut depths = self.zeros::<f32>(n)?;
+        let mut cov2d = self.zeros::<f32>(3 * n)?;
+        let mut conic_opacity = self.zeros::<f32>(4 * n)?;
+        let mut colors = self.zeros::<f32>(3 * n)?;
+        let mut clamped = self.zeros::<i32>(n)?;
+        let mut tiles = self.zeros::<u32>(n)?;
+        let null = 0u64;
+        if n > 0 {
+            let mut b = self.stream.launch_builder(&self.k.preprocess);
+            b.arg(&n_i).arg(&means);
+            // cov3d_in, scales, quats: the unused ones are null pointers.
+            match &rot {
+                None => b.arg(&cov).arg(&null).arg(&null),
+                Some(q) => b.arg(&null).arg(&cov).arg(q),
+            };
+            b.arg(&opac).arg(&sh).arg(&k_i).arg(&deg).arg(&params).arg(&w_i).arg(&h_i);
+            b.arg(&mut radii).arg(&mut means2d).arg(&mut depths).arg(&mut cov2d).arg(&mut conic_opacity);
+            b.arg(&mut colors).arg(&mut clamped).arg(&mut tiles);
+            // SAFETY: argument types and lengths match rast_preprocess.
+            unsafe { b.launch(lin(n)) }.map_err(cuda_err)?;
+        }
+
+        // Binning.
+        let mut offsets = self.zeros::<u32>(n)?;
+        let mut pairs = 0usize;
+        if n > 0 {
+            self.exclusive_scan(&tiles, &mut offsets, n)?;
+            let last_off = self.stream.clone_dtoh(&offsets.slice(n - 1..n)).map_err(cuda_err)?[0];
+            let last_tt = self.stream.clone_dtoh(&tiles.slice(n - 1..n)).map_err(cuda_err)?[0];
+            pairs = last_off as usize + last_tt as usize;
+        }
+        let npow2 = pairs.next_power_of_two().max(1);
+        let mut keys = self.zeros::<u64>(npow2)?;
+        let mut vals = self.zeros::<u32>(npow2)?;
+        let mut ranges = self.zeros::<u32>(2 * gx * gy)?;
+        if pairs > 0 {
+            let mut b = self.stream.launch_builder(&self.k.duplicate);
+            b.arg(&n_i).arg(&radii).arg(&means2d).arg(&depths).arg(&offsets).arg(&w_i).arg(&h_i);
+            b.arg(&mut keys).arg(&mut vals);
+            // SAFETY: argument types and lengths match rast_duplicate.
+            unsafe { b.launch(lin(n)) }.map_err(cuda_err)?;
+            if npow2 > pairs {
+                let (from, to) = (pairs as u32, npow2 as u32);
+                let mut b = self.stream.launch_builder(&self.k.fill_pad);
+                b.arg(&mut keys).arg(&mut vals).arg(&from).arg(&to);
+                // SAFETY: as above.
+                unsafe { b.launch(lin(npow2 - pairs)) }.map_err(cuda_err)?;
+            }
+            let np = npow2 as u32;
+            let mut k = 2u32;
+            while k as usize <= npow2 {
+                let mut j = k >> 1;
+                while j > 0 {
+                    let mut b = self.stream.launch_builder(&self.k.bitonic_step);
+                    b.arg(&mut keys).arg(&mut vals).arg(&np).arg(&j).arg(&k);
+                    // SAFETY: as above.
+                    unsafe { b.launch(lin(npow2)) }.map_err(cuda_err)?;
+                    j >>= 1;
+                }
+                k <<= 1;
+            }
+            let count = pairs as u32;
+            let mut b = self.stream.launch_builder(&self.k.tile_ranges);
+            b.arg(&count).arg(&keys).arg(&mut ranges);
+            // SAFETY: as above.
+            unsafe { b.launch(lin(pairs)) }.map_err(cuda_err)?;
+        }
+
+        // Render.
+        let mut rgb = self.zeros::<f32>(3 * hw)?;
+        let mut feat = self.zeros::<f32>(nf * hw)?;
+        let mut alpha = self.zeros::<f32>(hw)?;
+        let mut depth = self.zeros::<f32>(hw)?;
+        let mut final_t = self.zeros::<f32>(hw)?;
+        let mut n_contrib = self.zeros::<u32>(hw)?;
+        let tiles_cfg =
+            LaunchConfig { grid_dim: (gx as u32, gy as u32, 1), block_dim: (TILE as u32, TILE as u32, 1), shared_mem_bytes: 0 };
+        {
+            let mut b = self.stream.launch_builder(&self.k.render_fwd);
+            b.arg(&ranges).arg(&vals).arg(&w_i).arg(&h_i).arg(&means2d).arg(&conic_opacity).arg(&colors);
+            b.arg(&depths).arg(&features).arg(&nf_i).arg(&params);
+            b.arg(&mut rgb).arg(&mut feat).arg(&mut alpha).arg(&mut depth).arg(&mut final_t).arg(&mut n_contrib);
+            // SAFETY: argument types and lengths match rast_render_fwd.
+            unsafe { b.launch(tiles_cfg) }.map_err(cuda_err)?;
+        }
+
+        let conic4 = self.down(&conic_opacity, 4 * n)?;
+        Ok(CudaForward {
+            width: w,
+            height: h,
+            num_features: nf,
+            rgb: self.down(&rgb, 3 * hw)?,
+            features: self.down(&feat, nf * hw)?,
+            alpha: self.down(&alpha, hw)?,
+            depth: self.down(&depth, hw)?,
+            final_t: self.down(&final_t, hw)?,
+            n_contrib: self.down(&n_contrib, hw)?,
+            radii: self.down(&radii, n)?,
+            tiles_touched: self.down(&tiles, n)?,
+            means2d: self.down(&means2d, 2 * n)?,
+            depths: self.down(&depths, n)?,
+            cov2d: self.down(&cov2d, 3 * n)?,
+            conic: conic4.chunks(4).flat_map(|c| [c[0], c[1], c[2]]).collect(),
+            colors: self.down(&colors, 3 * n)?,
+            num_pairs: pairs,
+            dev: DeviceState {
+                n,
+                k: kc,
+                deg,
+                nf,
+                params,
+                means,
+                cov,
+                rot,
+                sh,
+                features,
+                radii,
+                clamped,
+                means2d,
+                conic_opacity,
+                colors,
+                ranges,
+                point_list: vals,
+                final_t,
+                n_contrib,
+            },
+        })
+    }
+
+    /// Official backward, given the forward of the same inputs and settings; `grads.alpha` / `grads.depth`
+    /// are ignored (as the official kernel does for this loss).
+    pub fn backward(&self, fwd: &CudaForward, grads: &PixelGrads) -> Result<Gradients> {
+        let d = &fwd.dev;
+        let (n, nf, kc) = (d.n, d.nf, d.k);
+        let (w, h) = (fwd.width, fwd.height);
+        let hw = w * h;
+        if grads.rgb.len() != 3 * hw || grads.features.len() != nf * hw {
+            return Err(input_err("pixel gradients", format!("expected 3x{hw} rgb and {nf}x{hw} feature values")));
+        }
+        let (w_i, h_i, nf_i, n_i, k_i) = (w as i32, h as i32, nf as i32, n as i32, kc as i32);
+        let dl_rgb = self.up(grads.rgb)?;
+        let dl_feat = self.up(grads.features)?;
+        let mut g_m2 = self.zeros::<f32>(2 * n)?;
+        let mut g_conic = self.zeros::<f32>(3 * n)?;
+        let mut g_op = self.zeros::<f32>(n)?;
+        let mut g_col = self.zeros::<f32>(3 * n)?;
+        let mut g_feat = self.zeros::<f32>(n * nf)?;
+        let (gx, gy) = (w.div_ceil(TILE), h.div_ceil(TILE));
+        let tiles_cfg =
+            LaunchConfig { grid_dim: (gx as u32, gy as u32, 1), block_dim: (TILE as u32, TILE as u32, 1), shared_mem_bytes: 0 };
+        {
+            let mut b = self.stream.launch_builder(&self.k.render_bwd);
+            b.arg(&d.ranges).arg(&d.point_list).arg(&w_i).arg(&h_i).arg(&d.means2d).arg(&d.conic_opacity);
+            b.arg(&d.colors).arg(&nf_i).arg(&d.params).arg(&d.final_t).arg(&d.n_contrib).arg(&dl_rgb).arg(&dl_feat);
+            b.arg(&mut g_m2).arg(&mut g_conic).arg(&mut g_op).arg(&mut g_col).arg(&mut g_feat);
+            // SAFETY: argument types and lengths match rast_render_bwd.
+            unsafe { b.launch(tiles_cfg) }.map_err(cuda_err)?;
+        }
+        let mut d_means = self.zeros::<f32>(3 * n)?;
+        let mut d_cov = self.zeros::<f32>(6 * n)?;
+        let mut d_scales = self.zeros::<f32>(if d.rot.is_some() { 3 * n } else { 0 })?;
+        let mut d_quats = self.zeros::<f32>(if d.rot.is_some() { 4 * n } else { 0 })?;
+        let mut d_sh = self.zeros::<f32>(n * kc * 3)?;
+        let null = 0u64;
+        if n > 0 {
+            let mut b = self.stream.launch_builder(&self.k.preprocess_bwd);
+            b.arg(&n_i).arg(&d.means);
+            match &d.rot {
+                None => b.arg(&d.cov).arg(&null).arg(&null),
+                Some(q) => b.arg(&null).arg(&d.cov).arg(q),
+            };
+            b.arg(&d.sh).arg(&k_i).arg(&d.deg).arg(&d.params).arg(&d.radii).arg(&d.clamped);
+            b.arg(&g_m2).arg(&g_conic).arg(&g_col);
+            b.arg(&mut d_means).arg(&mut d_cov).arg(&mut d_scales).arg(&mut d_quats).arg(&mut d_sh);
+            // SAFETY: argument types and lengths match rast_preprocess_bwd.
+            unsafe { b.launch(lin(n)) }.map_err(cuda_err)?;
+        }
+        let scale_rot = d.rot.is_some();
+        Ok(Gradients {
+            means: self.down(&d_means, 3 * n)?,
+            cov3d: self.down(&d_cov, 6 * n)?,
+            scales: if scale_rot { Some(self.down(&d_scales, 3 * n)?) } else { None },
+            quats: if scale_rot { Some(self.down(&d_quats, 4 * n)?) } else { None },
+            opacities: self.down(&g_op, n)?,
+            sh: self.down(&d_sh, n * kc * 3)?,
+            features: self.down(&g_feat, n * nf)?,
+            means2d_ndc: self.down(&g_m2, 2 * n)?,
+        })
+    }
+}
