@@ -1,19 +1,19 @@
 //! CUDA rasterizer (feature `cuda`): the kernels of `cuda/rasterize.cu`, compiled to PTX by build.rs and
 //! embedded, driven through cudarc with the launch sequence of `cuda/emulate_main.cpp` (whose CPU emulation
 //! tests/cuda_emulated.rs checks against [`crate::cpu`]). Slice-level API like `cpu`: host slices in, host
-//! vectors out; official gradients only ([`crate::GradMode::Official`]).
+//! vectors out; both gradient modes.
 //!
 //! Gradients are accumulated with atomicAdd, so they vary in the last bits from run to run.
 
 use std::sync::Arc;
 
 use cudarc::driver::{
-    CudaContext, CudaFunction, CudaModule, CudaSlice, CudaStream, DeviceRepr, LaunchConfig, PushKernelArg,
-    ValidAsZeroBits,
+    CudaContext, CudaFunction, CudaModule, CudaSlice, CudaStream, DeviceRepr, LaunchConfig,
+    PushKernelArg, ValidAsZeroBits,
 };
 use cudarc::nvrtc::Ptx;
 
-use crate::cpu::{CovInput, Gradients, PixelGrads, RasterInputs, RasterSettings, TILE};
+use crate::cpu::{CovInput, GradMode, Gradients, PixelGrads, RasterInputs, RasterSettings, TILE};
 use crate::error::{input_err, Result, SplatError};
 
 /// PTX of `cuda/rasterize.cu` for sm_80 (built by build.rs).
@@ -30,7 +30,11 @@ fn cuda_err(e: impl std::fmt::Display) -> SplatError {
 
 /// 1-D launch over `n` threads.
 fn lin(n: usize) -> LaunchConfig {
-    LaunchConfig { grid_dim: ((n as u32).div_ceil(BLOCK).max(1), 1, 1), block_dim: (BLOCK, 1, 1), shared_mem_bytes: 0 }
+    LaunchConfig {
+        grid_dim: ((n as u32).div_ceil(BLOCK).max(1), 1, 1),
+        block_dim: (BLOCK, 1, 1),
+        shared_mem_bytes: 0,
+    }
 }
 
 /// Camera and background in the kernels' `params` layout (P_* in rasterize.cu).
@@ -79,6 +83,7 @@ struct DeviceState {
     rot: Option<CudaSlice<f32>>,
     sh: CudaSlice<f32>,
     features: CudaSlice<f32>,
+    depths: CudaSlice<f32>,
     radii: CudaSlice<i32>,
     clamped: CudaSlice<i32>,
     means2d: CudaSlice<f32>,
@@ -142,7 +147,11 @@ impl CudaRasterizer {
             render_bwd: f("rast_render_bwd")?,
             preprocess_bwd: f("rast_preprocess_bwd")?,
         };
-        Ok(Self { stream, k, _module: module })
+        Ok(Self {
+            stream,
+            k,
+            _module: module,
+        })
     }
 
     /// Upload; empty slices become one zero so every pointer is valid.
@@ -158,7 +167,11 @@ impl CudaRasterizer {
         self.stream.alloc_zeros::<T>(len.max(1)).map_err(cuda_err)
     }
 
-    fn down<T: DeviceRepr + Default + Clone>(&self, d: &CudaSlice<T>, len: usize) -> Result<Vec<T>> {
+    fn down<T: DeviceRepr + Default + Clone>(
+        &self,
+        d: &CudaSlice<T>,
+        len: usize,
+    ) -> Result<Vec<T>> {
         if len == 0 {
             return Ok(Vec::new());
         }
@@ -166,7 +179,12 @@ impl CudaRasterizer {
     }
 
     /// Exclusive scan of `input[..n]` into `out` (block scans, block sums scanned recursively, added back).
-    fn exclusive_scan(&self, input: &CudaSlice<u32>, out: &mut CudaSlice<u32>, n: usize) -> Result<()> {
+    fn exclusive_scan(
+        &self,
+        input: &CudaSlice<u32>,
+        out: &mut CudaSlice<u32>,
+        n: usize,
+    ) -> Result<()> {
         let nb = n.div_ceil(BLOCK as usize);
         let mut sums = self.zeros::<u32>(nb)?;
         let n_i = n as i32;
@@ -191,7 +209,10 @@ impl CudaRasterizer {
         s.camera.validate()?;
         let (n, nf, kc) = (inp.len(), inp.num_features, inp.sh_coeffs);
         if nf > MAX_FEATURES {
-            return Err(input_err("features", format!("the CUDA kernels take at most {MAX_FEATURES} channels")));
+            return Err(input_err(
+                "features",
+                format!("the CUDA kernels take at most {MAX_FEATURES} channels"),
+            ));
         }
         let (w, h) = (s.camera.width, s.camera.height);
         let (gx, gy) = (w.div_ceil(TILE), h.div_ceil(TILE));
@@ -226,8 +247,18 @@ impl CudaRasterizer {
                 None => b.arg(&cov).arg(&null).arg(&null),
                 Some(q) => b.arg(&null).arg(&cov).arg(q),
             };
-            b.arg(&opac).arg(&sh).arg(&k_i).arg(&deg).arg(&params).arg(&w_i).arg(&h_i);
-            b.arg(&mut radii).arg(&mut means2d).arg(&mut depths).arg(&mut cov2d).arg(&mut conic_opacity);
+            b.arg(&opac)
+                .arg(&sh)
+                .arg(&k_i)
+                .arg(&deg)
+                .arg(&params)
+                .arg(&w_i)
+                .arg(&h_i);
+            b.arg(&mut radii)
+                .arg(&mut means2d)
+                .arg(&mut depths)
+                .arg(&mut cov2d)
+                .arg(&mut conic_opacity);
             b.arg(&mut colors).arg(&mut clamped).arg(&mut tiles);
             // SAFETY: argument types and lengths match rast_preprocess.
             unsafe { b.launch(lin(n)) }.map_err(cuda_err)?;
@@ -238,8 +269,14 @@ impl CudaRasterizer {
         let mut pairs = 0usize;
         if n > 0 {
             self.exclusive_scan(&tiles, &mut offsets, n)?;
-            let last_off = self.stream.clone_dtoh(&offsets.slice(n - 1..n)).map_err(cuda_err)?[0];
-            let last_tt = self.stream.clone_dtoh(&tiles.slice(n - 1..n)).map_err(cuda_err)?[0];
+            let last_off = self
+                .stream
+                .clone_dtoh(&offsets.slice(n - 1..n))
+                .map_err(cuda_err)?[0];
+            let last_tt = self
+                .stream
+                .clone_dtoh(&tiles.slice(n - 1..n))
+                .map_err(cuda_err)?[0];
             pairs = last_off as usize + last_tt as usize;
         }
         let npow2 = pairs.next_power_of_two().max(1);
@@ -248,7 +285,13 @@ impl CudaRasterizer {
         let mut ranges = self.zeros::<u32>(2 * gx * gy)?;
         if pairs > 0 {
             let mut b = self.stream.launch_builder(&self.k.duplicate);
-            b.arg(&n_i).arg(&radii).arg(&means2d).arg(&depths).arg(&offsets).arg(&w_i).arg(&h_i);
+            b.arg(&n_i)
+                .arg(&radii)
+                .arg(&means2d)
+                .arg(&depths)
+                .arg(&offsets)
+                .arg(&w_i)
+                .arg(&h_i);
             b.arg(&mut keys).arg(&mut vals);
             // SAFETY: argument types and lengths match rast_duplicate.
             unsafe { b.launch(lin(n)) }.map_err(cuda_err)?;
@@ -286,13 +329,27 @@ impl CudaRasterizer {
         let mut depth = self.zeros::<f32>(hw)?;
         let mut final_t = self.zeros::<f32>(hw)?;
         let mut n_contrib = self.zeros::<u32>(hw)?;
-        let tiles_cfg =
-            LaunchConfig { grid_dim: (gx as u32, gy as u32, 1), block_dim: (TILE as u32, TILE as u32, 1), shared_mem_bytes: 0 };
+        let tiles_cfg = LaunchConfig {
+            grid_dim: (gx as u32, gy as u32, 1),
+            block_dim: (TILE as u32, TILE as u32, 1),
+            shared_mem_bytes: 0,
+        };
         {
             let mut b = self.stream.launch_builder(&self.k.render_fwd);
-            b.arg(&ranges).arg(&vals).arg(&w_i).arg(&h_i).arg(&means2d).arg(&conic_opacity).arg(&colors);
+            b.arg(&ranges)
+                .arg(&vals)
+                .arg(&w_i)
+                .arg(&h_i)
+                .arg(&means2d)
+                .arg(&conic_opacity)
+                .arg(&colors);
             b.arg(&depths).arg(&features).arg(&nf_i).arg(&params);
-            b.arg(&mut rgb).arg(&mut feat).arg(&mut alpha).arg(&mut depth).arg(&mut final_t).arg(&mut n_contrib);
+            b.arg(&mut rgb)
+                .arg(&mut feat)
+                .arg(&mut alpha)
+                .arg(&mut depth)
+                .arg(&mut final_t)
+                .arg(&mut n_contrib);
             // SAFETY: argument types and lengths match rast_render_fwd.
             unsafe { b.launch(tiles_cfg) }.map_err(cuda_err)?;
         }
@@ -327,6 +384,7 @@ impl CudaRasterizer {
                 rot,
                 sh,
                 features,
+                depths,
                 radii,
                 clamped,
                 means2d,
@@ -340,32 +398,90 @@ impl CudaRasterizer {
         })
     }
 
-    /// Official backward, given the forward of the same inputs and settings; `grads.alpha` / `grads.depth`
-    /// are ignored (as the official kernel does for this loss).
-    pub fn backward(&self, fwd: &CudaForward, grads: &PixelGrads) -> Result<Gradients> {
+    /// Backward, given the forward of the same inputs and settings. `grads.alpha` / `grads.depth` are used
+    /// by [`GradMode::Exact`] only (the official backward ignores them).
+    pub fn backward(
+        &self,
+        fwd: &CudaForward,
+        grads: &PixelGrads,
+        mode: GradMode,
+    ) -> Result<Gradients> {
         let d = &fwd.dev;
         let (n, nf, kc) = (d.n, d.nf, d.k);
         let (w, h) = (fwd.width, fwd.height);
         let hw = w * h;
         if grads.rgb.len() != 3 * hw || grads.features.len() != nf * hw {
-            return Err(input_err("pixel gradients", format!("expected 3x{hw} rgb and {nf}x{hw} feature values")));
+            return Err(input_err(
+                "pixel gradients",
+                format!("expected 3x{hw} rgb and {nf}x{hw} feature values"),
+            ));
         }
         let (w_i, h_i, nf_i, n_i, k_i) = (w as i32, h as i32, nf as i32, n as i32, kc as i32);
         let dl_rgb = self.up(grads.rgb)?;
         let dl_feat = self.up(grads.features)?;
+        let exact = i32::from(mode == GradMode::Exact);
+        let extra = |g: Option<&[f32]>| -> Result<Option<CudaSlice<f32>>> {
+            match g {
+                Some(v) if exact == 1 => {
+                    if v.len() != hw {
+                        return Err(input_err(
+                            "pixel gradients",
+                            format!("alpha/depth gradients need {hw} values"),
+                        ));
+                    }
+                    Ok(Some(self.up(v)?))
+                }
+                _ => Ok(None),
+            }
+        };
+        let dl_alpha = extra(grads.alpha)?;
+        let dl_depth = extra(grads.depth)?;
+        let mut g_depth = self.zeros::<f32>(n)?;
         let mut g_m2 = self.zeros::<f32>(2 * n)?;
         let mut g_conic = self.zeros::<f32>(3 * n)?;
         let mut g_op = self.zeros::<f32>(n)?;
         let mut g_col = self.zeros::<f32>(3 * n)?;
         let mut g_feat = self.zeros::<f32>(n * nf)?;
         let (gx, gy) = (w.div_ceil(TILE), h.div_ceil(TILE));
-        let tiles_cfg =
-            LaunchConfig { grid_dim: (gx as u32, gy as u32, 1), block_dim: (TILE as u32, TILE as u32, 1), shared_mem_bytes: 0 };
+        let tiles_cfg = LaunchConfig {
+            grid_dim: (gx as u32, gy as u32, 1),
+            block_dim: (TILE as u32, TILE as u32, 1),
+            shared_mem_bytes: 0,
+        };
+        let null = 0u64;
         {
             let mut b = self.stream.launch_builder(&self.k.render_bwd);
-            b.arg(&d.ranges).arg(&d.point_list).arg(&w_i).arg(&h_i).arg(&d.means2d).arg(&d.conic_opacity);
-            b.arg(&d.colors).arg(&nf_i).arg(&d.params).arg(&d.final_t).arg(&d.n_contrib).arg(&dl_rgb).arg(&dl_feat);
-            b.arg(&mut g_m2).arg(&mut g_conic).arg(&mut g_op).arg(&mut g_col).arg(&mut g_feat);
+            b.arg(&d.ranges)
+                .arg(&d.point_list)
+                .arg(&w_i)
+                .arg(&h_i)
+                .arg(&d.means2d)
+                .arg(&d.conic_opacity);
+            b.arg(&d.colors)
+                .arg(&d.depths)
+                .arg(&d.features)
+                .arg(&nf_i)
+                .arg(&d.params)
+                .arg(&d.final_t)
+                .arg(&d.n_contrib)
+                .arg(&dl_rgb)
+                .arg(&dl_feat);
+            // dl_alpha, dl_depth: null when absent.
+            match &dl_alpha {
+                Some(a) => b.arg(a),
+                None => b.arg(&null),
+            };
+            match &dl_depth {
+                Some(a) => b.arg(a),
+                None => b.arg(&null),
+            };
+            b.arg(&exact)
+                .arg(&mut g_m2)
+                .arg(&mut g_conic)
+                .arg(&mut g_op)
+                .arg(&mut g_col)
+                .arg(&mut g_feat)
+                .arg(&mut g_depth);
             // SAFETY: argument types and lengths match rast_render_bwd.
             unsafe { b.launch(tiles_cfg) }.map_err(cuda_err)?;
         }
@@ -374,7 +490,6 @@ impl CudaRasterizer {
         let mut d_scales = self.zeros::<f32>(if d.rot.is_some() { 3 * n } else { 0 })?;
         let mut d_quats = self.zeros::<f32>(if d.rot.is_some() { 4 * n } else { 0 })?;
         let mut d_sh = self.zeros::<f32>(n * kc * 3)?;
-        let null = 0u64;
         if n > 0 {
             let mut b = self.stream.launch_builder(&self.k.preprocess_bwd);
             b.arg(&n_i).arg(&d.means);
@@ -382,9 +497,22 @@ impl CudaRasterizer {
                 None => b.arg(&d.cov).arg(&null).arg(&null),
                 Some(q) => b.arg(&null).arg(&d.cov).arg(q),
             };
-            b.arg(&d.sh).arg(&k_i).arg(&d.deg).arg(&d.params).arg(&d.radii).arg(&d.clamped);
-            b.arg(&g_m2).arg(&g_conic).arg(&g_col);
-            b.arg(&mut d_means).arg(&mut d_cov).arg(&mut d_scales).arg(&mut d_quats).arg(&mut d_sh);
+            b.arg(&d.sh)
+                .arg(&k_i)
+                .arg(&d.deg)
+                .arg(&d.params)
+                .arg(&d.radii)
+                .arg(&d.clamped);
+            b.arg(&g_m2)
+                .arg(&g_conic)
+                .arg(&g_col)
+                .arg(&g_depth)
+                .arg(&exact);
+            b.arg(&mut d_means)
+                .arg(&mut d_cov)
+                .arg(&mut d_scales)
+                .arg(&mut d_quats)
+                .arg(&mut d_sh);
             // SAFETY: argument types and lengths match rast_preprocess_bwd.
             unsafe { b.launch(lin(n)) }.map_err(cuda_err)?;
         }
@@ -392,8 +520,16 @@ impl CudaRasterizer {
         Ok(Gradients {
             means: self.down(&d_means, 3 * n)?,
             cov3d: self.down(&d_cov, 6 * n)?,
-            scales: if scale_rot { Some(self.down(&d_scales, 3 * n)?) } else { None },
-            quats: if scale_rot { Some(self.down(&d_quats, 4 * n)?) } else { None },
+            scales: if scale_rot {
+                Some(self.down(&d_scales, 3 * n)?)
+            } else {
+                None
+            },
+            quats: if scale_rot {
+                Some(self.down(&d_quats, 4 * n)?)
+            } else {
+                None
+            },
             opacities: self.down(&g_op, n)?,
             sh: self.down(&d_sh, n * kc * 3)?,
             features: self.down(&g_feat, n * nf)?,

@@ -2,11 +2,14 @@
 //! .ply/.splat I/O.
 //!
 //! The rasterizer reproduces MVSplat360's renderer (latentSplat's fork of graphdeco's
-//! diff-gaussian-rasterization): [`cpu`] is the plain-slice core, [`render`] the candle wrapper with autograd.
+//! diff-gaussian-rasterization): [`cpu`] is the plain-slice core, [`render`] the candle wrapper with autograd,
+//! and `cuda` (feature `cuda-raster`) the same kernels on a GPU (`cuda/rasterize.cu`, tested on CPU by emulation).
 
 pub mod bench;
 pub mod camera;
 pub mod cpu;
+#[cfg(feature = "cuda-raster")]
+pub mod cuda;
 pub mod error;
 pub mod gaussians;
 pub mod io;

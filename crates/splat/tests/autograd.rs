@@ -2,26 +2,11 @@
 //! (checked against the golden fixture, which the core matches), and the feature SH evaluation is differentiable.
 
 use candle_core::{DType, Device, Tensor, Var};
-use mvsplat360_splat::{render, sh, Gaussians, RasterCamera, RenderOptions};
+use mvsplat360_splat::{render, sh, Gaussians, RenderOptions};
 use mvsplat360_testkit::{assert_close, assert_close_rel_max, get, load};
 
-fn camera(m: &std::collections::HashMap<String, Tensor>) -> RasterCamera {
-    let v = |n: &str| get(m, n).flatten_all().unwrap().to_dtype(DType::F32).unwrap().to_vec1::<f32>().unwrap();
-    let size = get(m, "image_size").to_dtype(DType::I64).unwrap().to_vec1::<i64>().unwrap();
-    let intr = v("intrinsics");
-    let nf = v("near_far");
-    RasterCamera {
-        viewmatrix: RasterCamera::viewmatrix_from_slice(&v("viewmatrix")).unwrap(),
-        fx: intr[0],
-        fy: intr[1],
-        cx: intr[2],
-        cy: intr[3],
-        width: size[1] as usize,
-        height: size[0] as usize,
-        near: nf[0],
-        far: nf[1],
-    }
-}
+mod common;
+use common::camera;
 
 #[test]
 fn autograd_matches_fixture_gradients() {

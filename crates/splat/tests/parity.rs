@@ -1,73 +1,11 @@
 //! Parity with the official rasterizer's golden fixtures (forward images, per-Gaussian buffers, gradients),
 //! via both the cov3d and the scales+quats input paths. Tolerances from rasterizer/README.md.
 
-use std::collections::HashMap;
-
-use candle_core::{DType, Tensor};
 use mvsplat360_splat::cpu::{self, CovInput, GradMode, PixelGrads, RasterInputs, RasterSettings};
-use mvsplat360_splat::RasterCamera;
 use mvsplat360_testkit::{get, load};
 
-fn v32(t: &Tensor) -> Vec<f32> {
-    t.to_dtype(DType::F32).unwrap().flatten_all().unwrap().to_vec1::<f32>().unwrap()
-}
-
-fn vi(t: &Tensor) -> Vec<i64> {
-    t.to_dtype(DType::I64).unwrap().flatten_all().unwrap().to_vec1::<i64>().unwrap()
-}
-
-/// (H,W,C) → planar (C,H,W)
-fn to_planar(v: &[f32], h: usize, w: usize, c: usize) -> Vec<f32> {
-    let mut o = vec![0f32; v.len()];
-    for p in 0..h * w {
-        for ch in 0..c {
-            o[ch * h * w + p] = v[p * c + ch];
-        }
-    }
-    o
-}
-
-pub fn camera(m: &HashMap<String, Tensor>) -> RasterCamera {
-    let size = vi(get(m, "image_size"));
-    let intr = v32(get(m, "intrinsics"));
-    let nf = v32(get(m, "near_far"));
-    RasterCamera {
-        viewmatrix: RasterCamera::viewmatrix_from_slice(&v32(get(m, "viewmatrix"))).unwrap(),
-        fx: intr[0],
-        fy: intr[1],
-        cx: intr[2],
-        cy: intr[3],
-        width: size[1] as usize,
-        height: size[0] as usize,
-        near: nf[0],
-        far: nf[1],
-    }
-}
-
-/// max |a-b| and max |b|
-fn diff(a: &[f32], b: &[f32]) -> (f64, f64) {
-    assert_eq!(a.len(), b.len());
-    let mut d = 0f64;
-    let mut m = 0f64;
-    for (x, y) in a.iter().zip(b) {
-        assert!(x.is_finite(), "non-finite output");
-        d = d.max((*x as f64 - *y as f64).abs());
-        m = m.max((*y as f64).abs());
-    }
-    (d, m)
-}
-
-fn check_abs(name: &str, a: &[f32], b: &[f32], tol: f64) {
-    let (d, m) = diff(a, b);
-    eprintln!("{name}: max abs diff {d:.3e} (max |ref| {m:.3e})");
-    assert!(d <= tol, "{name}: max abs diff {d:.3e} > {tol:.1e}");
-}
-
-fn check_rel(name: &str, a: &[f32], b: &[f32], tol: f64) {
-    let (d, m) = diff(a, b);
-    eprintln!("{name}: max abs diff {d:.3e} = {:.3e} x max|ref| {m:.3e}", d / m.max(1e-30));
-    assert!(d <= tol * m.max(1e-30), "{name}: max abs diff {d:.3e} > {tol:.1e} x max|ref| {m:.3e}");
-}
+mod common;
+use common::{camera, check_abs, check_rel, to_planar, v32, vi};
 
 fn run(file: &str) {
     let m = load(&format!("rasterizer/{file}"));
