@@ -110,33 +110,41 @@ pub(crate) static POOL_U64: Pool<u64> = Pool::new();
 pub(crate) static POOL_GEO: Pool<[f32; 8]> = Pool::new();
 pub(crate) static POOL_REC: Pool<[u64; 2]> = Pool::new();
 
-/// A zero-filled vector. Large ones are advised to use transparent huge pages and filled in parallel: with
-/// 4 KiB pages, first-touching the ~100-200 MB of gradient outputs costs tens of thousands of page faults.
-pub(crate) fn zeroed<T: Copy + Default + Send + Sync>(len: usize) -> Vec<T> {
-    const BIG: usize = 8 << 20;
-    let bytes = len.saturating_mul(std::mem::size_of::<T>());
-    if bytes < BIG {
-        return vec![T::default(); len];
-    }
-    use rayon::prelude::*;
-    let mut v = Vec::<T>::with_capacity(len);
-    #[cfg(target_os = "linux")]
-    {
-        const HUGE: usize = 2 << 20;
-        let p = v.as_mut_ptr() as usize;
-        let a0 = (p + HUGE - 1) & !(HUGE - 1);
-        let a1 = (p + bytes) & !(HUGE - 1);
-        if a1 > a0 {
-            // SAFETY: the range lies inside this allocation; the advice only affects how it is backed.
-            unsafe { libc::madvise(a0 as *mut libc::c_void, a1 - a0, libc::MADV_HUGEPAGE) };
-        }
-    }
-    v.spare_capacity_mut()[..len].par_chunks_mut(1 << 16).for_each(|c| {
-        for x in c {
-            x.write(T::default());
-        }
-    });
-    // SAFETY: all `len` elements were initialised above.
-    unsafe { v.set_len(len) };
-    v
+/// A vector of `len` values that the caller fully writes (in parallel) before reading: no zero-fill pass.
+/// Large ones are advised to use transparent huge pages, since first-touching ~100-200 MB of fresh 4 KiB pages
+/// (e.g. the SH gradient) costs tens of thousands of page faults.
+pub(crate) struct Uninit<T> {
+    v: Vec<T>,
+    len: usize,
 }
+
+impl<T: Copy> Uninit<T> {
+    pub fn new(len: usize) -> Self {
+        let v = Vec::with_capacity(len);
+        #[cfg(target_os = "linux")]
+        {
+            const BIG: usize = 8 << 20;
+            const HUGE: usize = 2 << 20;
+            let bytes = len.saturating_mul(std::mem::size_of::<T>());
+            let p = v.as_ptr() as usize;
+            let a0 = (p + HUGE - 1) & !(HUGE - 1);
+            let a1 = (p + bytes) & !(HUGE - 1);
+            if bytes >= BIG && a1 > a0 {
+                // SAFETY: the range lies inside this allocation; the advice only affects how it is backed.
+                unsafe { libc::madvise(a0 as *mut libc::c_void, a1 - a0, libc::MADV_HUGEPAGE) };
+            }
+        }
+        Uninit { v, len }
+    }
+    pub fn ptr(&mut self) -> SharedMut<T> {
+        // SAFETY: the capacity holds `len` values; they are only written through this view before `done`.
+        unsafe { SharedMut::from_raw(self.v.as_mut_ptr(), self.len) }
+    }
+    /// # Safety
+    /// Every index was written.
+    pub unsafe fn done(mut self) -> Vec<T> {
+        self.v.set_len(self.len);
+        self.v
+    }
+}
+

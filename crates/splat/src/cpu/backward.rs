@@ -8,7 +8,7 @@ use super::preprocess::{cov3d_of, ewa, mean_of, quat_to_rot, view_dir, view_poin
 use super::{CovInput, ForwardOutput, Frame, GradMode, Gradients, PixelGrads, RasterInputs, RasterSettings};
 use crate::error::{input_err, Result};
 use crate::sh;
-use crate::util::{zeroed, SharedMut, POOL_F32};
+use crate::util::{SharedMut, Uninit, POOL_F32};
 
 /// The per-pair gradient buffer, kept between calls: reusing it avoids page-faulting tens of MB per backward
 /// (its size is bounded by the largest pair count seen; a concurrent second call just allocates).
@@ -71,40 +71,48 @@ pub fn backward(
     let sum = |ch: usize, i: usize| sums[i * ps + ch];
 
     let k = inp.sh_coeffs;
-    let mut out = Gradients {
-        means: zeroed(3 * n),
-        cov3d: zeroed(6 * n),
-        scales: None,
-        quats: None,
-        opacities: (0..n).map(|i| sum(P_OP, i)).collect(),
-        sh: zeroed(n * k * 3),
-        features: zeroed(n * nf),
-        means2d_ndc: zeroed(2 * n),
-    };
+    let visible = |i: usize| fwd.radii[i] > 0;
+    let opacities: Vec<f32> = (0..n).map(|i| if visible(i) { sum(P_OP, i) } else { 0.0 }).collect();
+    let features: Vec<f32> =
+        (0..n * nf).map(|j| if visible(j / nf.max(1)) { sum(P_FEAT + j % nf, j / nf) } else { 0.0 }).collect();
     let scale_rot = matches!(inp.cov, CovInput::ScaleRot { .. });
-    let mut gs = zeroed::<f32>(if scale_rot { 3 * n } else { 0 });
-    let mut gq = zeroed::<f32>(if scale_rot { 4 * n } else { 0 });
-    for i in 0..n {
-        if fwd.radii[i] <= 0 {
-            out.opacities[i] = 0.0;
-        }
-        for c in 0..nf {
-            out.features[i * nf + c] = if fwd.radii[i] > 0 { sum(P_FEAT + c, i) } else { 0.0 };
-        }
-    }
+    // Every value of these is written below (zeros for culled Gaussians and unused SH degrees): no zero pass.
+    let mut means = Uninit::<f32>::new(3 * n);
+    let mut cov3d = Uninit::<f32>::new(6 * n);
+    let mut shg = Uninit::<f32>::new(n * k * 3);
+    let mut m2 = Uninit::<f32>::new(2 * n);
+    let mut gs = Uninit::<f32>::new(if scale_rot { 3 * n } else { 0 });
+    let mut gq = Uninit::<f32>::new(if scale_rot { 4 * n } else { 0 });
     let exact = mode == GradMode::Exact;
     let deg = inp.eval_degree();
     let ncoef = sh::num_coeffs(deg);
     let (wf, hf) = (f.w as f32, f.h as f32);
-    let o_means = SharedMut::new(&mut out.means);
-    let o_cov = SharedMut::new(&mut out.cov3d);
-    let o_sh = SharedMut::new(&mut out.sh);
-    let o_m2 = SharedMut::new(&mut out.means2d_ndc);
-    let o_s = SharedMut::new(&mut gs);
-    let o_q = SharedMut::new(&mut gq);
+    let (o_means, o_cov, o_sh, o_m2, o_s, o_q) = (means.ptr(), cov3d.ptr(), shg.ptr(), m2.ptr(), gs.ptr(), gq.ptr());
     let sum = &sum;
     (0..n).into_par_iter().with_min_len(1024).for_each(|i| {
-        if fwd.radii[i] <= 0 {
+        if !visible(i) {
+            // SAFETY: Gaussian i writes only its own rows of every output.
+            unsafe {
+                for j in 0..3 {
+                    o_means.write(3 * i + j, 0.0);
+                }
+                for j in 0..6 {
+                    o_cov.write(6 * i + j, 0.0);
+                }
+                for j in 0..k * 3 {
+                    o_sh.write(i * k * 3 + j, 0.0);
+                }
+                o_m2.write(2 * i, 0.0);
+                o_m2.write(2 * i + 1, 0.0);
+                if scale_rot {
+                    for j in 0..3 {
+                        o_s.write(3 * i + j, 0.0);
+                    }
+                    for j in 0..4 {
+                        o_q.write(4 * i + j, 0.0);
+                    }
+                }
+            }
             return;
         }
         let p = mean_of(inp, i);
@@ -216,6 +224,10 @@ pub fn backward(
                     ddir[a] += bgrad[kk][a] * proj;
                 }
             }
+            // Degrees the fork does not evaluate get exactly zero.
+            for j in ncoef * 3..k * 3 {
+                o_sh.write(i * k * 3 + j, 0.0);
+            }
         }
         let sum2 = dot(dvec, dvec);
         if sum2 > 0.0 {
@@ -251,10 +263,19 @@ pub fn backward(
             }
         }
     });
-    if scale_rot {
-        out.scales = Some(gs);
-        out.quats = Some(gq);
-    }
+    // SAFETY: the loop above wrote every index of every buffer (both branches).
+    let out = unsafe {
+        Gradients {
+            means: means.done(),
+            cov3d: cov3d.done(),
+            scales: if scale_rot { Some(gs.done()) } else { None },
+            quats: if scale_rot { Some(gq.done()) } else { None },
+            opacities,
+            sh: shg.done(),
+            features,
+            means2d_ndc: m2.done(),
+        }
+    };
     if timing {
         eprintln!(
             "raster backward: tiles {:.1} ms, reduce {:.1} ms, per-Gaussian chain rule {:.1} ms",

@@ -5,7 +5,7 @@ use rayon::prelude::*;
 use super::simd::{Arr, Isa, F8, LANES};
 use super::{tile_rect, CovInput, Frame, RasterInputs};
 use crate::sh;
-use crate::util::{Pooled, SharedMut, POOL_F32, POOL_GEO, POOL_U64};
+use crate::util::{Pooled, SharedMut, Uninit, POOL_F32, POOL_GEO, POOL_U64};
 
 /// Projected per-Gaussian data (SoA).
 pub(crate) struct Projected {
@@ -166,30 +166,9 @@ pub(crate) fn preprocess(f: &Frame, inp: &RasterInputs) -> Projected {
     preprocess_lanes(f, inp, super::simd::isa())
 }
 
-/// A vector of `len` values that the caller fully writes (in parallel) before reading.
-struct Uninit<T> {
-    v: Vec<T>,
-    len: usize,
-}
-
-impl<T: Copy> Uninit<T> {
-    fn new(len: usize) -> Self {
-        Uninit { v: Vec::with_capacity(len), len }
-    }
-    fn ptr(&mut self) -> SharedMut<T> {
-        // SAFETY: the capacity holds `len` values; they are only written through this view before `done`.
-        unsafe { SharedMut::from_raw(self.v.as_mut_ptr(), self.len) }
-    }
-    /// # Safety
-    /// Every index was written.
-    unsafe fn done(mut self) -> Vec<T> {
-        self.v.set_len(self.len);
-        self.v
-    }
-}
-
-/// Lane-parallel projection of 8 Gaussians: the scalar reference's operations in the same order, so every
-/// lane's result is bit-identical to [`project_scalar`].
+/// Lane-parallel projection of 8 Gaussians: the scalar helpers' operations (`view_point`, `cov3d_of`, `ewa`,
+/// `view_dir`, `sh::basis`) in the same order, so every lane is bit-identical to one-at-a-time evaluation (the
+/// test keeps that version as its reference).
 struct Lanes {
     tz: [f32; LANES],
     ndc: [[f32; LANES]; 2],
