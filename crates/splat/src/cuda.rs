@@ -1,7 +1,7 @@
-//! CUDA rasterizer (feature `cuda`): the kernels of `cuda/rasterize.cu`, compiled to PTX by build.rs and
-//! embedded, driven through cudarc with the launch sequence of `cuda/emulate_main.cpp` (whose CPU emulation
-//! tests/cuda_emulated.rs checks against [`crate::cpu`]). Slice-level API like `cpu`: host slices in, host
-//! vectors out; both gradient modes.
+//! CUDA rasterizer (feature `cuda-raster`, also enabled by `cuda`): the kernels of `cuda/rasterize.cu`,
+//! compiled to PTX by build.rs and embedded, driven through cudarc with the launch sequence of
+//! `cuda/emulate_main.cpp` (whose CPU emulation tests/cuda_emulated.rs checks against [`crate::cpu`]).
+//! Slice-level API like `cpu`: host slices in, host vectors out; both gradient modes.
 //!
 //! Gradients are accumulated with atomicAdd, so they vary in the last bits from run to run.
 
@@ -40,14 +40,32 @@ fn lin(n: usize) -> LaunchConfig {
 /// Camera and background in the kernels' `params` layout (P_* in rasterize.cu).
 fn params_of(s: &RasterSettings) -> Vec<f32> {
     let cam = &s.camera;
-    let mut p = Vec::with_capacity(42);
-    p.extend(cam.viewmatrix.iter().flatten());
-    p.extend(cam.full_proj().iter().flatten());
-    p.extend(cam.campos());
-    p.extend(cam.focal());
-    p.extend(cam.tanfov());
-    p.extend(s.background);
+    let mut p = Vec::with_capacity(P_LEN);
+    p.extend(cam.viewmatrix.iter().flatten()); // P_VIEW = 0
+    p.extend(cam.full_proj().iter().flatten()); // P_PROJ = 16
+    p.extend(cam.campos()); // P_CAMPOS = 32
+    p.extend(cam.focal()); // P_FOCAL = 35
+    p.extend(cam.tanfov()); // P_TANFOV = 37
+    p.extend(s.background); // P_BG = 39
+    debug_assert_eq!(p.len(), P_LEN);
     p
+}
+
+/// Length of `params` (P_LEN in rasterize.cu).
+const P_LEN: usize = 42;
+
+/// Largest pair count the binning handles: the bitonic sort pads to a power of two that must fit the
+/// kernels' `unsigned` indices (and the host's u32 stage/distance loop).
+const MAX_PAIRS: u64 = 1 << 31;
+
+/// `.version` and `.target` lines of the PTX, for load errors (a driver older than the nvcc that built the
+/// PTX rejects it).
+fn ptx_header() -> String {
+    PTX.lines()
+        .map(str::trim)
+        .filter(|l| l.starts_with(".version") || l.starts_with(".target"))
+        .collect::<Vec<_>>()
+        .join(", ")
 }
 
 struct Kernels {
@@ -133,7 +151,13 @@ impl CudaRasterizer {
     pub fn new(ordinal: usize) -> Result<Self> {
         let ctx = CudaContext::new(ordinal).map_err(cuda_err)?;
         let stream = ctx.new_stream().map_err(cuda_err)?;
-        let module = ctx.load_module(Ptx::from_src(PTX)).map_err(cuda_err)?;
+        let module = ctx.load_module(Ptx::from_src(PTX)).map_err(|e| {
+            cuda_err(format!(
+                "loading the kernels' PTX ({}) failed: {e} (a driver older than the nvcc that built it cannot \
+                 JIT it; MVSPLAT360_CUDA_ARCH picks the target)",
+                ptx_header()
+            ))
+        })?;
         let f = |name: &str| module.load_function(name).map_err(cuda_err);
         let k = Kernels {
             preprocess: f("rast_preprocess")?,
@@ -167,6 +191,9 @@ impl CudaRasterizer {
         self.stream.alloc_zeros::<T>(len.max(1)).map_err(cuda_err)
     }
 
+    /// Download `d[..len]`. cudarc 0.19 issues the copy into a `Vec` asynchronously and relies on the driver
+    /// treating pageable memory synchronously, which CUDA documents only as "might be" (HMM/ATS systems):
+    /// synchronize before the host reads it.
     fn down<T: DeviceRepr + Default + Clone>(
         &self,
         d: &CudaSlice<T>,
@@ -175,7 +202,9 @@ impl CudaRasterizer {
         if len == 0 {
             return Ok(Vec::new());
         }
-        self.stream.clone_dtoh(&d.slice(..len)).map_err(cuda_err)
+        let v = self.stream.clone_dtoh(&d.slice(..len)).map_err(cuda_err)?;
+        self.stream.synchronize().map_err(cuda_err)?;
+        Ok(v)
     }
 
     /// Exclusive scan of `input[..n]` into `out` (block scans, block sums scanned recursively, added back).
@@ -217,10 +246,25 @@ impl CudaRasterizer {
         let (w, h) = (s.camera.width, s.camera.height);
         let (gx, gy) = (w.div_ceil(TILE), h.div_ceil(TILE));
         let hw = w * h;
+        // The kernels index with 32-bit `int`: 6 * n (d_cov3d), 3 * W * H (planar rgb).
+        if n > i32::MAX as usize / 6 {
+            return Err(input_err(
+                "means",
+                format!("the CUDA kernels take at most {} Gaussians", i32::MAX / 6),
+            ));
+        }
+        if hw > i32::MAX as usize / 3 {
+            return Err(input_err(
+                "camera",
+                format!("the CUDA kernels take at most {} pixels", i32::MAX / 3),
+            ));
+        }
         let deg = inp.eval_degree() as i32;
         let (n_i, k_i, nf_i, w_i, h_i) = (n as i32, kc as i32, nf as i32, w as i32, h as i32);
 
-        let params = self.up(&params_of(s))?;
+        // Kept alive until the downloads below synchronize the stream (the upload reads it).
+        let params_host = params_of(s);
+        let params = self.up(&params_host)?;
         let means = self.up(inp.means)?;
         let (cov, rot) = match inp.cov {
             CovInput::Cov3d(c) => (self.up(c)?, None),
@@ -264,20 +308,21 @@ impl CudaRasterizer {
             unsafe { b.launch(lin(n)) }.map_err(cuda_err)?;
         }
 
-        // Binning.
+        // Binning. The pair count (emulate_main.cpp: offsets[n-1] + tiles[n-1] after the scan) is the sum of
+        // tiles_touched, summed here in u64 from the download the output needs anyway, so a total past the
+        // kernels' u32 range is an error instead of a wrapped scan.
+        let tiles_touched = self.down(&tiles, n)?;
+        let pairs64: u64 = tiles_touched.iter().map(|&t| u64::from(t)).sum();
+        if pairs64 > MAX_PAIRS {
+            return Err(input_err(
+                "means",
+                format!("{pairs64} (tile, Gaussian) pairs exceed the CUDA binning's {MAX_PAIRS}"),
+            ));
+        }
+        let pairs = pairs64 as usize;
         let mut offsets = self.zeros::<u32>(n)?;
-        let mut pairs = 0usize;
-        if n > 0 {
+        if pairs > 0 {
             self.exclusive_scan(&tiles, &mut offsets, n)?;
-            let last_off = self
-                .stream
-                .clone_dtoh(&offsets.slice(n - 1..n))
-                .map_err(cuda_err)?[0];
-            let last_tt = self
-                .stream
-                .clone_dtoh(&tiles.slice(n - 1..n))
-                .map_err(cuda_err)?[0];
-            pairs = last_off as usize + last_tt as usize;
         }
         let npow2 = pairs.next_power_of_two().max(1);
         let mut keys = self.zeros::<u64>(npow2)?;
@@ -302,13 +347,16 @@ impl CudaRasterizer {
                 // SAFETY: as above.
                 unsafe { b.launch(lin(npow2 - pairs)) }.map_err(cuda_err)?;
             }
+            // Stage k = 2, 4, .., npow2 (<= 2^31), distance j = k/2 .. 1; counted in usize so the last
+            // doubling cannot wrap.
             let np = npow2 as u32;
-            let mut k = 2u32;
-            while k as usize <= npow2 {
+            let mut k = 2usize;
+            while k <= npow2 {
                 let mut j = k >> 1;
                 while j > 0 {
+                    let (j_u, k_u) = (j as u32, k as u32);
                     let mut b = self.stream.launch_builder(&self.k.bitonic_step);
-                    b.arg(&mut keys).arg(&mut vals).arg(&np).arg(&j).arg(&k);
+                    b.arg(&mut keys).arg(&mut vals).arg(&np).arg(&j_u).arg(&k_u);
                     // SAFETY: as above.
                     unsafe { b.launch(lin(npow2)) }.map_err(cuda_err)?;
                     j >>= 1;
@@ -366,7 +414,7 @@ impl CudaRasterizer {
             final_t: self.down(&final_t, hw)?,
             n_contrib: self.down(&n_contrib, hw)?,
             radii: self.down(&radii, n)?,
-            tiles_touched: self.down(&tiles, n)?,
+            tiles_touched,
             means2d: self.down(&means2d, 2 * n)?,
             depths: self.down(&depths, n)?,
             cov2d: self.down(&cov2d, 3 * n)?,
