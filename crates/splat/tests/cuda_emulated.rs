@@ -17,10 +17,10 @@ use std::sync::OnceLock;
 
 use mvsplat360_splat::cpu::{self, CovInput, GradMode, PixelGrads, RasterInputs, RasterSettings};
 use mvsplat360_splat::RasterCamera;
-use mvsplat360_testkit::{get, load};
+use mvsplat360_testkit::get;
 
 mod common;
-use common::{camera, check_abs, check_rel, count_diff, to_planar, v32, vi};
+use common::{check_abs, check_rel, count_diff, to_planar, v32, vi, CovPath, Fixture};
 
 const TILE: usize = 16;
 
@@ -348,41 +348,24 @@ fn grads_of<'a>(
 /// The fixture's scene through both covariance inputs; with [`GradMode::Exact`] (random alpha / depth pixel
 /// gradients added) the gradients are compared with the CPU path only (the fixture holds official ones).
 fn run(file: &str, build: Build, mode: GradMode) {
-    let m = load(&format!("rasterizer/{file}"));
-    let cam = camera(&m);
-    let (h, w) = (cam.height, cam.width);
-    let means = v32(get(&m, "means"));
-    let cov3d = v32(get(&m, "cov3d"));
-    let scales = v32(get(&m, "scales"));
-    let quats = v32(get(&m, "quats"));
-    let opac = v32(get(&m, "opacities"));
-    let sh_t = get(&m, "sh");
-    let k = sh_t.dim(1).unwrap();
-    let sh = v32(sh_t);
-    let feats_t = get(&m, "features");
-    let nf = feats_t.dim(1).unwrap();
-    let feats = v32(feats_t);
-    let sh_degree = vi(get(&m, "sh_degree"))[0] as usize;
-    let bgv = v32(get(&m, "background"));
-    let settings = RasterSettings {
-        camera: cam,
-        background: [bgv[0], bgv[1], bgv[2]],
-    };
-    let w1 = to_planar(&v32(get(&m, "W1")), h, w, 3);
-    let w2 = to_planar(&v32(get(&m, "W2")), h, w, nf);
+    let fx = Fixture::load(file);
+    let m = &fx.m;
+    let settings = fx.settings;
+    let (h, w, nf) = (settings.camera.height, settings.camera.width, fx.nf);
+    let (w1, w2) = (&fx.w1, &fx.w2);
     let mut rng = Lcg(7);
     let da: Vec<f32> = (0..h * w).map(|_| rng.uni(-1.0, 1.0)).collect();
     let dd: Vec<f32> = (0..h * w).map(|_| rng.uni(-1.0, 1.0)).collect();
     let exact = mode == GradMode::Exact;
     let pg = PixelGrads {
-        rgb: &w1,
-        features: &w2,
+        rgb: w1,
+        features: w2,
         alpha: exact.then_some(&da[..]),
         depth: exact.then_some(&dd[..]),
     };
-    let n = opac.len();
+    let n = fx.opacities.len();
 
-    let fx_radii = vi(get(&m, "radii"));
+    let fx_radii = vi(get(m, "radii"));
     let vis: Vec<bool> = fx_radii.iter().map(|&r| r > 0).collect();
     let sel = |v: &[f32], c: usize| -> Vec<f32> {
         v.chunks(c)
@@ -392,27 +375,10 @@ fn run(file: &str, build: Build, mode: GradMode) {
             .collect()
     };
 
-    for (path, cov) in [
-        ("cov", CovInput::Cov3d(&cov3d)),
-        (
-            "sr",
-            CovInput::ScaleRot {
-                scales: &scales,
-                quats: &quats,
-            },
-        ),
-    ] {
+    for path in [CovPath::Cov3d, CovPath::ScaleRot] {
+        let inp = fx.inputs(path);
+        let path = if path == CovPath::Cov3d { "cov" } else { "sr" };
         eprintln!("--- {file} via {path}");
-        let inp = RasterInputs {
-            means: &means,
-            cov,
-            opacities: &opac,
-            sh: &sh,
-            sh_coeffs: k,
-            sh_degree,
-            features: &feats,
-            num_features: nf,
-        };
         let flavour = match (build, mode) {
             (Build::Fma, _) => "_fma",
             (_, GradMode::Exact) => "_exact",
@@ -425,7 +391,7 @@ fn run(file: &str, build: Build, mode: GradMode) {
         // Against the fixture (projections of visible Gaussians only: culled ones are unspecified there).
         assert_eq!(g.i("radii"), fx_radii, "radii vs fixture");
         let tt = g.u("tiles_touched");
-        let tt_ref = vi(get(&m, "tiles_touched"));
+        let tt_ref = vi(get(m, "tiles_touched"));
         let tt_bad = (0..n)
             .filter(|&i| vis[i] && tt[i] as i64 != tt_ref[i])
             .count();
@@ -433,7 +399,7 @@ fn run(file: &str, build: Build, mode: GradMode) {
             tt_bad, 0,
             "tiles_touched vs fixture differ for {tt_bad} visible Gaussians"
         );
-        let nc_ref: Vec<u32> = vi(get(&m, "n_contrib")).iter().map(|&x| x as u32).collect();
+        let nc_ref: Vec<u32> = vi(get(m, "n_contrib")).iter().map(|&x| x as u32).collect();
         let bad = count_diff(&g.u("n_contrib"), &nc_ref);
         eprintln!("n_contrib: {bad} pixels differ from fixture");
         assert!(bad <= 5, "n_contrib differs from fixture at {bad} pixels");
@@ -441,14 +407,14 @@ fn run(file: &str, build: Build, mode: GradMode) {
             check_rel(
                 &format!("{name} vs fixture"),
                 &sel(&g.f(name), c),
-                &sel(&v32(get(&m, name)), c),
+                &sel(&v32(get(m, name)), c),
                 1e-5,
             );
         }
         check_abs(
             "colors vs fixture",
             &sel(&g.f("colors"), 3),
-            &sel(&v32(get(&m, "colors")), 3),
+            &sel(&v32(get(m, "colors")), 3),
             1e-5,
         );
         for (name, fx_name, c) in [
@@ -461,7 +427,7 @@ fn run(file: &str, build: Build, mode: GradMode) {
             check_abs(
                 &format!("{name} vs fixture"),
                 &g.f(name),
-                &to_planar(&v32(get(&m, fx_name)), h, w, c),
+                &to_planar(&v32(get(m, fx_name)), h, w, c),
                 1e-4,
             );
         }
@@ -470,7 +436,7 @@ fn run(file: &str, build: Build, mode: GradMode) {
                 check_rel(
                     &format!("{name} vs fixture"),
                     &got,
-                    &v32(get(&m, name)),
+                    &v32(get(m, name)),
                     GRAD_TOL,
                 );
             }
