@@ -18,6 +18,8 @@ struct Cli {
 enum Command {
     /// Summarise a scene: views, image size, intrinsics, camera centres, baseline, suggested context views.
     Inspect(cmd::inspect::Args),
+    /// Posed photos in → Gaussians, 3DGS and refined novel views, videos, cameras (the main job).
+    Render(cmd::render::Args),
     /// Predict Gaussians for a scene with the encoder and write them as .ply / .splat.
     Export(cmd::export::Args),
     /// Convert a supported checkpoint (Lightning .ckpt, .pth, .safetensors) to safetensors.
@@ -33,12 +35,12 @@ fn main() {
         )
         .with_writer(std::io::stderr)
         .init();
-    // Every command is one heavy job: keep freed memory for reuse instead of mapping fresh zeroed pages for each
-    // large tensor (25–30% of the encoder's time went to page faults without this).
-    mvsplat360_encoder::bench::tune_allocator();
+    // Every command is one heavy job (allocator tuning; see the function's docs).
+    mvsplat360_pipeline::setup::init_process();
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Inspect(a) => cmd::inspect::run(a),
+        Command::Render(a) => cmd::render::run(a, cli.quiet),
         Command::Export(a) => cmd::export::run(a, cli.quiet),
         Command::Convert(a) => cmd::convert::run(a),
         Command::Bench(a) => cmd::bench::run(a),

@@ -19,7 +19,7 @@ fn export_writes_a_readable_ply_and_splat() {
     let (ply, splat) = (tmp.path().join("scene.ply"), tmp.path().join("scene.splat"));
     // 448×256 views resized to 128×73, centre-cropped to 128×64: 5 views × 8,192 pixels.
     let out = bin()
-        .args(["--quiet", "export", "--context", "5", "--resize-width", "128", "--ckpt"])
+        .args(["--quiet", "export", "--num-context", "5", "--size", "128x64", "--ckpt"])
         .arg(&ckpt)
         .arg(root().join("assets/woodbox"))
         .arg("--out")
@@ -47,8 +47,8 @@ fn export_bad_inputs_fail_with_one_message() {
     let scene = root().join("assets/woodbox");
     let cases: Vec<(Vec<std::ffi::OsString>, &str)> = vec![
         (vec!["--ckpt".into(), garbage.into_os_string(), scene.clone().into()], "garbage.ckpt"),
-        (vec!["--ckpt".into(), ckpt.clone().into(), scene.clone().into(), "--context".into(), "1".into()], "--context must be at least 2"),
-        (vec!["--ckpt".into(), ckpt.clone().into(), scene.clone().into(), "--context".into(), "99".into()], "fewer than --context 99"),
+        (vec!["--ckpt".into(), ckpt.clone().into(), scene.clone().into(), "--num-context".into(), "1".into()], "--num-context: need at least 2 context views"),
+        (vec!["--ckpt".into(), ckpt.clone().into(), scene.clone().into(), "--num-context".into(), "99".into()], "fewer than 99"),
         (vec!["--ckpt".into(), ckpt.into(), tmp.path().join("nope").into()], "no such file"),
     ];
     for (args, needle) in cases {

@@ -13,7 +13,7 @@ fn root() -> PathBuf {
 
 #[test]
 fn inspect_bundled_scene_json() {
-    let out = bin().args(["inspect", "--json", "--context", "4"]).arg(root().join("assets/woodbox")).output().unwrap();
+    let out = bin().args(["inspect", "--json", "--num-context", "4"]).arg(root().join("assets/woodbox")).output().unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let v: serde_json::Value = serde_json::from_slice(&out.stdout).expect("valid JSON on stdout");
     assert_eq!(v["views"], 24);

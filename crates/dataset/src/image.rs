@@ -106,16 +106,36 @@ impl ImageSource {
 
     pub fn decode(&self) -> Result<ImageF32, DatasetError> {
         let err = |msg: String| DatasetError::Image { what: self.label(), msg };
-        let dynimg = match self {
-            ImageSource::File(p) => ::image::open(p).map_err(|e| err(e.to_string()))?,
-            ImageSource::Encoded { bytes, .. } => ::image::ImageReader::new(std::io::Cursor::new(bytes.as_slice()))
-                .with_guessed_format()
-                .map_err(|e| err(e.to_string()))?
-                .decode()
-                .map_err(|e| err(e.to_string()))?,
+        let file_bytes;
+        let bytes: &[u8] = match self {
+            ImageSource::File(p) => {
+                file_bytes = std::fs::read(p).map_err(|e| err(e.to_string()))?;
+                &file_bytes
+            }
+            ImageSource::Encoded { bytes, .. } => bytes.as_slice(),
         };
+        if bytes.is_empty() {
+            return Err(err("the file is empty".into()));
+        }
+        let reader = ::image::ImageReader::new(std::io::Cursor::new(bytes)).with_guessed_format().map_err(|e| err(e.to_string()))?;
+        if reader.format() == Some(::image::ImageFormat::Jpeg) && !jpeg_complete(bytes) {
+            // The JPEG decoder fills a cut-off scan with grey instead of failing.
+            return Err(err("the JPEG is truncated (no end-of-image marker after its last scan)".into()));
+        }
+        let dynimg = reader.decode().map_err(|e| err(e.to_string()))?;
         // Alpha is dropped: scenes are composited photos, not masked objects.
         Ok(ImageF32::from_rgb8(&dynimg.to_rgb8()))
+    }
+}
+
+/// Whether a JPEG stream ends its last scan with an end-of-image marker. Inside entropy-coded data 0xFF is
+/// always followed by 0x00 or a restart marker, so the last SOS (FFDA) must be followed by an EOI (FFD9);
+/// comparing the last of each also works when an EXIF thumbnail carries its own markers earlier on.
+fn jpeg_complete(b: &[u8]) -> bool {
+    let last = |m: u8| b.windows(2).rposition(|w| w[0] == 0xFF && w[1] == m);
+    match (last(0xDA), last(0xD9)) {
+        (Some(sos), Some(eoi)) => eoi > sos,
+        _ => false,
     }
 }
 
@@ -147,5 +167,33 @@ mod tests {
             assert!((r.data[x] - (2.0 * x as f32 + 0.5) / 7.0).abs() < 1e-6);
         }
         assert_eq!(img.resize_bilinear(8, 2), img);
+    }
+}
+
+#[cfg(test)]
+mod jpeg_tests {
+    use super::*;
+
+    fn jpeg() -> Vec<u8> {
+        let img = ::image::RgbImage::from_fn(32, 24, |x, y| ::image::Rgb([(x * 7) as u8, (y * 9) as u8, 100]));
+        let mut buf = std::io::Cursor::new(Vec::new());
+        img.write_to(&mut buf, ::image::ImageFormat::Jpeg).unwrap();
+        buf.into_inner()
+    }
+
+    #[test]
+    fn truncated_and_empty_jpegs_are_refused() {
+        let full = jpeg();
+        let src = |b: Vec<u8>| ImageSource::Encoded { label: "v".into(), bytes: Arc::new(b) };
+        assert!(src(full.clone()).decode().is_ok());
+        for cut in [full.len() - 2, full.len() * 2 / 3, full.len() / 3] {
+            let e = src(full[..cut].to_vec()).decode().unwrap_err().to_string();
+            assert!(e.contains("truncated") || e.contains("cannot decode"), "{cut}: {e}");
+        }
+        assert!(src(vec![]).decode().unwrap_err().to_string().contains("empty"));
+        // Trailing bytes after the end marker are harmless.
+        let mut padded = full.clone();
+        padded.extend_from_slice(&[0, 0, 0]);
+        assert!(src(padded).decode().is_ok());
     }
 }

@@ -39,23 +39,6 @@ pub fn set_threads(threads: usize) -> Result<(), BenchError> {
     Ok(())
 }
 
-/// Make glibc malloc reuse freed memory instead of mapping and unmapping every large tensor buffer: candle
-/// allocates a fresh `Vec` per op, and with glibc's defaults each buffer over 32 MiB is a new `mmap` whose pages
-/// the kernel faults in and zeroes (≈ 25% of the encoder's forward time on 2 cores). Serving large blocks from
-/// the heap and never trimming it turns that into plain reuse; peak RSS stays about the same. One arena: a
-/// non-main arena cannot hold blocks over 64 MiB and maps them afresh (e.g. the rasterizer's 170 MB SH gradient
-/// allocated on a worker thread). Process-wide: call once at startup of a compute-heavy command (no-op off glibc).
-pub fn tune_allocator() {
-    #[cfg(all(target_os = "linux", target_env = "gnu"))]
-    // SAFETY: mallopt only changes allocator parameters; it is called before the heavy work starts.
-    unsafe {
-        libc::mallopt(libc::M_ARENA_MAX, 1);
-        libc::mallopt(libc::M_MMAP_MAX, 0);
-        libc::mallopt(libc::M_TRIM_THRESHOLD, i32::MAX);
-        libc::mallopt(libc::M_TOP_PAD, 256 << 20);
-    }
-}
-
 /// Synthetic context: smooth images in [0,1], cameras on an arc looking at the origin, normalised K.
 pub fn synthetic_context(b: usize, v: usize, h: usize, w: usize, device: &Device) -> candle_core::Result<[Tensor; 5]> {
     let mut img = Vec::with_capacity(b * v * 3 * h * w);
@@ -104,7 +87,6 @@ fn median(mut xs: Vec<f64>) -> f64 {
 /// Backbone only (CNN + transformer), for a breakdown of the encoder time.
 pub fn run_backbone_bench(views: usize, height: usize, width: usize, threads: usize, runs: usize) -> Result<serde_json::Value, BenchError> {
     set_threads(threads)?;
-    tune_allocator();
     let cfg = EncoderCostVolumeCfg { num_views: views, ..Default::default() };
     let dev = Device::Cpu;
     let build = |vb: VarBuilder| BackboneMultiview::new(vb.pp("encoder").pp("backbone"), cfg.d_feature, cfg.num_transformer_layers, cfg.ffn_dim_expansion);
@@ -131,7 +113,6 @@ pub fn run_backbone_bench(views: usize, height: usize, width: usize, threads: us
 /// runs after one warm-up, and the process's peak RSS.
 pub fn run_encoder_bench(views: usize, height: usize, width: usize, threads: usize, runs: usize) -> Result<serde_json::Value, BenchError> {
     set_threads(threads)?;
-    tune_allocator();
     let cfg = EncoderCostVolumeCfg { num_views: views, ..Default::default() };
     let dev = Device::Cpu;
     let build = |vb: VarBuilder| crate::EncoderCostVolume::new(vb.pp("encoder"), &cfg);

@@ -1,4 +1,18 @@
 //! The product's path from posed photos to novel views: preprocessing, context/target choice, model loading,
 //! encoder → rasterizer → refiner → histogram matching, and the output writers.
+//!
+//! Output folder of a render: `gaussians.ply` (+ `gaussians.splat`), `frames/{gsplat,refined,final,gt}/NNNN.png`,
+//! `video.mp4`, `compare.mp4` (gsplat | final | GT), `cameras.json`, `run.json`. Every file is written under a
+//! temporary name and renamed, so an interrupted run leaves only complete files.
 
+pub mod error;
+pub mod model;
+pub mod output;
+pub mod preprocess;
+pub mod render;
+pub mod scale;
+pub mod setup;
 pub mod video;
+pub mod views;
+
+pub use error::{PipelineError, Result};

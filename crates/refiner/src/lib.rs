@@ -9,5 +9,6 @@ pub mod prof;
 pub mod refiner;
 pub mod bench;
 pub mod sampling;
+pub mod state_dict;
 pub mod unet;
 pub mod vae;

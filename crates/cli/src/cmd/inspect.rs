@@ -3,7 +3,10 @@
 use std::path::PathBuf;
 
 use anyhow::Context;
-use mvsplat360_camera::select::{baseline_stats, farthest_point_sampling, nearest_k};
+use mvsplat360_camera::select::{baseline_stats, nearest_k};
+use mvsplat360_pipeline::views::{ContextSpec, TargetSpec};
+
+use super::views::ContextArgs;
 use serde_json::json;
 
 #[derive(clap::Args)]
@@ -11,26 +14,30 @@ pub struct Args {
     /// Scene: a folder with transforms.json, a transforms*.json file, a COLMAP folder (sparse/0 + images/),
     /// or a .torch chunk.
     pub scene: PathBuf,
-    /// For a .torch chunk holding several scenes: the scene key to inspect (default: the first).
-    #[arg(long)]
-    pub scene_key: Option<String>,
-    /// Number of context views to suggest (farthest-point sampling over camera centres).
-    #[arg(long, default_value_t = 5)]
-    pub context: usize,
+    #[command(flatten)]
+    pub views: ContextArgs,
     /// Print one JSON object on stdout instead of the human summary.
     #[arg(long)]
     pub json: bool,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let scene = mvsplat360_dataset::read_scene_with(&args.scene, args.scene_key.as_deref())
+    let scene = mvsplat360_dataset::read_scene_with(&args.scene, args.views.scene_key.as_deref())
         .with_context(|| format!("cannot read scene {}", args.scene.display()))?;
+    // The same checks `render` does before any heavy work: every image decodes and matches its camera.
+    mvsplat360_pipeline::render::check_scene_images(&scene).with_context(|| format!("checking scene {}", args.scene.display()))?;
+    // A suggestion, so a count larger than the scene is clamped rather than refused.
+    let spec = match args.views.spec() {
+        ContextSpec::Count(n) => ContextSpec::Count(n.min(scene.len())),
+        s => s,
+    };
+    let choice = mvsplat360_pipeline::views::choose(&scene, &spec, &TargetSpec::Views(vec![]))?;
+    let context = choice.context;
     let cams = &scene.cameras;
     let c0 = &cams[0];
     let shared = cams.iter().all(|c| (c.fx, c.fy, c.cx, c.cy) == (c0.fx, c0.fy, c0.cx, c0.cy));
     let centres: Vec<[f64; 3]> = cams.iter().map(|c| c.center().into()).collect();
     let (bmin, bmax) = baseline_stats(cams);
-    let context = farthest_point_sampling(cams, args.context);
     let groups = nearest_k(cams, 2);
     if args.json {
         let out = json!({
@@ -44,6 +51,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             "camera_centres": centres,
             "baseline_min": bmin,
             "baseline_max": bmax,
+            "context": context,
             "suggested_context": context,
             "context_local_groups": context.iter().map(|&i| &groups[i]).collect::<Vec<_>>(),
         });
@@ -74,7 +82,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         lo[0], hi[0], lo[1], hi[1], lo[2], hi[2]
     );
     println!("baseline   min {bmin:.4}  max {bmax:.4} (pairwise centre distance)");
-    println!("context    {:?} (farthest-point sampling, first view first)", context);
+    println!("context    {:?}", context);
     for &i in &context {
         let c = centres[i];
         println!(

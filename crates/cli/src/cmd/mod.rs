@@ -2,3 +2,6 @@ pub mod bench;
 pub mod convert;
 pub mod export;
 pub mod inspect;
+pub mod progress;
+pub mod render;
+pub mod views;

@@ -196,6 +196,12 @@ impl ClipImageEmbedder {
         Ok(Self { cfg: cfg.clone(), visual })
     }
 
+    /// Build from any weight source (crate-internal: random state dicts).
+    pub(crate) fn build_with(w: &StrictWeights, cfg: &ClipVisionConfig) -> Result<Self, ClipError> {
+        let visual = VisionTransformer::load(w, cfg)?;
+        Ok(Self { cfg: cfg.clone(), visual })
+    }
+
     /// Already preprocessed pixels (N, 3, image_size, image_size) → (N, output_dim).
     pub fn embed_pixels(&self, pixels: &Tensor) -> Result<Tensor, ClipError> {
         let (_, c, h, w) = pixels.dims4()?;

@@ -54,6 +54,8 @@ pub struct Weights {
     mismatched: RefCell<Vec<String>>,
     unexpected: Vec<String>,
     counter: RefCell<u64>,
+    /// Random mode: every tensor handed out, by sgm name (to save a random model as a state dict).
+    recorded: RefCell<Vec<(String, Tensor)>>,
 }
 
 impl Weights {
@@ -109,6 +111,7 @@ impl Weights {
             mismatched: RefCell::new(Vec::new()),
             unexpected,
             counter: RefCell::new(0),
+            recorded: RefCell::new(Vec::new()),
         }
     }
 
@@ -119,7 +122,9 @@ impl Weights {
             Source::Random { seed } => {
                 let mut c = self.counter.borrow_mut();
                 *c += 1;
-                random_tensor(name, shape, seed.wrapping_mul(0x9E37_79B9_7F4A_7C15).wrapping_add(*c), &self.device)
+                let t = random_tensor(name, shape, seed.wrapping_mul(0x9E37_79B9_7F4A_7C15).wrapping_add(*c), &self.device)?;
+                self.recorded.borrow_mut().push((name.to_string(), t.clone()));
+                Ok(t)
             }
             Source::File { st, map, .. } => {
                 let Some(stored) = map.get(name) else {
@@ -143,6 +148,11 @@ impl Weights {
                 Ok(t)
             }
         }
+    }
+
+    /// The tensors handed out so far in random mode, by sgm name (empty for file-backed weights).
+    pub fn take_recorded(&self) -> Vec<(String, Tensor)> {
+        std::mem::take(&mut *self.recorded.borrow_mut())
     }
 
     /// Strict check: any missing, unexpected or wrongly shaped key is an error listing all of them.

@@ -237,6 +237,11 @@ impl AutoencoderKL {
         Ok(Self::build(&StrictWeights::random(seed, "VAE", device), cfg)?)
     }
 
+    /// Build from any weight source (crate-internal: random state dicts).
+    pub(crate) fn build_with(w: &StrictWeights, cfg: &AutoencoderConfig) -> candle_core::Result<Self> {
+        Self::build(w, cfg)
+    }
+
     fn build(w: &StrictWeights, cfg: &AutoencoderConfig) -> candle_core::Result<Self> {
         let zc = if cfg.double_z { 2 * cfg.z_channels } else { cfg.z_channels };
         Ok(Self {

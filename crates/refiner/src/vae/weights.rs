@@ -49,6 +49,8 @@ pub struct StrictWeights {
     st: Option<MmapedSafetensors>,
     seed: u64,
     counter: RefCell<u64>,
+    /// Random mode: every tensor handed out, by name (to save a random model as a state dict).
+    recorded: RefCell<Vec<(String, Tensor)>>,
     path: PathBuf,
     what: String,
     recipes: BTreeMap<String, Recipe>,
@@ -130,6 +132,7 @@ impl StrictWeights {
             st,
             seed: 0,
             counter: RefCell::new(0),
+            recorded: RefCell::new(Vec::new()),
             path: path.to_path_buf(),
             what: what.to_string(),
             recipes,
@@ -139,6 +142,11 @@ impl StrictWeights {
             mismatched: RefCell::new(Vec::new()),
             device: device.clone(),
         }
+    }
+
+    /// The tensors handed out so far in random mode, by model name (empty for file-backed weights).
+    pub fn take_recorded(&self) -> Vec<(String, Tensor)> {
+        std::mem::take(&mut *self.recorded.borrow_mut())
     }
 
     /// True when nothing in scope was found (wrong prefix / layout).
@@ -176,7 +184,9 @@ impl StrictWeights {
         if self.st.is_none() {
             let mut c = self.counter.borrow_mut();
             *c += 1;
-            return random_tensor(name, shape, self.seed.wrapping_mul(0x9E37_79B9_7F4A_7C15).wrapping_add(*c), &self.device);
+            let t = random_tensor(name, shape, self.seed.wrapping_mul(0x9E37_79B9_7F4A_7C15).wrapping_add(*c), &self.device)?;
+            self.recorded.borrow_mut().push((name.to_string(), t.clone()));
+            return Ok(t);
         }
         let Some(recipe) = self.recipes.get(name) else {
             self.missing.borrow_mut().push(name.to_string());

@@ -1,0 +1,88 @@
+//! Progress bars on stderr for the pipeline's stages, and clean-up of half-written files on Ctrl-C.
+
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+
+use indicatif::{ProgressBar, ProgressStyle};
+use mvsplat360_pipeline::render::Progress;
+
+pub struct Bars {
+    quiet: bool,
+    bar: Mutex<Option<ProgressBar>>,
+}
+
+impl Bars {
+    pub fn new(quiet: bool) -> Self {
+        Self { quiet, bar: Mutex::new(None) }
+    }
+}
+
+impl Progress for Bars {
+    fn begin(&self, stage: &str, total: u64) {
+        if self.quiet {
+            return;
+        }
+        let pb = if total > 0 {
+            let pb = ProgressBar::new(total);
+            pb.set_style(
+                ProgressStyle::with_template("{msg:>14} [{bar:30}] {pos}/{len} {elapsed_precise} ETA {eta}")
+                    .unwrap_or_else(|_| ProgressStyle::default_bar())
+                    .progress_chars("=> "),
+            );
+            pb
+        } else {
+            let pb = ProgressBar::new_spinner();
+            pb.enable_steady_tick(std::time::Duration::from_millis(200));
+            pb
+        };
+        pb.set_message(stage.to_string());
+        if let Ok(mut b) = self.bar.lock() {
+            *b = Some(pb);
+        }
+    }
+
+    fn advance(&self, n: u64) {
+        if let Ok(b) = self.bar.lock() {
+            if let Some(pb) = b.as_ref() {
+                pb.inc(n);
+            }
+        }
+    }
+
+    fn end(&self) {
+        if let Ok(mut b) = self.bar.lock() {
+            if let Some(pb) = b.take() {
+                pb.finish();
+            }
+        }
+    }
+
+    fn note(&self, msg: &str) {
+        if self.quiet {
+            return;
+        }
+        match self.bar.lock().ok().and_then(|b| b.clone()) {
+            Some(pb) => pb.println(msg),
+            None => eprintln!("{msg}"),
+        }
+    }
+}
+
+static OUT_DIRS: Mutex<Vec<PathBuf>> = Mutex::new(Vec::new());
+
+/// On Ctrl-C (or SIGTERM) remove the `*.partial` files under `dir` before exiting with 130, so the folder
+/// holds only complete files.
+pub fn clean_partials_on_interrupt(dir: &Path) {
+    if let Ok(mut d) = OUT_DIRS.lock() {
+        d.push(dir.to_path_buf());
+    }
+    let _ = ctrlc::set_handler(|| {
+        if let Ok(d) = OUT_DIRS.lock() {
+            for dir in d.iter() {
+                mvsplat360_pipeline::output::remove_partials(dir);
+            }
+        }
+        eprintln!("interrupted: complete files were kept, partial ones removed");
+        std::process::exit(130);
+    });
+}

@@ -1,0 +1,531 @@
+//! `render`: posed photos → Gaussians → 3DGS renders (RGB + latent features) at every target → SVD refiner over
+//! temporal windows → colour-histogram matching → frames, videos, cameras and a run record.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use candle_core::{DType, Device, Tensor};
+use mvsplat360_camera::Camera;
+use mvsplat360_dataset::{ImageF32, Scene};
+use mvsplat360_encoder::encoder_costvolume::{camera_tensors, to_splat_gaussians, EncoderCostVolume};
+use mvsplat360_refiner::clip::ClipImageEmbedder;
+use mvsplat360_refiner::refiner::{seeded_noise, Refiner, RefinerConfig};
+use mvsplat360_refiner::sampling::SamplerConfig;
+use mvsplat360_refiner::unet::VideoUNet;
+use mvsplat360_refiner::vae::AutoencoderKL;
+use mvsplat360_splat::camera::RasterCamera;
+use mvsplat360_splat::op::{render as rasterize, RenderOptions};
+use mvsplat360_splat::Gaussians;
+use serde_json::json;
+
+use crate::error::{compute, flag, PipelineError, Result};
+use crate::model::{ModelArgs, ModelSpec};
+use crate::output::{self, write_json, write_png};
+use crate::preprocess::{InputSize, Preprocess};
+use crate::scale::SceneTransform;
+use crate::views::{ContextSpec, TargetSpec, ViewChoice};
+
+/// Progress of a long run (the CLI draws bars; tests use [`Silent`]).
+pub trait Progress: Sync {
+    /// A stage starts with `total` units of work (0 = unknown).
+    fn begin(&self, stage: &str, total: u64);
+    fn advance(&self, n: u64);
+    fn end(&self);
+    /// A one-line note (e.g. which weights are loaded).
+    fn note(&self, msg: &str);
+}
+
+/// No progress output.
+pub struct Silent;
+impl Progress for Silent {
+    fn begin(&self, _: &str, _: u64) {}
+    fn advance(&self, _: u64) {}
+    fn end(&self) {}
+    fn note(&self, _: &str) {}
+}
+
+/// Refiner sampling settings; defaults = the official DL3DV evaluation.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct RefineSettings {
+    pub steps: usize,
+    pub guidance_min: f32,
+    pub guidance_max: f32,
+    pub seed: u64,
+    /// Frames per temporal window (14).
+    pub window: usize,
+    /// All frames in one UNet call with temporal attention split into windows (the official video mode).
+    pub video_mode: bool,
+    /// Frames per VAE decode call (1 = the official setting).
+    pub vae_chunk: usize,
+}
+
+impl Default for RefineSettings {
+    fn default() -> Self {
+        Self { steps: 25, guidance_min: 1.0, guidance_max: 2.5, seed: 0, window: 14, video_mode: false, vae_chunk: 1 }
+    }
+}
+
+/// Everything `render` needs.
+#[derive(Debug, Clone)]
+pub struct RenderRequest {
+    pub scene: PathBuf,
+    pub scene_key: Option<String>,
+    pub context: ContextSpec,
+    pub targets: TargetSpec,
+    pub model: ModelArgs,
+    /// Model input size; None = the model's own.
+    pub size: Option<InputSize>,
+    pub refine: RefineSettings,
+    /// Also write `gaussians.splat`.
+    pub splat: bool,
+    /// Write `video.mp4` / `compare.mp4`.
+    pub video: bool,
+    pub fps: u32,
+    pub out: PathBuf,
+}
+
+/// What a finished run reports.
+#[derive(Debug, Clone)]
+pub struct RenderSummary {
+    pub out: PathBuf,
+    pub frames: usize,
+    pub gaussians: usize,
+    pub refined: bool,
+    pub stage_seconds: Vec<(String, f64)>,
+    pub peak_mib: Option<f64>,
+}
+
+/// Everything checked and prepared before any heavy work.
+pub struct Prepared {
+    pub scene: Scene,
+    pub spec: ModelSpec,
+    pub choice: ViewChoice,
+    pub pre: Preprocess,
+    pub transform: SceneTransform,
+    /// Preprocessed context photos and cameras (model space).
+    pub context_images: Vec<ImageF32>,
+    pub context_cameras: Vec<Camera>,
+    /// Target cameras (model space, preprocessed size) and their preprocessed photos where they are views.
+    pub target_cameras: Vec<Camera>,
+    pub target_photos: Vec<Option<ImageF32>>,
+}
+
+/// Open every image of the scene and check it against its camera (size, decodability), in parallel.
+pub fn check_scene_images(scene: &Scene) -> Result<()> {
+    use rayon::prelude::*;
+    (0..scene.len()).into_par_iter().try_for_each(|i| scene.image(i).map(|_| ()).map_err(PipelineError::from))
+}
+
+/// Read the scene, resolve the model and the views, validate everything, preprocess context and targets.
+pub fn prepare(req: &RenderRequest, progress: &dyn Progress) -> Result<Prepared> {
+    let scene = mvsplat360_dataset::read_scene_with(&req.scene, req.scene_key.as_deref())?;
+    progress.begin("checking images", 0);
+    check_scene_images(&scene)?;
+    progress.end();
+    let spec = crate::model::resolve(&req.model)?;
+    let choice = crate::views::choose(&scene, &req.context, &req.targets)?;
+    if req.refine.window == 0 {
+        return Err(flag("--window", "must be at least 1"));
+    }
+    if req.refine.vae_chunk == 0 {
+        return Err(flag("--vae-chunk", "must be at least 1"));
+    }
+    if spec.refiner.is_some() && req.refine.steps == 0 {
+        return Err(flag("--steps", "must be at least 1 (or use --refiner none)"));
+    }
+    let size = req.size.unwrap_or(InputSize::Fixed { width: spec.data.image_width, height: spec.data.image_height });
+    let pre = Preprocess { size, multiple: spec.encoder.image_multiple() as u32 };
+    let mut context_images = Vec::new();
+    let mut context_cameras_raw = Vec::new();
+    for &i in &choice.context {
+        let (img, cam) = pre.view(&scene.image(i)?, &scene.cameras[i])?;
+        context_images.push(img);
+        context_cameras_raw.push(cam);
+    }
+    let transform = crate::scale::scene_transform(&spec.data, &context_cameras_raw);
+    let context_cameras: Vec<Camera> = context_cameras_raw.iter().map(|c| transform.apply(c)).collect();
+    let mut target_cameras = Vec::new();
+    let mut target_photos = Vec::new();
+    for t in &choice.targets {
+        match t.view {
+            Some(i) => {
+                let (img, cam) = pre.view(&scene.image(i)?, &scene.cameras[i])?;
+                target_cameras.push(transform.apply(&cam));
+                target_photos.push(Some(img));
+            }
+            None => {
+                // Generated cameras take the context's preprocessed intrinsics and size.
+                let mut cam = pre.camera(&t.camera)?;
+                let c0 = &context_cameras[0];
+                (cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height) = (c0.fx, c0.fy, c0.cx, c0.cy, c0.width, c0.height);
+                target_cameras.push(transform.apply(&cam));
+                target_photos.push(None);
+            }
+        }
+    }
+    Ok(Prepared { scene, spec, choice, pre, transform, context_images, context_cameras, target_cameras, target_photos })
+}
+
+/// The rasterizer's camera for a project camera.
+pub fn raster_camera(c: &Camera, near: f32, far: f32) -> RasterCamera {
+    let w2c = c.w2c_matrix();
+    let mut v = [[0f32; 4]; 4];
+    for (r, row) in v.iter_mut().enumerate() {
+        for (k, x) in row.iter_mut().enumerate() {
+            *x = w2c[(r, k)] as f32;
+        }
+    }
+    RasterCamera {
+        viewmatrix: v,
+        fx: c.fx as f32,
+        fy: c.fy as f32,
+        cx: c.cx as f32,
+        cy: c.cy as f32,
+        width: c.width as usize,
+        height: c.height as usize,
+        near,
+        far,
+    }
+}
+
+/// Run the encoder on the preprocessed context → one scene's Gaussians (model space).
+pub fn encode(p: &Prepared, progress: &dyn Progress) -> Result<Gaussians> {
+    let dev = Device::Cpu;
+    let v = p.context_images.len();
+    let mut cfg = p.spec.encoder.clone();
+    cfg.num_views = v;
+    if p.spec.data.experiment == "re10k" {
+        cfg.costvolume_nearest_n_views = v;
+        cfg.multiview_trans_nearest_n_views = v;
+    }
+    let (w, h) = (p.context_images[0].width as usize, p.context_images[0].height as usize);
+    let data: Vec<f32> = p.context_images.iter().flat_map(|im| im.data.iter().copied()).collect();
+    let images = Tensor::from_vec(data, (1, v, 3, h, w), &dev).map_err(compute("encoder input"))?;
+    let k_norm: Vec<[f64; 4]> = p.context_cameras.iter().map(|c| c.normalized_intrinsics()).collect();
+    let c2w: Vec<[[f64; 4]; 4]> = p.context_cameras.iter().map(|c| c.c2w).collect();
+    let (intr, extr) = camera_tensors(&k_norm, &c2w, &dev).map_err(compute("encoder input"))?;
+    let near = Tensor::full(cfg.near, (1, v), &dev).map_err(compute("encoder input"))?;
+    let far = Tensor::full(cfg.far, (1, v), &dev).map_err(compute("encoder input"))?;
+    progress.note(&format!("loading encoder weights from {}", p.spec.encoder_file.display()));
+    let encoder = EncoderCostVolume::load(&p.spec.encoder_file, &cfg, &dev)
+        .map_err(|e| PipelineError::Model { path: p.spec.encoder_file.clone(), msg: e.to_string() })?;
+    progress.begin("encoder", 1);
+    let g = encoder.forward(&images, &intr, &extr, &near, &far).map_err(compute("encoder"))?;
+    progress.advance(1);
+    progress.end();
+    let g = to_splat_gaussians(&g).map_err(compute("encoder"))?.remove(0);
+    check_finite("encoder (Gaussian means)", &g.means)?;
+    check_finite("encoder (Gaussian opacities)", &g.opacities)?;
+    Ok(g)
+}
+
+/// Fail instead of writing NaN/inf.
+pub fn check_finite(stage: &'static str, t: &Tensor) -> Result<()> {
+    let v = t.to_dtype(DType::F32).and_then(|t| t.flatten_all()).and_then(|t| t.to_vec1::<f32>()).map_err(compute(stage))?;
+    let bad = v.iter().filter(|x| !x.is_finite()).count();
+    if bad > 0 {
+        return Err(PipelineError::NonFinite { stage, count: bad, total: v.len() });
+    }
+    Ok(())
+}
+
+/// Rasterize RGB and the latent features at every camera: (rgb (3,H,W), features (C,H,W)) per target.
+pub fn rasterize_targets(g: &Gaussians, cams: &[Camera], near: f32, far: f32, progress: &dyn Progress) -> Result<Vec<(Tensor, Tensor)>> {
+    progress.begin("rasterizing", cams.len() as u64);
+    let mut out = Vec::with_capacity(cams.len());
+    for c in cams {
+        let r = rasterize(g, &raster_camera(c, near, far), &RenderOptions::default()).map_err(compute("rasterizer"))?;
+        check_finite("rasterizer", &r.rgb)?;
+        out.push((r.rgb, r.features));
+        progress.advance(1);
+    }
+    progress.end();
+    Ok(out)
+}
+
+/// Refiner modules loaded from one weights file.
+struct RefinerModules {
+    refiner: Refiner,
+    vae: AutoencoderKL,
+}
+
+/// CLIP context token (1, 1, D) of the context views; the CLIP tower is dropped before the UNet is loaded.
+fn clip_context(p: &Prepared, weights: &Path, progress: &dyn Progress) -> Result<Tensor> {
+    let (cfg, _) = p.spec.refiner.as_ref().ok_or_else(|| flag("--refiner", "no refiner configured"))?;
+    progress.note(&format!("loading CLIP image embedder from {}", weights.display()));
+    let clip = ClipImageEmbedder::load(weights, None, &cfg.clip, &Device::Cpu)
+        .map_err(|e| PipelineError::Model { path: weights.to_path_buf(), msg: e.to_string() })?;
+    let v = p.context_images.len();
+    let (w, h) = (p.context_images[0].width as usize, p.context_images[0].height as usize);
+    let data: Vec<f32> = p.context_images.iter().flat_map(|im| im.data.iter().copied()).collect();
+    let views = Tensor::from_vec(data, (1, v, 3, h, w), &Device::Cpu).map_err(compute("CLIP"))?;
+    let ctx = clip.embed_mean(&views).map_err(compute("CLIP"))?;
+    check_finite("CLIP", &ctx)?;
+    Ok(ctx)
+}
+
+fn load_refiner(p: &Prepared, weights: &Path, s: &RefineSettings, num_splits: Option<usize>, progress: &dyn Progress) -> Result<RefinerModules> {
+    let (cfg, _) = p.spec.refiner.as_ref().ok_or_else(|| flag("--refiner", "no refiner configured"))?;
+    progress.note(&format!("loading the video UNet and VAE from {}", weights.display()));
+    let merr = |e: &dyn std::fmt::Display| PipelineError::Model { path: weights.to_path_buf(), msg: e.to_string() };
+    let unet = VideoUNet::load(weights, None, &cfg.unet, &Device::Cpu).map_err(|e| merr(&e))?;
+    let vae = AutoencoderKL::load(weights, None, &cfg.vae, &Device::Cpu).map_err(|e| merr(&e))?;
+    let sampler = SamplerConfig { num_steps: s.steps, min_scale: s.guidance_min, max_scale: s.guidance_max, num_splits, ..SamplerConfig::default() };
+    let rc = RefinerConfig { sampler, scale_factor: cfg.vae.scale_factor as f32, decode_chunk: Some(s.vae_chunk), ..RefinerConfig::default() };
+    Ok(RefinerModules { refiner: Refiner::new(unet, rc), vae })
+}
+
+/// The temporal windows over `n` frames: (start, real frames); every window is padded to `window` frames by
+/// repeating its last frame, as the official code does.
+pub fn windows(n: usize, window: usize) -> Vec<(usize, usize)> {
+    (0..n).step_by(window.max(1)).map(|s| (s, window.min(n - s))).collect()
+}
+
+/// Refine all frames: windows of `s.window` frames (or one video-mode call), one initial noise reused.
+fn refine_frames(p: &Prepared, feats: &[Tensor], weights: &Path, s: &RefineSettings, progress: &dyn Progress) -> Result<Vec<Tensor>> {
+    let ctx = clip_context(p, weights, progress)?;
+    let n = feats.len();
+    let (window, splits) = if s.video_mode { (n, Some(n.div_ceil(s.window))) } else { (s.window, None) };
+    let m = load_refiner(p, weights, s, splits, progress)?;
+    let wins = windows(n, window);
+    progress.begin("refining", (wins.len() * s.steps) as u64);
+    let (c, h, w) = feats[0].dims3().map_err(compute("refiner"))?;
+    let shape = m.refiner.noise_shape(&[1, window, c, h, w]);
+    // One noise for every window (the official sampler draws it once per video).
+    let noise = seeded_noise(s.seed, &shape, &Device::Cpu).map_err(compute("refiner"))?;
+    let mut out = Vec::with_capacity(n);
+    for (start, len) in wins {
+        let mut fr: Vec<&Tensor> = feats[start..start + len].iter().collect();
+        while fr.len() < window {
+            fr.push(fr[fr.len() - 1]);
+        }
+        let x = Tensor::stack(&fr, 0).and_then(|t| t.unsqueeze(0)).map_err(compute("refiner"))?;
+        let concat = m.refiner.concat_features(&x).map_err(compute("refiner"))?;
+        let mut step = |_: &mvsplat360_refiner::sampling::StepRecord| progress.advance(1);
+        let lat = m.refiner.sample_latents(&ctx, &concat, &noise, window, Some(&mut step)).map_err(compute("refiner (UNet)"))?;
+        check_finite("refiner (UNet)", &lat)?;
+        let frames = m.refiner.decode(&m.vae, &lat, window).map_err(compute("refiner (VAE decode)"))?;
+        check_finite("refiner (VAE decode)", &frames)?;
+        for i in 0..len {
+            out.push(frames.get(0).and_then(|f| f.get(i)).map_err(compute("refiner"))?);
+        }
+    }
+    progress.end();
+    Ok(out)
+}
+
+/// Colour-histogram matching of each refined frame to its 3DGS render, on 8-bit images as the official
+/// post-processing does (`match_histograms` on the saved PNGs).
+pub fn histogram_match(refined: &ImageF32, gsplat: &ImageF32) -> Result<ImageF32> {
+    let a = refined.to_rgb8();
+    let b = gsplat.to_rgb8();
+    let m = mvsplat360_refiner::histogram::match_histograms_u8(a.as_raw(), b.as_raw(), 3).map_err(compute("histogram matching"))?;
+    let img = image::RgbImage::from_raw(refined.width, refined.height, m)
+        .ok_or_else(|| PipelineError::Compute { stage: "histogram matching", msg: "size mismatch".into() })?;
+    Ok(ImageF32::from_rgb8(&img))
+}
+
+fn frame_name(i: usize) -> String {
+    format!("{i:04}.png")
+}
+
+fn camera_json(c: &Camera, role: &str, view: Option<usize>, scene: &Scene) -> serde_json::Value {
+    json!({
+        "role": role,
+        "view": view,
+        "name": view.map(|i| scene.view_names[i].clone()),
+        "c2w": c.c2w,
+        "K": [[c.fx, 0.0, c.cx], [0.0, c.fy, c.cy], [0.0, 0.0, 1.0]],
+        "width": c.width,
+        "height": c.height,
+    })
+}
+
+/// FNV-1a over the scene's camera data and image bytes' sizes and names (cheap, stable input fingerprint).
+fn fingerprint(p: &Prepared) -> String {
+    let mut h: u64 = 0xcbf29ce484222325;
+    let mut eat = |b: &[u8]| {
+        for &x in b {
+            h ^= x as u64;
+            h = h.wrapping_mul(0x100000001b3);
+        }
+    };
+    for (i, c) in p.scene.cameras.iter().enumerate() {
+        eat(p.scene.view_names[i].as_bytes());
+        for v in c.c2w.iter().flatten().chain([c.fx, c.fy, c.cx, c.cy].iter()) {
+            eat(&v.to_le_bytes());
+        }
+    }
+    for im in &p.context_images {
+        for v in &im.data {
+            eat(&v.to_le_bytes());
+        }
+    }
+    format!("{h:016x}")
+}
+
+/// The whole run. Outputs go to `req.out` (see the crate docs for the layout).
+pub fn run(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSummary> {
+    let t_all = Instant::now();
+    let mut times: Vec<(String, f64)> = Vec::new();
+    let t = Instant::now();
+    let p = prepare(req, progress)?;
+    if p.target_cameras.is_empty() {
+        return Err(flag("--targets", "no target cameras to render"));
+    }
+    let out = &req.out;
+    output::check_writable(out, "--out")?;
+    output::remove_partials(out);
+    let refine_file = match &p.spec.refiner {
+        Some((_, w)) => Some(crate::model::refiner_safetensors(w, &|m| progress.note(m))?),
+        None => None,
+    };
+    let dirs = ["gsplat", "refined", "final", "gt"];
+    for d in dirs {
+        // A re-run replaces the previous frames instead of mixing with them.
+        let _ = std::fs::remove_dir_all(out.join("frames").join(d));
+    }
+    for f in ["video.mp4", "compare.mp4", "metrics.json"] {
+        let _ = std::fs::remove_file(out.join(f));
+    }
+    let mkdir = |d: &Path| std::fs::create_dir_all(d).map_err(|e| PipelineError::Write { path: d.to_path_buf(), msg: e.to_string() });
+    times.push(("prepare".into(), t.elapsed().as_secs_f64()));
+
+    // Cameras first: the viewer and the user can see what will be rendered.
+    let mut cams = Vec::new();
+    for (k, c) in p.context_cameras.iter().enumerate() {
+        cams.push(camera_json(c, "context", Some(p.choice.context[k]), &p.scene));
+    }
+    for (k, c) in p.target_cameras.iter().enumerate() {
+        cams.push(camera_json(c, "target", p.choice.targets[k].view, &p.scene));
+    }
+    write_json(&out.join("cameras.json"), &json!({
+        "convention": "OpenCV camera-to-world (x right, y down, z forward), K in pixels",
+        "scene_to_model": p.transform.to_json(),
+        "cameras": cams,
+    }))?;
+
+    let t = Instant::now();
+    let g = encode(&p, progress)?;
+    times.push(("encoder".into(), t.elapsed().as_secs_f64()));
+    let n_gauss = g.means.dim(0).map_err(compute("encoder"))?;
+
+    let t = Instant::now();
+    let eg = mvsplat360_splat::io::ExportGaussians::from_gaussians(&g).map_err(compute("export"))?;
+    output::atomic_write(&out.join("gaussians.ply"), |tmp| mvsplat360_splat::io::write_ply(tmp, &eg).map_err(|e| e.to_string()))?;
+    if req.splat {
+        output::atomic_write(&out.join("gaussians.splat"), |tmp| mvsplat360_splat::io::write_splat(tmp, &eg).map_err(|e| e.to_string()))?;
+    }
+    drop(eg);
+    times.push(("export".into(), t.elapsed().as_secs_f64()));
+
+    let t = Instant::now();
+    let (near, far) = (p.spec.encoder.near, p.spec.encoder.far);
+    let renders = rasterize_targets(&g, &p.target_cameras, near, far, progress)?;
+    drop(g);
+    let gs_dir = out.join("frames/gsplat");
+    mkdir(&gs_dir)?;
+    let mut gsplat = Vec::with_capacity(renders.len());
+    let mut feats = Vec::with_capacity(renders.len());
+    for (i, (rgb, f)) in renders.into_iter().enumerate() {
+        let img = output::tensor_image(&rgb)?;
+        write_png(&gs_dir.join(frame_name(i)), &img)?;
+        gsplat.push(img);
+        feats.push(f);
+    }
+    let have_gt = p.target_photos.iter().any(|x| x.is_some());
+    if have_gt {
+        let gt_dir = out.join("frames/gt");
+        mkdir(&gt_dir)?;
+        for (i, ph) in p.target_photos.iter().enumerate() {
+            if let Some(img) = ph {
+                write_png(&gt_dir.join(frame_name(i)), img)?;
+            }
+        }
+    }
+    times.push(("rasterize".into(), t.elapsed().as_secs_f64()));
+
+    let final_frames: Vec<ImageF32> = match &refine_file {
+        Some(wf) => {
+            let t = Instant::now();
+            let refined = refine_frames(&p, &feats, wf, &req.refine, progress)?;
+            times.push(("refine".into(), t.elapsed().as_secs_f64()));
+            let t = Instant::now();
+            let (rd, fd) = (out.join("frames/refined"), out.join("frames/final"));
+            mkdir(&rd)?;
+            mkdir(&fd)?;
+            let mut finals = Vec::with_capacity(refined.len());
+            for (i, r) in refined.iter().enumerate() {
+                let img = output::tensor_image(r)?;
+                write_png(&rd.join(frame_name(i)), &img)?;
+                let fin = histogram_match(&img, &gsplat[i])?;
+                write_png(&fd.join(frame_name(i)), &fin)?;
+                finals.push(fin);
+            }
+            times.push(("histogram".into(), t.elapsed().as_secs_f64()));
+            finals
+        }
+        None => {
+            let fd = out.join("frames/final");
+            mkdir(&fd)?;
+            for (i, img) in gsplat.iter().enumerate() {
+                write_png(&fd.join(frame_name(i)), img)?;
+            }
+            gsplat.clone()
+        }
+    };
+    drop(feats);
+
+    if req.video {
+        let t = Instant::now();
+        progress.begin("encoding video", 2);
+        let frames: Vec<_> = final_frames.iter().map(output::video_frame).collect();
+        let fps = req.fps.max(1);
+        output::atomic_write(&out.join("video.mp4"), |tmp| crate::video::write_mp4(tmp, &frames, fps).map_err(|e| e.to_string()))?;
+        progress.advance(1);
+        let compare: Vec<_> = (0..final_frames.len())
+            .map(|i| {
+                let a = output::video_frame(&gsplat[i]);
+                let b = &frames[i];
+                match p.target_photos[i].as_ref().map(output::video_frame) {
+                    Some(gt) => crate::video::side_by_side(&[&a, b, &gt]),
+                    None => crate::video::side_by_side(&[&a, b]),
+                }
+            })
+            .collect();
+        output::atomic_write(&out.join("compare.mp4"), |tmp| crate::video::write_mp4(tmp, &compare, fps).map_err(|e| e.to_string()))?;
+        progress.advance(1);
+        progress.end();
+        times.push(("video".into(), t.elapsed().as_secs_f64()));
+    }
+    times.push(("total".into(), t_all.elapsed().as_secs_f64()));
+    let peak = crate::setup::peak_rss_mib();
+    let run = json!({
+        "version": env!("CARGO_PKG_VERSION"),
+        "scene": req.scene.display().to_string(),
+        "scene_name": p.scene.name,
+        "input_fingerprint": fingerprint(&p),
+        "model": p.spec.description,
+        "experiment": p.spec.data.experiment,
+        "settings": {
+            "context": p.choice.context,
+            "context_names": p.choice.context.iter().map(|&i| p.scene.view_names[i].clone()).collect::<Vec<_>>(),
+            "targets": p.choice.targets.iter().map(|t| t.view).collect::<Vec<_>>(),
+            "target_mode": format!("{:?}", req.targets),
+            "preprocess": p.pre,
+            "image_width": p.context_images[0].width,
+            "image_height": p.context_images[0].height,
+            "near": near,
+            "far": far,
+            "refiner": refine_file.is_some(),
+            "refine": req.refine,
+            "fps": req.fps,
+        },
+        "frames": final_frames.len(),
+        "gaussians": n_gauss,
+        "stage_seconds": times.iter().map(|(k, v)| (k.clone(), json!(v))).collect::<serde_json::Map<_, _>>(),
+        "peak_mib": peak,
+    });
+    write_json(&out.join("run.json"), &run)?;
+    Ok(RenderSummary { out: out.clone(), frames: final_frames.len(), gaussians: n_gauss, refined: refine_file.is_some(), stage_seconds: times, peak_mib: peak })
+}
