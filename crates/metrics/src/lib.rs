@@ -2,6 +2,7 @@
 //! weights). Images are f32 (3, H, W) or (N, 3, H, W) in [0, 1].
 
 // Closed-form metrics and folder scoring.
+pub mod bench;
 pub mod frechet;
 pub mod psnr;
 pub mod score;
@@ -12,3 +13,7 @@ pub mod dists;
 pub mod inception;
 pub mod lpips;
 pub mod weights;
+
+// Reading the packages' checkpoints (pickle / PyTorch / TorchScript) and the network bodies.
+pub mod convert;
+mod nets;
