@@ -24,6 +24,8 @@ enum Command {
     Export(cmd::export::Args),
     /// Convert a supported checkpoint (Lightning .ckpt, .pth, .safetensors) to safetensors.
     Convert(cmd::convert::Args),
+    /// Convert pretrained weights shipped by registry packages (the metrics' networks) to safetensors.
+    Weights(cmd::weights::Args),
     /// Benchmarks printing one JSON line each (median of repeated runs after a warm-up).
     Bench(cmd::bench::Args),
 }
@@ -43,6 +45,7 @@ fn main() {
         Command::Render(a) => cmd::render::run(a, cli.quiet),
         Command::Export(a) => cmd::export::run(a, cli.quiet),
         Command::Convert(a) => cmd::convert::run(a),
+        Command::Weights(a) => cmd::weights::run(a, cli.quiet),
         Command::Bench(a) => cmd::bench::run(a),
     };
     if let Err(e) = result {

@@ -5,3 +5,4 @@ pub mod inspect;
 pub mod progress;
 pub mod render;
 pub mod views;
+pub mod weights;
