@@ -58,6 +58,8 @@ pub enum VideoError {
     BadFrame { path: PathBuf, index: usize, width: u32, height: u32, len: usize },
     #[error("cannot write video {path}: frame {index} is {got_w}x{got_h} but frame 0 is {want_w}x{want_h}; all frames must have the same size")]
     SizeMismatch { path: PathBuf, index: usize, want_w: u32, want_h: u32, got_w: u32, got_h: u32 },
+    #[error("cannot write video {path}: {width}x{height} frames exceed the H.264 encoder's limit of 3840x2160 (either orientation)")]
+    TooLarge { path: PathBuf, width: u32, height: u32 },
     #[error("cannot write video {path}: H.264 encoding failed at frame {index}: {msg}")]
     Encode { path: PathBuf, index: usize, msg: String },
     #[error("cannot write video {path}: MP4 muxing failed: {msg}")]
@@ -80,7 +82,8 @@ const TICKS_PER_FRAME: u32 = 1000;
 /// Quality/bitrate modes were avoided: with frame skipping off (which we need) OpenH264 warns on stderr.
 const QP_MIN: u8 = 16;
 const QP_MAX: u8 = 18;
-/// Bit budget in bits per pixel per frame: only seeds the first frame's QP in buffer-based mode.
+/// Bit budget in bits per pixel per frame: in buffer-based mode it only seeds the first QP and the level
+/// OpenH264 signals (e.g. 3.4 Mbit/s budget → level 2.1 for 448x256@30).
 const BITS_PER_PIXEL: f64 = 1.0;
 /// One IDR every this many seconds, so browsers can seek without decoding from the start.
 const IDR_INTERVAL_S: u32 = 2;
@@ -100,7 +103,7 @@ pub fn write_mp4(path: &Path, frames: &[Frame], fps: u32) -> Result<(), VideoErr
 /// comparisons. Frames are top-aligned. No frames gives a 0x0 frame. A frame whose `rgb` is shorter than
 /// width*height*3 contributes black for the missing pixels.
 pub fn side_by_side(frames: &[&Frame]) -> Frame {
-    let width: u32 = frames.iter().map(|f| f.width).sum();
+    let width = frames.iter().fold(0u32, |w, f| w.saturating_add(f.width));
     let height = frames.iter().map(|f| f.height).max().unwrap_or(0);
     let mut out = Frame::black(width, height);
     let out_row = width as usize * 3;
@@ -153,9 +156,11 @@ pub fn encode_mp4(path: &Path, frames: &[Frame], fps: u32) -> Result<Vec<u8>, Vi
     }
     let pw = first.width as usize + (first.width as usize & 1);
     let ph = first.height as usize + (first.height as usize & 1);
-    // The avc1 sample entry stores 16-bit sizes; OpenH264 stops at 3840x2160 anyway.
-    let (Ok(w16), Ok(h16)) = (u16::try_from(pw), u16::try_from(ph)) else {
-        return Err(VideoError::Encode { path: p(), index: 0, msg: format!("{pw}x{ph} is too large for H.264") });
+    // OpenH264's own limit (level 5.2); checked here for a clear message. It also keeps the avc1 box's
+    // 16-bit sizes in range.
+    let (w16, h16) = match (u16::try_from(pw), u16::try_from(ph)) {
+        (Ok(w), Ok(h)) if w.max(h) <= 3840 && w.min(h) <= 2160 => (w, h),
+        _ => return Err(VideoError::TooLarge { path: p(), width: first.width, height: first.height }),
     };
 
     let bitrate = (pw as f64 * ph as f64 * fps as f64 * BITS_PER_PIXEL).min(u32::MAX as f64 / 2.0) as u32;
@@ -221,14 +226,15 @@ pub fn encode_mp4(path: &Path, frames: &[Frame], fps: u32) -> Result<Vec<u8>, Vi
             samples.push(Sample { data, ticks: TICKS_PER_FRAME, sync });
         }
     }
-    let (Some(sps), Some(pps)) = (sps, pps) else {
-        return Err(VideoError::Encode { path: p(), index: 0, msg: "the encoder produced no SPS/PPS".into() });
+    // avcC copies profile/compatibility/level from SPS bytes 1..=3.
+    let (Some(sps), Some(pps)) = (sps.filter(|s| s.len() >= 4), pps) else {
+        return Err(VideoError::Encode { path: p(), index: 0, msg: "the encoder produced no usable SPS/PPS".into() });
     };
     if !samples.first().is_some_and(|s| s.sync) {
         return Err(VideoError::Encode { path: p(), index: 0, msg: "the first frame is not an IDR picture".into() });
     }
 
-    mux(&samples, sps, pps, w16, h16, fps * TICKS_PER_FRAME).map_err(|msg| VideoError::Mux { path: p(), msg })
+    mux(samples, sps, pps, w16, h16, fps * TICKS_PER_FRAME).map_err(|msg| VideoError::Mux { path: p(), msg })
 }
 
 fn keep_param_set(slot: &mut Option<Vec<u8>>, nal: &[u8]) -> Result<(), ()> {
@@ -287,7 +293,7 @@ fn to_u8(v: f32) -> u8 {
 }
 
 /// Mux samples into an MP4 in memory, then move `moov` in front of `mdat`.
-fn mux(samples: &[Sample], sps: Vec<u8>, pps: Vec<u8>, width: u16, height: u16, timescale: u32) -> Result<Vec<u8>, String> {
+fn mux(samples: Vec<Sample>, sps: Vec<u8>, pps: Vec<u8>, width: u16, height: u16, timescale: u32) -> Result<Vec<u8>, String> {
     let brand = |s: &str| s.parse::<mp4::FourCC>().map_err(|e| e.to_string());
     let config = mp4::Mp4Config {
         major_brand: brand("isom")?,
@@ -315,10 +321,10 @@ fn mux(samples: &[Sample], sps: Vec<u8>, pps: Vec<u8>, width: u16, height: u16, 
             duration: s.ticks,
             rendering_offset: 0,
             is_sync: s.sync,
-            bytes: s.data.clone().into(),
+            bytes: s.data.into(),
         };
         w.write_sample(1, &sample).map_err(|e| e.to_string())?;
-        t += s.ticks as u64;
+        t += sample.duration as u64;
     }
     w.write_end().map_err(|e| e.to_string())?;
     faststart(w.into_writer().into_inner())

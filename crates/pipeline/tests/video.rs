@@ -216,8 +216,12 @@ fn errors_name_the_file_and_the_problem() {
     let e = write_mp4(&path, &[empty], 30).unwrap_err();
     assert!(matches!(e, VideoError::BadFrame { index: 0, .. }), "{e}");
 
-    let e = write_mp4(&path, &[f.clone()], 0).unwrap_err();
+    let e = write_mp4(&path, std::slice::from_ref(&f), 0).unwrap_err();
     assert!(matches!(e, VideoError::BadFps { fps: 0, .. }), "{e}");
+
+    let wide = Frame { width: 3842, height: 2, rgb: vec![0; 3842 * 2 * 3] };
+    let e = write_mp4(&path, &[wide], 30).unwrap_err();
+    assert!(matches!(e, VideoError::TooLarge { width: 3842, .. }), "{e}");
 
     assert!(!path.exists(), "nothing is written on error");
 
