@@ -281,8 +281,9 @@ pub fn windows(n: usize, window: usize) -> Vec<(usize, usize)> {
     (0..n).step_by(window.max(1)).map(|s| (s, window.min(n - s))).collect()
 }
 
-/// Refine all frames: windows of `s.window` frames (or one video-mode call), one initial noise reused.
-fn refine_frames(p: &Prepared, feats: &[Tensor], weights: &Path, s: &RefineSettings, progress: &dyn Progress) -> Result<Vec<Tensor>> {
+/// Refine all frames: windows of `s.window` frames (or one video-mode call), one initial noise reused;
+/// `weights` is the refiner safetensors ([`crate::model::refiner_safetensors`]). Frames are (3,H,W) in [0, 1].
+pub fn refine_frames(p: &Prepared, feats: &[Tensor], weights: &Path, s: &RefineSettings, progress: &dyn Progress) -> Result<Vec<Tensor>> {
     let ctx = clip_context(p, weights, progress)?;
     let n = feats.len();
     let (window, splits) = if s.video_mode { (n, Some(n.div_ceil(s.window))) } else { (s.window, None) };
