@@ -150,6 +150,56 @@ pub fn stabilize(cameras: &[Camera], sigma: f64) -> Vec<Camera> {
         .collect()
 }
 
+/// Weights of OpenCV's `getGaussianKernel(ksize, sigma <= 0)`: σ = 0.3·((ksize − 1)/2 − 1) + 0.8, normalised.
+pub fn opencv_gaussian_kernel(ksize: usize) -> Vec<f64> {
+    let sigma = 0.3 * ((ksize as f64 - 1.0) * 0.5 - 1.0) + 0.8;
+    let c = (ksize as f64 - 1.0) / 2.0;
+    let w: Vec<f64> = (0..ksize).map(|i| (-((i as f64 - c).powi(2)) / (2.0 * sigma * sigma)).exp()).collect();
+    let s: f64 = w.iter().sum();
+    w.into_iter().map(|x| x / s).collect()
+}
+
+/// The official `render_stabilization_path` (`stable_k_size` 15): each of rotation column 0, rotation column 1
+/// and the position is filtered along the sequence with OpenCV's Gaussian kernel and reflect-101 borders
+/// (`cv2.filter2D`); columns 0 and 1 are renormalised and column 2 is their cross product (not re-orthogonalised,
+/// as the official code does). Frame count unchanged.
+pub fn stabilize_official(cameras: &[Camera], ksize: usize) -> Vec<Camera> {
+    let n = cameras.len() as isize;
+    if n < 2 || ksize < 2 {
+        return cameras.to_vec();
+    }
+    let k = opencv_gaussian_kernel(ksize);
+    let r = (ksize / 2) as isize;
+    // Reflect-101: …, 2, 1 | 0, 1, …, n−1 | n−2, n−3, … (repeated for kernels longer than the sequence).
+    let reflect = |mut i: isize| -> usize {
+        loop {
+            if i < 0 {
+                i = -i;
+            } else if i >= n {
+                i = 2 * (n - 1) - i;
+            } else {
+                return i as usize;
+            }
+        }
+    };
+    let col = |c: &Camera, j: usize| Vector3::new(c.c2w[0][j], c.c2w[1][j], c.c2w[2][j]);
+    (0..n)
+        .map(|i| {
+            let (mut a, mut b, mut t) = (Vector3::zeros(), Vector3::zeros(), Vector3::zeros());
+            for (o, w) in (-r..=r).zip(&k) {
+                let c = &cameras[reflect(i + o)];
+                a += col(c, 0) * *w;
+                b += col(c, 1) * *w;
+                t += col(c, 3) * *w;
+            }
+            let (a, b) = (a.normalize(), b.normalize());
+            let z = a.cross(&b);
+            let m = Matrix3::from_columns(&[a, b, z]);
+            cameras[i as usize].clone().with_c2w(&pose(&m, &t))
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -236,6 +286,52 @@ mod tests {
             let r = c.rotation();
             assert!((r.transpose() * r - Matrix3::identity()).norm() < 1e-9);
             assert!((r.determinant() - 1.0).abs() < 1e-9);
+        }
+    }
+
+    #[test]
+    fn opencv_kernel_matches_its_closed_form() {
+        // cv2.getGaussianKernel(15, -1): σ = 0.3·(7 − 1) + 0.8 = 2.6; centre weight 1/Σ exp(−i²/(2·2.6²)).
+        let k = opencv_gaussian_kernel(15);
+        assert_eq!(k.len(), 15);
+        assert!((k.iter().sum::<f64>() - 1.0).abs() < 1e-12);
+        let z: f64 = (-7..=7).map(|i| (-(i * i) as f64 / (2.0 * 2.6 * 2.6)).exp()).sum();
+        assert!((k[7] - 1.0 / z).abs() < 1e-12);
+        assert!((k[0] - (-49.0f64 / (2.0 * 2.6 * 2.6)).exp() / z).abs() < 1e-12);
+    }
+
+    #[test]
+    fn official_stabilisation_closed_forms() {
+        // Constant poses are a fixed point; a straight-line path with constant rotation stays on its line
+        // (interior frames exactly, by symmetry of the kernel; edges reflect).
+        let base = crate::camera::test_camera();
+        let path: Vec<Camera> = (0..30)
+            .map(|i| {
+                let mut c = base.clone();
+                c.c2w[0][3] = 0.1 * i as f64;
+                c
+            })
+            .collect();
+        let s = stabilize_official(&path, 15);
+        for i in 7..23 {
+            assert!((s[i].c2w[0][3] - 0.1 * i as f64).abs() < 1e-12, "frame {i}");
+            for r in 0..3 {
+                for c in 0..3 {
+                    assert!((s[i].c2w[r][c] - base.c2w[r][c]).abs() < 1e-12);
+                }
+            }
+        }
+        // Reflect-101 at the start: frame 0 averages frames |o| → 0.1·Σ w_o |o| (not clamped to frame 0).
+        let k = opencv_gaussian_kernel(15);
+        let want: f64 = (-7i32..=7).zip(&k).map(|(o, w)| 0.1 * o.abs() as f64 * w).sum();
+        assert!((s[0].c2w[0][3] - want).abs() < 1e-12);
+        // Rotations: columns 0/1 unit length, column 2 their cross product.
+        let ring = ring(20, 2.0);
+        for c in stabilize_official(&ring, 15) {
+            let r = c.rotation();
+            let (a, b, z) = (r.column(0).into_owned(), r.column(1).into_owned(), r.column(2).into_owned());
+            assert!((a.norm() - 1.0).abs() < 1e-12 && (b.norm() - 1.0).abs() < 1e-12);
+            assert!((z - a.cross(&b)).norm() < 1e-12);
         }
     }
 }

@@ -1,4 +1,4 @@
-//! Evaluation index: `{scene: {"context": [...], "target": [...], "target_quantify"?: [...]} | null}`.
+//! Evaluation index: `{scene: {"context": [...], "target": [...], "target_quantify"?: [...]} | [ {…} ] | [] | null}`.
 //! A null entry means the scene is skipped by the protocol.
 
 use std::collections::BTreeMap;
@@ -25,6 +25,14 @@ pub fn read_evaluation_index(path: &Path) -> Result<BTreeMap<String, Option<Eval
         serde_json::from_str(&text).map_err(|source| DatasetError::Json { path: path.to_path_buf(), source })?;
     raw.into_iter()
         .map(|(k, v)| {
+            // The official sampler also accepts a one-entry list (`[{...}]`) and treats `[]` like null.
+            let v = match v {
+                serde_json::Value::Array(mut a) if a.len() <= 1 => a.pop().unwrap_or(serde_json::Value::Null),
+                serde_json::Value::Array(a) => {
+                    return Err(field(path, &k, format!("a list entry must hold one {{\"context\", \"target\"}} object, found {}", a.len())))
+                }
+                v => v,
+            };
             if v.is_null() {
                 return Ok((k, None));
             }
@@ -46,4 +54,24 @@ pub fn check_entry(path: &Path, scene: &str, e: &EvaluationEntry, views: usize) 
         }
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn list_and_empty_entries_as_the_official_sampler() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("index.json");
+        std::fs::write(&p, r#"{"a": [{"context": [1, 5], "target": [2, 3], "target_quantify": [3]}], "b": [], "c": null,
+            "d": {"context": [0, 9], "target": [4]}}"#).unwrap();
+        let idx = read_evaluation_index(&p).unwrap();
+        let a = idx["a"].as_ref().unwrap();
+        assert_eq!((a.context.clone(), a.target.clone(), a.target_quantify.clone()), (vec![1, 5], vec![2, 3], Some(vec![3])));
+        assert!(idx["b"].is_none() && idx["c"].is_none());
+        assert_eq!(idx["d"].as_ref().unwrap().target, vec![4]);
+        std::fs::write(&p, r#"{"a": [{"context": [1], "target": [2]}, {"context": [1], "target": [2]}]}"#).unwrap();
+        assert!(read_evaluation_index(&p).unwrap_err().to_string().contains("one"));
+    }
 }

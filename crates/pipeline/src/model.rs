@@ -17,26 +17,24 @@ use crate::error::{PipelineError, Result};
 pub struct DataConfig {
     /// Official experiment name (`dl3dv`, `re10k`, or a project-trained model's own).
     pub experiment: String,
-    /// Model input size (width, height).
+    /// The size photos are scaled to cover and centre-cropped to (`dataset.image_shape`), before the encoder's
+    /// crop to a multiple of `shim_patch_size · downscale_factor`.
     pub image_width: u32,
     pub image_height: u32,
     /// Depth range in scene units (after normalisation).
     pub near: f32,
     pub far: f32,
-    /// Scene normalisation applied to non-benchmark inputs (see `crate::scale`).
-    #[serde(default)]
-    pub normalize: crate::scale::Normalize,
 }
 
 impl DataConfig {
-    /// `+experiment=dl3dv_mvsplat360`: 448×256 frames, near 1, far 100.
+    /// `+experiment=dl3dv_mvsplat360`: 480×270 frames (DL3DV 480P), centre-cropped to 448×256; near 1, far 100.
     pub fn dl3dv() -> Self {
-        Self { experiment: "dl3dv".into(), image_width: 448, image_height: 256, near: 1.0, far: 100.0, normalize: Default::default() }
+        Self { experiment: "dl3dv".into(), image_width: 480, image_height: 270, near: 1.0, far: 100.0 }
     }
 
-    /// `+experiment=re10k_mvsplat360`: 256×256 frames, near 1, far 100.
+    /// `+experiment=re10k_mvsplat360`: 320×180 frames, centre-cropped to 320×176; near 1, far 100.
     pub fn re10k() -> Self {
-        Self { experiment: "re10k".into(), image_width: 256, image_height: 256, near: 1.0, far: 100.0, normalize: Default::default() }
+        Self { experiment: "re10k".into(), image_width: 320, image_height: 180, near: 1.0, far: 100.0 }
     }
 }
 
@@ -136,9 +134,10 @@ fn experiment_data(name: Option<&str>) -> Result<DataConfig> {
 pub fn experiment_encoder(data: &DataConfig) -> EncoderCostVolumeCfg {
     let mut cfg = EncoderCostVolumeCfg { near: data.near, far: data.far, ..Default::default() };
     if data.experiment == "re10k" {
-        // RE10K uses all (two) context views in the cost volume and transformer.
+        // RE10K: cost volume and transformer over all views (null in the YAML), data shim patch 4 (multiple 16).
         cfg.costvolume_nearest_n_views = usize::MAX;
         cfg.multiview_trans_nearest_n_views = usize::MAX;
+        cfg.shim_patch_size = 4;
     }
     cfg
 }
@@ -302,7 +301,7 @@ pub fn cache_dir() -> PathBuf {
 /// A tiny configuration of the whole model (tests, smoke runs): the tiny encoder, a 3-level 32-channel UNet,
 /// a 4-level (factor 8) 32-channel VAE and a 2-layer CLIP tower; input 128×64.
 pub fn tiny_config(with_refiner: bool) -> ModelConfig {
-    let data = DataConfig { experiment: "tiny".into(), image_width: 128, image_height: 64, near: 1.0, far: 100.0, normalize: Default::default() };
+    let data = DataConfig { experiment: "tiny".into(), image_width: 128, image_height: 64, near: 1.0, far: 100.0 };
     let encoder = EncoderCostVolumeCfg { near: data.near, far: data.far, ..EncoderCostVolumeCfg::tiny() };
     let refiner = with_refiner.then(|| RefinerModelConfig {
         unet: VideoUNetConfig {

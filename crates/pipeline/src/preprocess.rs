@@ -157,6 +157,20 @@ mod tests {
     }
 
     #[test]
+    fn official_dl3dv_framing() {
+        // DL3DV 480P frames (480×270) are not resized; the patch shim crops row 7, column 16 → 448×256.
+        let pre = Preprocess { size: InputSize::Fixed { width: 480, height: 270 }, multiple: 64 };
+        let p = pre.plan(&cam(480, 270)).unwrap();
+        assert_eq!(p.scaled, (480, 270));
+        assert_eq!((p.crop.x0, p.crop.y0, p.crop.width, p.crop.height), (16, 7, 448, 256));
+        // RE10K: 360×640 → 180×320 → multiple 16 → 320×176 (row 2).
+        let pre = Preprocess { size: InputSize::Fixed { width: 320, height: 180 }, multiple: 16 };
+        let p = pre.plan(&cam(640, 360)).unwrap();
+        assert_eq!(p.scaled, (320, 180));
+        assert_eq!((p.crop.x0, p.crop.y0, p.crop.width, p.crop.height), (0, 2, 320, 176));
+    }
+
+    #[test]
     fn native_only_crops_to_multiple() {
         let pre = Preprocess { size: InputSize::Native, multiple: 64 };
         let p = pre.plan(&cam(300, 200)).unwrap();

@@ -75,6 +75,8 @@ pub struct RenderRequest {
     pub model: ModelArgs,
     /// Model input size; None = the model's own.
     pub size: Option<InputSize>,
+    /// Scene units → model units.
+    pub scene_scale: crate::scale::SceneScale,
     pub refine: RefineSettings,
     /// Also write `gaussians.splat`.
     pub splat: bool,
@@ -142,7 +144,10 @@ pub fn prepare(req: &RenderRequest, progress: &dyn Progress) -> Result<Prepared>
         context_images.push(img);
         context_cameras_raw.push(cam);
     }
-    let transform = crate::scale::scene_transform(&spec.data, &context_cameras_raw);
+    let (transform, warning) = crate::scale::scene_transform(req.scene_scale, &context_cameras_raw, spec.data.near, spec.data.far);
+    if let Some(w) = warning {
+        progress.note(&format!("warning: {w}"));
+    }
     let context_cameras: Vec<Camera> = context_cameras_raw.iter().map(|c| transform.apply(c)).collect();
     let mut target_cameras = Vec::new();
     let mut target_photos = Vec::new();
@@ -194,10 +199,9 @@ pub fn encode(p: &Prepared, progress: &dyn Progress) -> Result<Gaussians> {
     let v = p.context_images.len();
     let mut cfg = p.spec.encoder.clone();
     cfg.num_views = v;
-    if p.spec.data.experiment == "re10k" {
-        cfg.costvolume_nearest_n_views = v;
-        cfg.multiview_trans_nearest_n_views = v;
-    }
+    // "All views" configs (RE10K) store usize::MAX.
+    cfg.costvolume_nearest_n_views = cfg.costvolume_nearest_n_views.min(v);
+    cfg.multiview_trans_nearest_n_views = cfg.multiview_trans_nearest_n_views.min(v);
     let (w, h) = (p.context_images[0].width as usize, p.context_images[0].height as usize);
     let data: Vec<f32> = p.context_images.iter().flat_map(|im| im.data.iter().copied()).collect();
     let images = Tensor::from_vec(data, (1, v, 3, h, w), &dev).map_err(compute("encoder input"))?;
@@ -516,6 +520,8 @@ pub fn run(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSummary
             "preprocess": p.pre,
             "image_width": p.context_images[0].width,
             "image_height": p.context_images[0].height,
+            "scene_scale": req.scene_scale,
+            "scene_to_model": p.transform.to_json(),
             "near": near,
             "far": far,
             "refiner": refine_file.is_some(),

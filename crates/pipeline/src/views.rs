@@ -158,11 +158,17 @@ pub fn choose(scene: &Scene, context: &ContextSpec, targets: &TargetSpec) -> Res
     Ok(ViewChoice { context: ctx, targets: tg, quantify })
 }
 
-/// The scene's own path, smoothed, resampled to `frames` cameras (an open path through the stabilised poses).
+/// The scene's own path as the official video mode renders it: `frames` views equally spaced through the
+/// sequence (all views when there are fewer), poses smoothed by the official stabilisation (kernel 15).
 pub fn stable_path(cameras: &[Camera], frames: usize) -> Vec<Camera> {
-    let smooth = trajectory::stabilize(cameras, STABLE_SIGMA);
-    trajectory::interpolate(&smooth, frames, false)
+    let n = cameras.len();
+    let picked: Vec<Camera> = if frames >= n {
+        cameras.to_vec()
+    } else {
+        (0..frames).map(|i| cameras[(i * n) / frames].clone()).collect()
+    };
+    trajectory::stabilize_official(&picked, STABLE_K_SIZE)
 }
 
-/// Gaussian smoothing width (frames) of the scene path.
-pub const STABLE_SIGMA: f64 = 2.0;
+/// Smoothing kernel size of the official `render_stable_poses` (`test.stable_k_size`).
+pub const STABLE_K_SIZE: usize = 15;

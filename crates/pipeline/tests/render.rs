@@ -30,6 +30,7 @@ fn request(model_dir: &Path, out: &Path, targets: TargetSpec) -> RenderRequest {
         targets,
         model: ModelArgs { ckpt: Some(model_dir.to_path_buf()), ..Default::default() },
         size: None,
+        scene_scale: Default::default(),
         refine: RefineSettings { steps: 2, window: 3, ..RefineSettings::default() },
         splat: true,
         video: true,

@@ -30,6 +30,10 @@ pub struct Args {
     /// Default: the model's training size (448x256 for DL3DV).
     #[arg(long)]
     size: Option<InputSize>,
+    /// Scene units → model units: `none` (the official behaviour), `auto` (median camera distance to the
+    /// looked-at point becomes 10) or a factor. See docs/cameras.md.
+    #[arg(long, default_value = "none")]
+    scene_scale: mvsplat360_pipeline::scale::SceneScale,
     /// Data conventions for weights without a config (`dl3dv` or `re10k`).
     #[arg(long)]
     experiment: Option<String>,
@@ -47,6 +51,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<()> {
         targets: TargetSpec::Views(vec![]),
         model,
         size: args.size,
+        scene_scale: args.scene_scale,
         refine: RefineSettings::default(),
         splat: args.splat.is_some(),
         video: false,

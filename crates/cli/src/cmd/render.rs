@@ -48,6 +48,10 @@ pub struct Args {
     /// Default: the model's training size.
     #[arg(long)]
     pub size: Option<InputSize>,
+    /// Scene units → model units: `none` (the official behaviour: the model expects content 1–100 units away),
+    /// `auto` (median camera distance to the looked-at point becomes 10) or a factor. See docs/cameras.md.
+    #[arg(long, default_value = "none")]
+    pub scene_scale: mvsplat360_pipeline::scale::SceneScale,
     /// Diffusion sampling steps (EDM Euler).
     #[arg(long, default_value_t = 25)]
     pub steps: usize,
@@ -78,7 +82,7 @@ pub struct Args {
     #[arg(long)]
     pub no_video: bool,
     /// Video frame rate.
-    #[arg(long, default_value_t = 14)]
+    #[arg(long, default_value_t = 8)]
     pub fps: u32,
 }
 
@@ -101,6 +105,7 @@ pub fn request(a: &Args) -> RenderRequest {
         targets,
         model: ModelArgs { ckpt: a.ckpt.clone(), encoder: a.encoder.clone(), refiner: a.refiner.clone(), experiment: a.experiment.clone() },
         size: a.size,
+        scene_scale: a.scene_scale,
         refine: RefineSettings {
             steps: a.steps,
             guidance_min: a.guidance_min,
