@@ -80,6 +80,10 @@ pub struct RenderRequest {
     pub refine: RefineSettings,
     /// Also write `gaussians.splat`.
     pub splat: bool,
+    /// Score `frames/final` against `frames/gt` into `metrics.json` when the targets have photos.
+    pub metrics: bool,
+    /// Where the metric networks' weights are (`--weights-dir`; then the env var, then the default folder).
+    pub weights_dir: Option<PathBuf>,
     /// Write `video.mp4` / `compare.mp4`.
     pub video: bool,
     pub fps: u32,
@@ -502,6 +506,19 @@ pub fn run(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSummary
         progress.advance(1);
         progress.end();
         times.push(("video".into(), t.elapsed().as_secs_f64()));
+    }
+    let all_gt = p.target_photos.iter().all(|x| x.is_some());
+    if req.metrics && all_gt {
+        let t = Instant::now();
+        progress.begin("scoring", 0);
+        let opts = mvsplat360_metrics::score::ScoreOptions { weights_dir: req.weights_dir.clone(), ..Default::default() };
+        let report = mvsplat360_metrics::score::score_dirs(&out.join("frames/final"), &out.join("frames/gt"), &opts).map_err(compute("metrics"))?;
+        progress.end();
+        for w in &report.warnings {
+            progress.note(&format!("metrics: {w}"));
+        }
+        mvsplat360_metrics::score::write_report_json(out, &report).map_err(|e| PipelineError::Write { path: out.join("metrics.json"), msg: e.to_string() })?;
+        times.push(("metrics".into(), t.elapsed().as_secs_f64()));
     }
     times.push(("total".into(), t_all.elapsed().as_secs_f64()));
     let peak = crate::setup::peak_rss_mib();

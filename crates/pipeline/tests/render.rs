@@ -33,6 +33,8 @@ fn request(model_dir: &Path, out: &Path, targets: TargetSpec) -> RenderRequest {
         scene_scale: Default::default(),
         refine: RefineSettings { steps: 2, window: 3, ..RefineSettings::default() },
         splat: true,
+        metrics: false,
+        weights_dir: None,
         video: true,
         fps: 8,
         out: out.to_path_buf(),
@@ -49,7 +51,9 @@ fn tiny_model_render_writes_every_output() {
     let m = tiny_model(tmp.path(), true);
     let out = std::env::var_os("KEEP_RENDER").map(PathBuf::from).unwrap_or_else(|| tmp.path().join("out"));
     let targets = vec![21, 1, 4, 7, 10, 13, 16, 19]; // unsorted on purpose: frames follow view order
-    let s = render::run(&request(&m, &out, TargetSpec::Views(targets.clone())), &Silent).unwrap();
+    let mut req = request(&m, &out, TargetSpec::Views(targets.clone()));
+    req.metrics = true;
+    let s = render::run(&req, &Silent).unwrap();
     assert_eq!(s.frames, 8);
     assert!(s.refined);
     assert_eq!(s.gaussians, 4 * 128 * 64);
@@ -112,6 +116,12 @@ fn tiny_model_render_writes_every_output() {
     assert_eq!(run["settings"]["refine"]["steps"], 2);
     assert!(run["stage_seconds"]["encoder"].as_f64().unwrap() > 0.0);
     assert!(run["input_fingerprint"].as_str().unwrap().len() == 16);
+
+    // metrics.json scores final against GT (PSNR/SSIM always; the networks when their weights are installed).
+    let scores: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("metrics.json")).unwrap()).unwrap();
+    assert_eq!(scores["per_image"].as_array().unwrap().len(), 8);
+    let psnr = scores["psnr"].as_f64().unwrap();
+    assert!(psnr.is_finite() && psnr > 0.0 && psnr < 40.0, "psnr {psnr}");
 
     // Videos: one H.264 track with one sample per frame at the frame size (compare = three frames wide).
     for (name, w) in [("video.mp4", 128), ("compare.mp4", 3 * 128)] {

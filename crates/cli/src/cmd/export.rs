@@ -54,6 +54,8 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<()> {
         scene_scale: args.scene_scale,
         refine: RefineSettings::default(),
         splat: args.splat.is_some(),
+        metrics: false,
+        weights_dir: None,
         video: false,
         fps: 1,
         out: PathBuf::new(),

@@ -78,6 +78,14 @@ pub struct Args {
     /// Also write `gaussians.splat` (antimatter15 format).
     #[arg(long)]
     pub splat: bool,
+    /// Skip `metrics.json` (written when every target is a scene view with a photo: PSNR, SSIM, and LPIPS,
+    /// DISTS, FID when their weights are installed by `scripts/metric-weights/fetch`).
+    #[arg(long)]
+    pub no_metrics: bool,
+    /// Folder with the metric networks' weights (default: `$MVSPLAT360_METRIC_WEIGHTS`, then
+    /// `~/.cache/mvsplat360/metric-weights`).
+    #[arg(long)]
+    pub weights_dir: Option<PathBuf>,
     /// Skip `video.mp4` and `compare.mp4`.
     #[arg(long)]
     pub no_video: bool,
@@ -116,6 +124,8 @@ pub fn request(a: &Args) -> RenderRequest {
             vae_chunk: a.vae_chunk,
         },
         splat: a.splat,
+        metrics: !a.no_metrics,
+        weights_dir: a.weights_dir.clone(),
         video: !a.no_video,
         fps: a.fps,
         out: a.out.clone(),
