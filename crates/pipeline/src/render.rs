@@ -294,7 +294,9 @@ pub fn windows(n: usize, window: usize) -> Vec<(usize, usize)> {
 pub fn refine_frames(p: &Prepared, feats: &[Tensor], weights: &Path, s: &RefineSettings, progress: &dyn Progress) -> Result<Vec<Tensor>> {
     let ctx = clip_context(p, weights, progress)?;
     let n = feats.len();
-    let (window, splits) = if s.video_mode { (n, Some(n.div_ceil(s.window))) } else { (s.window, None) };
+    // Video mode: one call over all frames (padded to whole attention groups), temporal attention split into
+    // groups of `s.window` frames; convolutions, positional embedding and the guidance ramp span all frames.
+    let (window, splits) = if s.video_mode { (n.div_ceil(s.window) * s.window, Some(n.div_ceil(s.window))) } else { (s.window, None) };
     let m = load_refiner(p, weights, s, splits, progress)?;
     let wins = windows(n, window);
     progress.begin("refining", (wins.len() * s.steps) as u64);

@@ -190,6 +190,14 @@ fn refiner_none_and_orbit() {
         let b = png(&out.join(format!("frames/final/{i:04}.png")));
         assert_eq!(a.as_raw(), b.as_raw(), "final = gsplat without a refiner");
     }
+    // Video mode: 5 frames in one call, attention groups of 3 (padded to 6).
+    let outv = tmp.path().join("outv");
+    let mut req = request(&m, &outv, TargetSpec::Orbit(5));
+    req.refine.video_mode = true;
+    req.video = false;
+    let s = render::run(&req, &Silent).unwrap();
+    assert!(s.refined && s.frames == 5);
+    assert!(outv.join("frames/refined/0004.png").is_file() && !outv.join("frames/refined/0005.png").exists());
     // A folder without a refiner part renders 3DGS only.
     let m3 = tiny_model(tmp.path(), false);
     let out3 = tmp.path().join("out3");
