@@ -274,7 +274,9 @@ impl VideoUNet {
         })
     }
 
-    fn run(&self, layers: &[Layer], h: Tensor, emb_act: &Tensor, ctx: &Tensor, frames: usize, splits: usize) -> Result<Tensor> {
+    /// `up_size`: the spatial size an upsampler must produce (the next skip connection's), when known.
+    #[allow(clippy::too_many_arguments)]
+    fn run(&self, layers: &[Layer], h: Tensor, emb_act: &Tensor, ctx: &Tensor, frames: usize, splits: usize, up_size: Option<(usize, usize)>) -> Result<Tensor> {
         let max = self.cfg.attn_max_score_elems;
         let mut h = h;
         for l in layers {
@@ -282,7 +284,15 @@ impl VideoUNet {
                 Layer::Conv(c) | Layer::Down(c) => c.forward(&h)?,
                 Layer::Res(r) => r.forward(&h, emb_act, frames)?,
                 Layer::Attn(a) => a.forward(&h, ctx, frames, splits, max)?,
-                Layer::Up(c) => c.forward_fused(&h, ConvEpilogue { upsample2x: true, ..Default::default() })?,
+                Layer::Up(c) => {
+                    let (_, _, hh, ww) = h.dims4()?;
+                    match up_size {
+                        // Odd sizes on the way down (stride-2 convs round up): like diffusers, upsample by
+                        // nearest to the skip's size instead of ×2 (PyTorch legacy nearest: src = ⌊dst·in/out⌋).
+                        Some((th, tw)) if (th, tw) != (2 * hh, 2 * ww) => c.forward(&h.upsample_nearest2d(th, tw)?)?,
+                        _ => c.forward_fused(&h, ConvEpilogue { upsample2x: true, ..Default::default() })?,
+                    }
+                }
             };
         }
         Ok(h)
@@ -307,15 +317,16 @@ impl VideoUNet {
         let mut hs = Vec::with_capacity(self.input_blocks.len());
         let mut h = x.clone();
         for b in &self.input_blocks {
-            h = self.run(b, h, &emb_act, inp.context, frames, splits)?;
+            h = self.run(b, h, &emb_act, inp.context, frames, splits, None)?;
             hs.push(h.clone());
         }
-        h = self.run(&self.middle_block, h, &emb_act, inp.context, frames, splits)?;
+        h = self.run(&self.middle_block, h, &emb_act, inp.context, frames, splits, None)?;
         for b in &self.output_blocks {
             let Some(skip) = hs.pop() else { candle_core::bail!("VideoUNet: skip stack underflow") };
             h = Tensor::cat(&[&h, &skip], 1)?;
             drop(skip);
-            h = self.run(b, h, &emb_act, inp.context, frames, splits)?;
+            let up_size = hs.last().map(|t| (t.dim(2).unwrap_or(0), t.dim(3).unwrap_or(0)));
+            h = self.run(b, h, &emb_act, inp.context, frames, splits, up_size)?;
         }
         let h = self.out_norm.group_norm(&h, 32, 1, true)?;
         self.out_conv.forward(&h)
