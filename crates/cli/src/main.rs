@@ -24,6 +24,8 @@ enum Command {
     Export(cmd::export::Args),
     /// Convert a supported checkpoint (Lightning .ckpt, .pth, .safetensors) to safetensors.
     Convert(cmd::convert::Args),
+    /// Score predicted images against ground truth by file name: PSNR, SSIM, LPIPS, DISTS, FID.
+    Metrics(cmd::metrics::Args),
     /// Convert pretrained weights shipped by registry packages (the metrics' networks) to safetensors.
     Weights(cmd::weights::Args),
     /// Benchmarks printing one JSON line each (median of repeated runs after a warm-up).
@@ -45,6 +47,7 @@ fn main() {
         Command::Render(a) => cmd::render::run(a, cli.quiet),
         Command::Export(a) => cmd::export::run(a, cli.quiet),
         Command::Convert(a) => cmd::convert::run(a),
+        Command::Metrics(a) => cmd::metrics::run(a, cli.quiet),
         Command::Weights(a) => cmd::weights::run(a, cli.quiet),
         Command::Bench(a) => cmd::bench::run(a),
     };

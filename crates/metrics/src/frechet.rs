@@ -139,7 +139,7 @@ pub fn trace_sqrt_product(s1: &DMatrix<f64>, s2: &DMatrix<f64>) -> f64 {
     match chol {
         Some(ch) => {
             let l = ch.l();
-            let mut m = &l * s2 * l.transpose();
+            let mut m = l.transpose() * s2 * &l;
             symmetrise(&mut m);
             sum_sqrt_eigenvalues(m)
         }
@@ -152,7 +152,7 @@ fn trace_sqrt_product_gram(x1: &DMatrix<f64>, n1: usize, x2: &DMatrix<f64>, n2: 
     let k = x1 * x2.transpose();
     let mut g = if n1 <= n2 { &k * k.transpose() } else { k.transpose() * &k };
     symmetrise(&mut g);
-    sum_sqrt_eigenvalues(g) / ((n1 * n2) as f64).sqrt()
+    sum_sqrt_eigenvalues(g) / (((n1 - 1) * (n2 - 1)) as f64).sqrt()
 }
 
 /// Fréchet distance of two fitted Gaussians.

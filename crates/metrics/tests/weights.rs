@@ -139,16 +139,3 @@ fn locate_order_and_missing_message() {
     std::fs::remove_dir_all(&root).ok();
 }
 
-/// Development helper (not a check): converts the packages unpacked under `$MVSPLAT360_METRIC_PACKAGES` into
-/// `$MVSPLAT360_METRIC_WEIGHTS`, like `mvsplat360 weights metrics --from … --out …`.
-#[test]
-#[ignore]
-fn convert_packages() {
-    let from = std::env::var_os("MVSPLAT360_METRIC_PACKAGES").expect("MVSPLAT360_METRIC_PACKAGES");
-    let out = std::env::var_os(weights::ENV_VAR).expect("MVSPLAT360_METRIC_WEIGHTS");
-    let t = std::time::Instant::now();
-    for p in weights::convert_all(Path::new(&from), Path::new(&out)).unwrap() {
-        println!("{} ({} bytes)", p.display(), std::fs::metadata(&p).unwrap().len());
-    }
-    println!("converted in {:.1} s", t.elapsed().as_secs_f64());
-}

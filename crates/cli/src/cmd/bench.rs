@@ -70,6 +70,19 @@ enum What {
         #[command(flatten)]
         common: Common,
     },
+    /// Image metrics at 256×448: images (pairs) per second of PSNR, SSIM, LPIPS, DISTS and FID features
+    /// (the networks only when their weights are installed, see scripts/metric-weights/fetch).
+    Metrics {
+        /// Image width.
+        #[arg(long, default_value_t = 448)]
+        width: usize,
+        /// Image height.
+        #[arg(long, default_value_t = 256)]
+        height: usize,
+        /// Timed runs after one warm-up; the median is reported.
+        #[arg(long, default_value_t = 3)]
+        runs: usize,
+    },
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
@@ -103,6 +116,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 anyhow::bail!("bench refiner: need --frames ≥ 1 and latent sizes that are positive multiples of 8 (three 2× downsamplings) (got {frames}, {latent_h}x{latent_w})");
             }
             mvsplat360_refiner::bench::run_refiner_bench(frames, latent_h, latent_w, common.threads, common.runs)?
+        }
+        What::Metrics { width, height, runs } => {
+            if width < 11 || height < 11 {
+                anyhow::bail!("bench metrics: --width and --height must be at least 11 (the SSIM window)");
+            }
+            mvsplat360_metrics::bench::run_metrics_bench(width, height, runs)
         }
     };
     println!("{line}");

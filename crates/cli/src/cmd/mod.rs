@@ -2,6 +2,7 @@ pub mod bench;
 pub mod convert;
 pub mod export;
 pub mod inspect;
+pub mod metrics;
 pub mod progress;
 pub mod render;
 pub mod views;
