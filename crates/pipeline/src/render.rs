@@ -248,6 +248,8 @@ pub fn rasterize_targets(g: &Gaussians, cams: &[Camera], near: f32, far: f32, pr
         progress.advance(1);
     }
     progress.end();
+    times.push(("refine.sampling".into(), t_sample));
+    times.push(("refine.decode".into(), t_decode));
     Ok(out)
 }
 
@@ -292,12 +294,30 @@ pub fn windows(n: usize, window: usize) -> Vec<(usize, usize)> {
 /// Refine all frames: windows of `s.window` frames (or one video-mode call), one initial noise reused;
 /// `weights` is the refiner safetensors ([`crate::model::refiner_safetensors`]). Frames are (3,H,W) in [0, 1].
 pub fn refine_frames(p: &Prepared, feats: &[Tensor], weights: &Path, s: &RefineSettings, progress: &dyn Progress) -> Result<Vec<Tensor>> {
+    refine_frames_timed(p, feats, weights, s, progress, &mut Vec::new())
+}
+
+/// [`refine_frames`], adding the time of its parts to `times` (`refine.clip`, `refine.load`, `refine.sampling`,
+/// `refine.decode`).
+pub fn refine_frames_timed(
+    p: &Prepared,
+    feats: &[Tensor],
+    weights: &Path,
+    s: &RefineSettings,
+    progress: &dyn Progress,
+    times: &mut Vec<(String, f64)>,
+) -> Result<Vec<Tensor>> {
+    let t = Instant::now();
     let ctx = clip_context(p, weights, progress)?;
+    times.push(("refine.clip".into(), t.elapsed().as_secs_f64()));
+    let t = Instant::now();
     let n = feats.len();
     // Video mode: one call over all frames (padded to whole attention groups), temporal attention split into
     // groups of `s.window` frames; convolutions, positional embedding and the guidance ramp span all frames.
     let (window, splits) = if s.video_mode { (n.div_ceil(s.window) * s.window, Some(n.div_ceil(s.window))) } else { (s.window, None) };
     let m = load_refiner(p, weights, s, splits, progress)?;
+    times.push(("refine.load".into(), t.elapsed().as_secs_f64()));
+    let (mut t_sample, mut t_decode) = (0.0, 0.0);
     let wins = windows(n, window);
     progress.begin("refining", (wins.len() * s.steps) as u64);
     let (c, h, w) = feats[0].dims3().map_err(compute("refiner"))?;
@@ -313,10 +333,14 @@ pub fn refine_frames(p: &Prepared, feats: &[Tensor], weights: &Path, s: &RefineS
         let x = Tensor::stack(&fr, 0).and_then(|t| t.unsqueeze(0)).map_err(compute("refiner"))?;
         let concat = m.refiner.concat_features(&x).map_err(compute("refiner"))?;
         let mut step = |_: &mvsplat360_refiner::sampling::StepRecord| progress.advance(1);
+        let t = Instant::now();
         let lat = m.refiner.sample_latents(&ctx, &concat, &noise, window, Some(&mut step)).map_err(compute("refiner (UNet)"))?;
         check_finite("refiner (UNet)", &lat)?;
+        t_sample += t.elapsed().as_secs_f64();
+        let t = Instant::now();
         let frames = m.refiner.decode(&m.vae, &lat, window).map_err(compute("refiner (VAE decode)"))?;
         check_finite("refiner (VAE decode)", &frames)?;
+        t_decode += t.elapsed().as_secs_f64();
         for i in 0..len {
             out.push(frames.get(0).and_then(|f| f.get(i)).map_err(compute("refiner"))?);
         }
@@ -459,8 +483,10 @@ pub fn run(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSummary
     let final_frames: Vec<ImageF32> = match &refine_file {
         Some(wf) => {
             let t = Instant::now();
-            let refined = refine_frames(&p, &feats, wf, &req.refine, progress)?;
+            let mut parts = Vec::new();
+            let refined = refine_frames_timed(&p, &feats, wf, &req.refine, progress, &mut parts)?;
             times.push(("refine".into(), t.elapsed().as_secs_f64()));
+            times.extend(parts);
             let t = Instant::now();
             let (rd, fd) = (out.join("frames/refined"), out.join("frames/final"));
             mkdir(&rd)?;
