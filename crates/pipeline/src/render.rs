@@ -248,8 +248,6 @@ pub fn rasterize_targets(g: &Gaussians, cams: &[Camera], near: f32, far: f32, pr
         progress.advance(1);
     }
     progress.end();
-    times.push(("refine.sampling".into(), t_sample));
-    times.push(("refine.decode".into(), t_decode));
     Ok(out)
 }
 
@@ -346,6 +344,8 @@ pub fn refine_frames_timed(
         }
     }
     progress.end();
+    times.push(("refine.sampling".into(), t_sample));
+    times.push(("refine.decode".into(), t_decode));
     Ok(out)
 }
 
