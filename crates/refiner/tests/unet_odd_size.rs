@@ -46,3 +46,33 @@ fn odd_latent_sizes_match_diffusers() {
         eprintln!("{case} ({h}x{w}): max abs diff {worst:.2e}");
     }
 }
+
+/// Any latent size runs (no `cat` shape error) at 2, 3 and 4 levels and keeps its size; random weights.
+#[test]
+fn any_latent_size_runs_at_2_3_4_levels() {
+    for mult in [vec![1, 2], vec![1, 2, 2], vec![1, 2, 2, 2]] {
+        let cfg = VideoUNetConfig {
+            model_channels: 32,
+            channel_mult: mult.clone(),
+            attention_resolutions: vec![1, 2],
+            num_res_blocks: 1,
+            num_head_channels: 16,
+            context_dim: 32,
+            adm_in_channels: Some(32),
+            ..VideoUNetConfig::default()
+        };
+        let unet = VideoUNet::random(&cfg, 7, &Device::Cpu).unwrap();
+        for (h, w) in [(1, 1), (2, 3), (5, 7), (6, 10), (9, 13), (8, 8)] {
+            let f = 2;
+            let x = Tensor::randn(0f32, 1f32, (f, 8, h, w), &Device::Cpu).unwrap();
+            let ctx = Tensor::randn(0f32, 1f32, (f, 1, 32), &Device::Cpu).unwrap();
+            let y = timestep_embedding(&[0.02; 2], 32, 10000.0, &Device::Cpu).unwrap();
+            let out = unet
+                .forward(&UNetInputs { x: &x, timesteps: &[1.0; 2], context: &ctx, y: Some(&y), num_video_frames: f, num_splits: None })
+                .unwrap_or_else(|e| panic!("{} levels, {h}x{w}: {e}", mult.len()));
+            assert_eq!(out.dims(), &[f, 4, h, w], "{} levels, {h}x{w}", mult.len());
+            let v = out.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+            assert!(v.iter().all(|x| x.is_finite()), "{} levels, {h}x{w}: non-finite output", mult.len());
+        }
+    }
+}

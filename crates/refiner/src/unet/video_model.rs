@@ -289,6 +289,8 @@ impl VideoUNet {
                     match up_size {
                         // Odd sizes on the way down (stride-2 convs round up): like diffusers, upsample by
                         // nearest to the skip's size instead of ×2 (PyTorch legacy nearest: src = ⌊dst·in/out⌋).
+                        // With out = 2·in − 1 that is ×2 minus the last row/column — before the conv, whose
+                        // zero padding then sees the new border (cropping the fused ×2 conv's output differs).
                         Some((th, tw)) if (th, tw) != (2 * hh, 2 * ww) => c.forward(&h.upsample_nearest2d(th, tw)?)?,
                         _ => c.forward_fused(&h, ConvEpilogue { upsample2x: true, ..Default::default() })?,
                     }
@@ -325,7 +327,10 @@ impl VideoUNet {
             let Some(skip) = hs.pop() else { candle_core::bail!("VideoUNet: skip stack underflow") };
             h = Tensor::cat(&[&h, &skip], 1)?;
             drop(skip);
-            let up_size = hs.last().map(|t| (t.dim(2).unwrap_or(0), t.dim(3).unwrap_or(0)));
+            let up_size = match hs.last() {
+                Some(t) => Some(t.dims4().map(|(_, _, th, tw)| (th, tw))?),
+                None => None,
+            };
             h = self.run(b, h, &emb_act, inp.context, frames, splits, up_size)?;
         }
         let h = self.out_norm.group_norm(&h, 32, 1, true)?;
