@@ -24,6 +24,11 @@ enum Command {
     Export(cmd::export::Args),
     /// Convert a supported checkpoint (Lightning .ckpt, .pth, .safetensors) to safetensors.
     Convert(cmd::convert::Args),
+    /// The official evaluation: render every scene of an evaluation index, save the official image folders,
+    /// score PSNR, SSIM, LPIPS, DISTS, FID (resumable).
+    Eval(cmd::eval::Args),
+    /// Generate an evaluation index as the official DL3DV generator (5 farthest-point context views, 56 targets).
+    EvalIndex(cmd::eval::IndexArgs),
     /// Score predicted images against ground truth by file name: PSNR, SSIM, LPIPS, DISTS, FID.
     Metrics(cmd::metrics::Args),
     /// Convert pretrained weights shipped by registry packages (the metrics' networks) to safetensors.
@@ -47,6 +52,8 @@ fn main() {
         Command::Render(a) => cmd::render::run(a, cli.quiet),
         Command::Export(a) => cmd::export::run(a, cli.quiet),
         Command::Convert(a) => cmd::convert::run(a),
+        Command::Eval(a) => cmd::eval::run(a, cli.quiet),
+        Command::EvalIndex(a) => cmd::eval::run_index(a, cli.quiet),
         Command::Metrics(a) => cmd::metrics::run(a, cli.quiet),
         Command::Weights(a) => cmd::weights::run(a, cli.quiet),
         Command::Bench(a) => cmd::bench::run(a),

@@ -1,5 +1,6 @@
 pub mod bench;
 pub mod convert;
+pub mod eval;
 pub mod export;
 pub mod inspect;
 pub mod metrics;

@@ -1,0 +1,157 @@
+//! `mvsplat360 eval` and `mvsplat360 eval-index` as a user runs them: the official folders and tables on a
+//! two-scene `.torch` dataset with a tiny random model, missing metric weights → nulls and warnings, a re-run that
+//! resumes without rewriting anything, bad inputs rejected before any work; the generated index is the pipeline's.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::SystemTime;
+
+/// The binary with every metric-weights location pointed at `empty` (a developer's cached weights are not found).
+fn bin(empty: &Path) -> Command {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_mvsplat360"));
+    c.env("MVSPLAT360_METRIC_WEIGHTS", empty).env("XDG_CACHE_HOME", empty).env("HOME", empty);
+    c
+}
+
+fn chunk_dir() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../crates/dataset/tests/data/chunk")
+}
+
+/// tmp/{data (chunk + index.json), empty, tiny (model), index.json (evaluation index)}.
+fn setup(tmp: &Path) -> (PathBuf, PathBuf, PathBuf, PathBuf) {
+    let data = tmp.join("data");
+    let empty = tmp.join("empty");
+    std::fs::create_dir_all(&data).unwrap();
+    std::fs::create_dir_all(&empty).unwrap();
+    for f in ["000000.torch", "index.json"] {
+        std::fs::copy(chunk_dir().join(f), data.join(f)).unwrap();
+    }
+    let cfg = mvsplat360_pipeline::model::tiny_config(true);
+    let sd = mvsplat360_pipeline::model::random_state_dict(&cfg, 11).unwrap();
+    let m = tmp.join("tiny");
+    mvsplat360_pipeline::model::write_model_dir(&m, &cfg, &sd).unwrap();
+    let index = tmp.join("index.json");
+    std::fs::write(
+        &index,
+        r#"{"woodbox_a": {"context": [0, 2], "target": [0, 1, 2], "target_quantify": [1]}, "woodbox_b": {"context": [0, 1], "target": [0, 1]}, "gone": null}"#,
+    )
+    .unwrap();
+    (data, empty, m, index)
+}
+
+fn eval_cmd(empty: &Path, data: &Path, index: &Path, m: &Path, out: &Path) -> Command {
+    let mut c = bin(empty);
+    c.arg("eval").arg("--data").arg(data).arg("--index").arg(index).arg("--ckpt").arg(m);
+    c.args(["--steps", "1", "--window", "3", "--weights-dir"]).arg(empty).arg("--out").arg(out);
+    c
+}
+
+fn mtimes(dir: &Path) -> Vec<(PathBuf, SystemTime)> {
+    let mut v = Vec::new();
+    for e in std::fs::read_dir(dir).unwrap().flatten() {
+        let p = e.path();
+        if p.is_dir() {
+            v.extend(mtimes(&p));
+        } else if !p.ends_with("metrics.json") && !p.ends_with("metrics.md") {
+            v.push((p.clone(), e.metadata().unwrap().modified().unwrap()));
+        }
+    }
+    v.sort();
+    v
+}
+
+#[test]
+fn eval_writes_official_folders_tables_and_resumes() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (data, empty, m, index) = setup(tmp.path());
+    let out = tmp.path().join("eval");
+    let o = eval_cmd(&empty, &data, &index, &m, &out).output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    // Missing metric weights: a warning naming the fetch command, the metric null, exit 0.
+    for what in ["LPIPS", "DISTS", "FID"] {
+        assert!(err.lines().any(|l| l.starts_with(&format!("warning: {what}")) && l.contains("scripts/metric-weights/fetch")), "{err}");
+    }
+    assert!(err.contains("rendered 2, resumed 0"), "{err}");
+    let names = ["woodbox_a_000001.png", "woodbox_b_000000.png", "woodbox_b_000001.png"];
+    for d in ["ImagesGT", "ImagesGSplat", "ImagesRefined0", "ImagesPostprocessed0V2"] {
+        let mut found: Vec<String> = std::fs::read_dir(out.join(d)).unwrap().flatten().map(|e| e.file_name().to_string_lossy().into_owned()).collect();
+        found.sort();
+        assert_eq!(found, names, "{d}");
+    }
+    for f in ["scenes/woodbox_a.json", "scenes/woodbox_b.json", "eval.json", "metrics.json", "metrics.md"] {
+        assert!(out.join(f).is_file(), "{f}");
+    }
+    let mj: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("metrics.json")).unwrap()).unwrap();
+    assert_eq!(mj["images"], 3);
+    assert_eq!(mj["scenes"]["null_in_index"], 1);
+    let r = &mj["methods"]["refined"];
+    assert!(r["psnr"].is_number() && r["ssim"].is_number(), "{r}");
+    assert!(r["lpips"].is_null() && r["dists"].is_null() && r["fid"].is_null(), "{r}");
+    assert!(mj["warnings"].as_array().unwrap().iter().any(|w| w.as_str().unwrap().starts_with("FID")));
+    let md = std::fs::read_to_string(out.join("metrics.md")).unwrap();
+    assert!(md.contains("| PSNR↑ | SSIM↑ | LPIPS↓ | DISTS↓ | FID↓ |") && md.contains("| woodbox_b | 2 |"), "{md}");
+
+    // Re-run: both scenes resumed, no image or record rewritten.
+    let before = mtimes(&out);
+    let o = eval_cmd(&empty, &data, &index, &m, &out).output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert!(err.contains("rendered 0, resumed 2"), "{err}");
+    assert_eq!(mtimes(&out), before);
+
+    // Other settings into the same folder: refused, naming --out and the difference.
+    let o = eval_cmd(&empty, &data, &index, &m, &out).args(["--seed", "3"]).output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(err.contains("--out") && err.contains("other settings") && err.contains("seed"), "{err}");
+}
+
+#[test]
+fn eval_bad_inputs_fail_before_any_work() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (data, empty, m, index) = setup(tmp.path());
+    let out = tmp.path().join("eval");
+    let cases: Vec<(Command, &str)> = vec![
+        (eval_cmd(&empty, &tmp.path().join("nope"), &index, &m, &out), "--data"),
+        (eval_cmd(&empty, &data, &tmp.path().join("nope.json"), &m, &out), "nope.json"),
+        ({ let mut c = eval_cmd(&empty, &data, &index, &m, &out); c.args(["--scenes", "woodbox_z"]); c }, "--scenes"),
+        ({ let mut c = eval_cmd(&empty, &data, &index, &m, &out); c.args(["--vae-chunk", "0"]); c }, "--vae-chunk"),
+    ];
+    for (mut c, what) in cases {
+        let o = c.output().unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(1), "{what}: {err}");
+        assert!(err.contains(what), "{what}: {err}");
+        assert!(!out.exists(), "{what}: wrote {}", out.display());
+    }
+}
+
+#[test]
+fn eval_index_matches_the_pipeline_generator() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (data, empty, _, _) = setup(tmp.path());
+    let out = tmp.path().join("idx/ctx2.json");
+    let o = bin(&empty).args(["eval-index", "--num-context", "2", "--num-target", "1", "--data"]).arg(&data).arg("--out").arg(&out).output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    // woodbox_b has only its 2 context views: null, with a warning.
+    assert!(err.lines().any(|l| l.starts_with("warning: scene woodbox_b")), "{err}");
+    assert!(err.contains("wrote 2 scenes (1 null) from 1 chunks"), "{err}");
+    let opts = mvsplat360_pipeline::eval::IndexOptions { num_context: 2, num_target: 1, view_selection_ratio: 1.0 };
+    let g = mvsplat360_pipeline::eval::generate_index(&data, &opts, &mvsplat360_pipeline::render::Silent).unwrap();
+    assert_eq!(std::fs::read_to_string(&out).unwrap(), mvsplat360_pipeline::eval::index_json(&g.entries));
+    let idx = mvsplat360_dataset::read_evaluation_index(&out).unwrap();
+    let a = idx["woodbox_a"].as_ref().unwrap();
+    assert_eq!((a.context.len(), a.target.len()), (2, 1));
+    assert!(idx["woodbox_b"].is_none());
+
+    // --n and --view-selection-ratio are the same setting; an empty folder names --data.
+    let o = bin(&empty).args(["eval-index", "--n", "150", "--view-selection-ratio", "0.5", "--data"]).arg(&data).arg("--out").arg(&out).output().unwrap();
+    assert_eq!(o.status.code(), Some(2));
+    let o = bin(&empty).args(["eval-index", "--data"]).arg(&empty).arg("--out").arg(tmp.path().join("x.json")).output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(err.contains("--data") && err.contains("no .torch chunks"), "{err}");
+    assert!(!tmp.path().join("x.json").exists());
+}
