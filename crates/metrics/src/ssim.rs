@@ -111,13 +111,12 @@ fn ssim_plane(a: &[f32], b: &[f32], h: usize, w: usize, g: &[f64; WIN_SIZE]) -> 
         for m in 0..MAPS {
             let src = &prod[m * w..(m + 1) * w];
             let dst = &mut out[m * wv..(m + 1) * wv];
-            for (j, d) in dst.iter_mut().enumerate() {
-                let win = &src[j..j + WIN_SIZE];
-                let mut s = 0.0;
-                for k in 0..WIN_SIZE {
-                    s += g[k] * win[k];
+            // Tap by tap over the whole row (vectorises across columns).
+            dst.fill(0.0);
+            for (k, &gk) in g.iter().enumerate() {
+                for (d, &v) in dst.iter_mut().zip(&src[k..k + wv]) {
+                    *d += gk * v;
                 }
-                *d = s;
             }
         }
     });
