@@ -279,7 +279,7 @@ pub fn refiner_safetensors(w: &RefinerWeights, note: &dyn Fn(&str)) -> Result<Pa
             }
             std::fs::create_dir_all(&dir).map_err(|e| PipelineError::Write { path: dir.clone(), msg: e.to_string() })?;
             note(&format!("converting the refiner of {} to safetensors (once) → {}", p.display(), out.display()));
-            crate::output::atomic_write(&out, |tmp| {
+            crate::output::atomic_write_ungated(&out, |tmp| {
                 mvsplat360_encoder::weights::convert_to_safetensors(p, tmp, "refiner.").map(|_| ()).map_err(|e| e.to_string())
             })?;
             Ok(out)

@@ -17,8 +17,25 @@ fn partial_name(path: &Path) -> PathBuf {
     PathBuf::from(s)
 }
 
+/// Held (shared) by every write in progress; an interrupt handler takes it exclusively, so that once it holds
+/// it no temporary file is being written or can appear (see [`stop_writes`]).
+static WRITE_GATE: std::sync::RwLock<()> = std::sync::RwLock::new(());
+
+/// Wait for the writes in progress to finish and keep new ones from starting (for as long as the returned
+/// guard lives; an interrupt handler cleans up and exits while holding it).
+pub fn stop_writes() -> std::sync::RwLockWriteGuard<'static, ()> {
+    WRITE_GATE.write().unwrap_or_else(|e| e.into_inner())
+}
+
 /// Write `path` through `write(tmp)` then rename; on failure the temporary file is removed.
 pub fn atomic_write(path: &Path, write: impl FnOnce(&Path) -> std::result::Result<(), String>) -> Result<()> {
+    let _gate = WRITE_GATE.read().unwrap_or_else(|e| e.into_inner());
+    atomic_write_ungated(path, write)
+}
+
+/// [`atomic_write`] outside the interrupt gate, for long writes outside the output folder (the converted-weights
+/// cache) that Ctrl-C should not wait for; a leftover `.partial` there is overwritten by the next conversion.
+pub fn atomic_write_ungated(path: &Path, write: impl FnOnce(&Path) -> std::result::Result<(), String>) -> Result<()> {
     let tmp = partial_name(path);
     if let Err(msg) = write(&tmp) {
         let _ = std::fs::remove_file(&tmp);

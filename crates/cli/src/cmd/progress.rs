@@ -77,6 +77,8 @@ pub fn clean_partials_on_interrupt(dir: &Path) {
         d.push(dir.to_path_buf());
     }
     let _ = ctrlc::set_handler(|| {
+        // Held until exit: the write in progress finishes (renamed into place) and no new one starts.
+        let _gate = mvsplat360_pipeline::output::stop_writes();
         if let Ok(d) = OUT_DIRS.lock() {
             for dir in d.iter() {
                 mvsplat360_pipeline::output::remove_partials(dir);
