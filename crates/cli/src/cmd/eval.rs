@@ -6,9 +6,8 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use mvsplat360_pipeline::eval::{EvalRequest, IndexOptions};
-use mvsplat360_pipeline::model::{ModelArgs, RefinerArg};
-use mvsplat360_pipeline::preprocess::InputSize;
-use mvsplat360_pipeline::render::RefineSettings;
+
+use super::views::{ModelFlags, RefineFlags};
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -30,46 +29,10 @@ pub struct Args {
     /// At most this many scenes (index order; scenes missing from the data count).
     #[arg(long)]
     pub limit: Option<usize>,
-    /// Model: an official MVSplat360 Lightning `.ckpt` (encoder + refiner, DL3DV config) or a model folder
-    /// (`config.json` + `model.safetensors`). Default: `assets/models/default/`.
-    #[arg(long)]
-    pub ckpt: Option<PathBuf>,
-    /// Encoder weights alone (safetensors / `.ckpt` with `encoder.*` keys, DL3DV config); needs `--refiner`.
-    #[arg(long)]
-    pub encoder: Option<PathBuf>,
-    /// `none` to score the 3DGS renders only, or a file with the refiner's weights.
-    #[arg(long)]
-    pub refiner: Option<RefinerArg>,
-    /// Data conventions for weights without a config (`dl3dv`, `re10k`).
-    #[arg(long)]
-    pub experiment: Option<String>,
-    /// Model input size WIDTHxHEIGHT or `native`. Default: the model's training size (the official protocol).
-    #[arg(long)]
-    pub size: Option<InputSize>,
-    /// Scene units → model units: `none` (official), `auto` or a factor.
-    #[arg(long, default_value = "none")]
-    pub scene_scale: mvsplat360_pipeline::scale::SceneScale,
-    /// Diffusion sampling steps (EDM Euler).
-    #[arg(long, default_value_t = 25)]
-    pub steps: usize,
-    /// Classifier-free guidance scale of a window's first frame.
-    #[arg(long, default_value_t = 1.0)]
-    pub guidance_min: f32,
-    /// Guidance scale of a window's last frame.
-    #[arg(long, default_value_t = 2.5)]
-    pub guidance_max: f32,
-    /// Seed of the initial noise (the same for every scene).
-    #[arg(long, default_value_t = 0)]
-    pub seed: u64,
-    /// Frames per refiner window (the official 14).
-    #[arg(long, default_value_t = 14)]
-    pub window: usize,
-    /// Refine all targets in one UNet call with temporal attention split into --window-sized groups.
-    #[arg(long)]
-    pub video_mode: bool,
-    /// Frames per VAE decode call (1 = official).
-    #[arg(long, default_value_t = 1)]
-    pub vae_chunk: usize,
+    #[command(flatten)]
+    pub model: ModelFlags,
+    #[command(flatten)]
+    pub refine: RefineFlags,
     /// Folder with the metric networks' weights (default: `$MVSPLAT360_METRIC_WEIGHTS`, then
     /// `~/.cache/mvsplat360/metric-weights`). Missing weights make that metric null, with a warning.
     #[arg(long)]
@@ -89,18 +52,10 @@ pub fn request(a: &Args) -> EvalRequest {
     EvalRequest {
         data: a.data.clone(),
         index: a.index.clone(),
-        model: ModelArgs { ckpt: a.ckpt.clone(), encoder: a.encoder.clone(), refiner: a.refiner.clone(), experiment: a.experiment.clone() },
-        size: a.size,
-        scene_scale: a.scene_scale,
-        refine: RefineSettings {
-            steps: a.steps,
-            guidance_min: a.guidance_min,
-            guidance_max: a.guidance_max,
-            seed: a.seed,
-            window: a.window,
-            video_mode: a.video_mode,
-            vae_chunk: a.vae_chunk,
-        },
+        model: a.model.model_args(),
+        size: a.model.size,
+        scene_scale: a.model.scene_scale,
+        refine: a.refine.settings(),
         weights_dir: a.weights_dir.clone(),
         lpips: !a.no_lpips,
         dists: !a.no_dists,

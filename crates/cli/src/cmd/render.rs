@@ -3,12 +3,10 @@
 use std::path::PathBuf;
 
 use anyhow::Context;
-use mvsplat360_pipeline::model::{ModelArgs, RefinerArg};
-use mvsplat360_pipeline::preprocess::InputSize;
-use mvsplat360_pipeline::render::{RefineSettings, RenderRequest};
+use mvsplat360_pipeline::render::RenderRequest;
 use mvsplat360_pipeline::views::TargetSpec;
 
-use super::views::{view_list, ContextArgs, ViewList};
+use super::views::{view_list, ContextArgs, ModelFlags, RefineFlags, ViewList};
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -30,51 +28,10 @@ pub struct Args {
     /// A smoothed video along the scene's own camera path, this many frames.
     #[arg(long)]
     pub path: Option<usize>,
-    /// Model: an official MVSplat360 Lightning `.ckpt` (encoder + refiner, DL3DV config) or a model folder
-    /// (`config.json` + `model.safetensors`). Default: `assets/models/default/`.
-    #[arg(long)]
-    pub ckpt: Option<PathBuf>,
-    /// Encoder weights alone (safetensors / `.ckpt` with `encoder.*` keys, DL3DV config); needs `--refiner`.
-    #[arg(long)]
-    pub encoder: Option<PathBuf>,
-    /// `none` for the 3DGS-only result, or a file with the refiner's weights (an official `.ckpt`, its
-    /// safetensors copy, or Stability's `svd.safetensors`).
-    #[arg(long)]
-    pub refiner: Option<RefinerArg>,
-    /// Data conventions for weights without a config (`dl3dv`: 448×256, `re10k`: 256×256, all-view cost volume).
-    #[arg(long)]
-    pub experiment: Option<String>,
-    /// Model input size WIDTHxHEIGHT (photos are scaled to cover it and centre-cropped) or `native`.
-    /// Default: the model's training size.
-    #[arg(long)]
-    pub size: Option<InputSize>,
-    /// Scene units → model units: `none` (the official behaviour: the model expects content 1–100 units away),
-    /// `auto` (median camera distance to the looked-at point becomes 10) or a factor. See docs/cameras.md.
-    #[arg(long, default_value = "none")]
-    pub scene_scale: mvsplat360_pipeline::scale::SceneScale,
-    /// Diffusion sampling steps (EDM Euler).
-    #[arg(long, default_value_t = 25)]
-    pub steps: usize,
-    /// Classifier-free guidance scale of a window's first frame (linear ramp to --guidance-max).
-    #[arg(long, default_value_t = 1.0)]
-    pub guidance_min: f32,
-    /// Guidance scale of a window's last frame.
-    #[arg(long, default_value_t = 2.5)]
-    pub guidance_max: f32,
-    /// Seed of the initial noise (drawn once, reused for every window).
-    #[arg(long, default_value_t = 0)]
-    pub seed: u64,
-    /// Frames per refiner window (a short last window is padded by repeating its last frame).
-    #[arg(long, default_value_t = 14)]
-    pub window: usize,
-    /// Refine all frames in one UNet call with temporal attention split into --window-sized groups (the
-    /// official video mode; more memory).
-    #[arg(long)]
-    pub video_mode: bool,
-    /// Frames per VAE decode call. 1 = the official setting; larger is faster but the temporal decoder then
-    /// mixes neighbouring frames, which changes the output slightly.
-    #[arg(long, default_value_t = 1)]
-    pub vae_chunk: usize,
+    #[command(flatten)]
+    pub model: ModelFlags,
+    #[command(flatten)]
+    pub refine: RefineFlags,
     /// Also write `gaussians.splat` (antimatter15 format).
     #[arg(long)]
     pub splat: bool,
@@ -111,18 +68,10 @@ pub fn request(a: &Args) -> RenderRequest {
         scene_key: a.views.scene_key.clone(),
         context: a.views.spec(),
         targets,
-        model: ModelArgs { ckpt: a.ckpt.clone(), encoder: a.encoder.clone(), refiner: a.refiner.clone(), experiment: a.experiment.clone() },
-        size: a.size,
-        scene_scale: a.scene_scale,
-        refine: RefineSettings {
-            steps: a.steps,
-            guidance_min: a.guidance_min,
-            guidance_max: a.guidance_max,
-            seed: a.seed,
-            window: a.window,
-            video_mode: a.video_mode,
-            vae_chunk: a.vae_chunk,
-        },
+        model: a.model.model_args(),
+        size: a.model.size,
+        scene_scale: a.model.scene_scale,
+        refine: a.refine.settings(),
         splat: a.splat,
         metrics: !a.no_metrics,
         weights_dir: a.weights_dir.clone(),

@@ -1,7 +1,12 @@
-//! Flags shared by `render`, `export` and `inspect`: which views are context, where the scene is.
+//! Flags shared by several commands: which views are context (`render`, `export`, `inspect`), which model and
+//! refiner settings (`render`, `eval`).
 
 use std::path::PathBuf;
 
+use mvsplat360_pipeline::model::{ModelArgs, RefinerArg};
+use mvsplat360_pipeline::preprocess::InputSize;
+use mvsplat360_pipeline::render::RefineSettings;
+use mvsplat360_pipeline::scale::SceneScale;
 use mvsplat360_pipeline::views::{parse_list, ContextSpec};
 
 /// A comma-separated list of view indices (one clap value, so clap does not treat it as repeated values).
@@ -37,6 +42,82 @@ impl ContextArgs {
             ContextSpec::Index { file: f.clone(), scene_key: self.scene_key.clone() }
         } else {
             ContextSpec::Count(self.num_context)
+        }
+    }
+}
+
+/// Which weights, and how a scene is fed to them (`render`, `eval`).
+#[derive(clap::Args, Debug, Clone)]
+pub struct ModelFlags {
+    /// Model: an official MVSplat360 Lightning `.ckpt` (encoder + refiner, DL3DV config) or a model folder
+    /// (`config.json` + `model.safetensors`). Default: `assets/models/default/`.
+    #[arg(long)]
+    pub ckpt: Option<PathBuf>,
+    /// Encoder weights alone (safetensors / `.ckpt` with `encoder.*` keys, DL3DV config); needs `--refiner`.
+    #[arg(long)]
+    pub encoder: Option<PathBuf>,
+    /// `none` for the 3DGS-only result, or a file with the refiner's weights (an official `.ckpt`, its
+    /// safetensors copy, or Stability's `svd.safetensors`).
+    #[arg(long)]
+    pub refiner: Option<RefinerArg>,
+    /// Data conventions for weights without a config (`dl3dv`: 480×270 → 448×256, `re10k`: 320×180 → 320×176,
+    /// all-view cost volume).
+    #[arg(long)]
+    pub experiment: Option<String>,
+    /// Size WIDTHxHEIGHT the photos are scaled to cover and centre-cropped to (then cropped to the encoder's size
+    /// multiple), or `native`. Default: the model's training size.
+    #[arg(long)]
+    pub size: Option<InputSize>,
+    /// Scene units → model units: `none` (the official behaviour: the model expects content 1–100 units away),
+    /// `auto` (median camera distance to the looked-at point becomes 10) or a factor. See docs/cameras.md.
+    #[arg(long, default_value = "none")]
+    pub scene_scale: SceneScale,
+}
+
+impl ModelFlags {
+    pub fn model_args(&self) -> ModelArgs {
+        ModelArgs { ckpt: self.ckpt.clone(), encoder: self.encoder.clone(), refiner: self.refiner.clone(), experiment: self.experiment.clone() }
+    }
+}
+
+/// Refiner sampling settings (`render`, `eval`); defaults = the official DL3DV evaluation.
+#[derive(clap::Args, Debug, Clone)]
+pub struct RefineFlags {
+    /// Diffusion sampling steps (EDM Euler).
+    #[arg(long, default_value_t = 25)]
+    pub steps: usize,
+    /// Classifier-free guidance scale of a window's first frame (linear ramp to --guidance-max).
+    #[arg(long, default_value_t = 1.0)]
+    pub guidance_min: f32,
+    /// Guidance scale of a window's last frame.
+    #[arg(long, default_value_t = 2.5)]
+    pub guidance_max: f32,
+    /// Seed of the initial noise (drawn once, reused for every window and scene).
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Frames per refiner window (a short last window is padded by repeating its last frame).
+    #[arg(long, default_value_t = 14)]
+    pub window: usize,
+    /// Refine all frames in one UNet call with temporal attention split into --window-sized groups (the
+    /// official video mode; more memory).
+    #[arg(long)]
+    pub video_mode: bool,
+    /// Frames per VAE decode call. 1 = the official setting; larger is faster but the temporal decoder then
+    /// mixes neighbouring frames, which changes the output slightly.
+    #[arg(long, default_value_t = 1)]
+    pub vae_chunk: usize,
+}
+
+impl RefineFlags {
+    pub fn settings(&self) -> RefineSettings {
+        RefineSettings {
+            steps: self.steps,
+            guidance_min: self.guidance_min,
+            guidance_max: self.guidance_max,
+            seed: self.seed,
+            window: self.window,
+            video_mode: self.video_mode,
+            vae_chunk: self.vae_chunk,
         }
     }
 }
