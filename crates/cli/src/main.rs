@@ -16,6 +16,8 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
+    /// Render the bundled scene with the shipped model: a 360° video, frames and Gaussians in out/demo.
+    Demo(cmd::demo::Args),
     /// Summarise a scene: views, image size, intrinsics, camera centres, baseline, suggested context views.
     Inspect(cmd::inspect::Args),
     /// Posed photos in → Gaussians, 3DGS and refined novel views, videos, cameras (the main job).
@@ -33,6 +35,8 @@ enum Command {
     Metrics(cmd::metrics::Args),
     /// Convert pretrained weights shipped by registry packages (the metrics' networks) to safetensors.
     Weights(cmd::weights::Args),
+    /// Train the model (encoder: MSE + LPIPS on 3DGS renders) from a TOML config, with checkpoints and --resume.
+    Train(cmd::train::Args),
     /// Benchmarks printing one JSON line each (median of repeated runs after a warm-up).
     Bench(cmd::bench::Args),
 }
@@ -48,6 +52,8 @@ fn main() {
     mvsplat360_pipeline::setup::init_process();
     let cli = Cli::parse();
     let result = match cli.command {
+        Command::Demo(a) => cmd::demo::run(a, cli.quiet),
+        Command::Train(a) => cmd::train::run(a, cli.quiet),
         Command::Inspect(a) => cmd::inspect::run(a),
         Command::Render(a) => cmd::render::run(a, cli.quiet),
         Command::Export(a) => cmd::export::run(a, cli.quiet),

@@ -295,9 +295,85 @@ pub fn attention_raw(
     });
 }
 
-/// True when the fast CPU kernels apply.
+thread_local! {
+    static DIFFERENTIABLE: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
+}
+
+/// Switch this thread's differentiable mode (returns the previous setting). While on, every fast kernel of
+/// the refiner (UNet, VAE, CLIP) takes its composed candle-op path, so the forward records a backward graph
+/// (inputs and `Var` weights receive gradients); off (the default) is the inference fast path, unchanged.
+/// Thread-local: the model calls made from this thread are affected, other threads are not.
+pub fn set_differentiable(on: bool) -> bool {
+    DIFFERENTIABLE.with(|d| d.replace(on))
+}
+
+/// Whether differentiable mode is on for this thread (see [`set_differentiable`]).
+pub fn is_differentiable() -> bool {
+    DIFFERENTIABLE.with(|d| d.get())
+}
+
+/// Differentiable mode for a scope: on while the guard lives, then back to the previous setting.
+#[must_use = "differentiable mode ends when the guard is dropped"]
+pub struct DifferentiableGuard(bool);
+
+/// Turn differentiable mode on until the returned guard is dropped.
+pub fn differentiable() -> DifferentiableGuard {
+    DifferentiableGuard(set_differentiable(true))
+}
+
+impl Drop for DifferentiableGuard {
+    fn drop(&mut self) {
+        set_differentiable(self.0);
+    }
+}
+
+/// True when the fast CPU kernels apply: a CPU f32 tensor outside differentiable mode.
 pub fn is_cpu_f32(t: &Tensor) -> bool {
-    t.device().is_cpu() && t.dtype() == DType::F32
+    t.device().is_cpu() && t.dtype() == DType::F32 && !is_differentiable()
+}
+
+/// Softmax over the last dim from ops that all record a backward (`candle_nn::ops::softmax_last_dim`
+/// records none in candle 0.11.1); the row max is subtracted as a constant.
+pub fn softmax_last_dim_differentiable(x: &Tensor) -> Result<Tensor> {
+    let m = x.max_keepdim(candle_core::D::Minus1)?.detach();
+    let e = x.broadcast_sub(&m)?.exp()?;
+    e.broadcast_div(&e.sum_keepdim(candle_core::D::Minus1)?)
+}
+
+/// Conv2d (groups 1) followed by `residual + scale·(conv + bias + item_bias)` on an optionally nearest-×2
+/// upsampled input: the fused inference kernel normally, differentiable ops in differentiable mode.
+pub fn conv2d_epilogue(
+    x: &Tensor,
+    w: &Tensor,
+    bias: Option<&Tensor>,
+    cfg: mvsplat360_nn::Conv2dConfig,
+    epi: mvsplat360_nn::ConvEpilogue,
+) -> Result<Tensor> {
+    if !is_differentiable() {
+        if cfg.stride == 1 || epi.item_bias.is_some() || epi.residual.is_some() || epi.upsample2x {
+            return mvsplat360_nn::conv2d_fused(x, w, bias, cfg, epi);
+        }
+        return mvsplat360_nn::conv2d(x, w, bias, cfg);
+    }
+    let x = if epi.upsample2x {
+        let (_, _, h, wd) = x.dims4()?;
+        x.upsample_nearest2d(2 * h, 2 * wd)?
+    } else {
+        x.clone()
+    };
+    // `mvsplat360_nn::conv2d`: shifted gemm / im2col custom ops with backward, or candle's conv2d.
+    let mut y = mvsplat360_nn::conv2d(&x, w, bias, cfg)?;
+    if let Some(ib) = epi.item_bias {
+        let (n, co, _, _) = y.dims4()?;
+        y = y.broadcast_add(&ib.reshape((n, co, 1, 1))?)?;
+    }
+    if let Some(k) = epi.scale {
+        y = (y * k as f64)?;
+    }
+    if let Some(r) = epi.residual {
+        y = (y + r)?;
+    }
+    Ok(y)
 }
 
 /// Run `f` on the contiguous f32 data of a CPU tensor (no copy when already contiguous).

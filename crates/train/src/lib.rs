@@ -1,1 +1,18 @@
-//! mvsplat360 train stage.
+//! Training: losses, optimizer + one-cycle schedule, the official view sampler, data (chunks, procedural and
+//! POV-Ray scenes), checkpoints and the loop behind `mvsplat360 train`.
+
+pub mod checkpoint;
+pub mod config;
+pub mod data;
+pub mod error;
+pub mod init;
+pub mod log;
+pub mod loss;
+pub mod optim;
+pub mod sampler;
+pub mod scenes;
+pub mod trainer;
+
+pub use config::TrainConfig;
+pub use error::{Result, TrainError};
+pub use trainer::{run, Monitor, Quiet, RunOptions, StepRecord, Summary};

@@ -1,10 +1,12 @@
 pub mod bench;
 pub mod convert;
+pub mod demo;
 pub mod eval;
 pub mod export;
 pub mod inspect;
 pub mod metrics;
 pub mod progress;
 pub mod render;
+pub mod train;
 pub mod views;
 pub mod weights;

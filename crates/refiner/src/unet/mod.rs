@@ -213,4 +213,14 @@ impl VideoUNet {
         let w = Weights::random(seed, device);
         Ok(VideoUNet::new(cfg, &w)?)
     }
+
+    /// Seeded random weights handed out as `Var`s (gradient tests), with the `Var`s by sgm name; the same
+    /// values as [`Self::random`] with that seed. For a file: `Weights::from_file(..)?.trainable()`,
+    /// [`VideoUNet::new`], [`Weights::take_vars`], [`Weights::finish`].
+    pub fn random_trainable(cfg: &VideoUNetConfig, seed: u64, device: &Device) -> Result<(Self, Vec<(String, candle_core::Var)>), UNetError> {
+        cfg.validate()?;
+        let w = Weights::random(seed, device).trainable();
+        let model = VideoUNet::new(cfg, &w)?;
+        Ok((model, w.take_vars()))
+    }
 }

@@ -1,5 +1,6 @@
 //! Numeric building blocks shared by the VideoUNet (sgm `diffusionmodules/util.py`, `attention.py`).
-//! Inference-only: fused candle ops (softmax, layer_norm) are fine here.
+//! CPU f32 fast paths build their outputs directly (no autograd graph); in the kernels' differentiable
+//! mode ([`crate::kernels::set_differentiable`]) every function here uses composed candle ops instead.
 
 use candle_core::{DType, Device, Result, Tensor, D};
 use rayon::prelude::*;
@@ -89,7 +90,7 @@ pub fn layer_norm(x: &Tensor, weight: &Tensor, bias: &Tensor, eps: f64) -> Resul
     let _p = crate::prof::scope("layer_norm");
     let dims = x.dims().to_vec();
     let c = *dims.last().unwrap_or(&1);
-    if x.device().is_cpu() && x.dtype() == DType::F32 {
+    if crate::kernels::is_cpu_f32(x) {
         let w = weight.to_vec1::<f32>()?;
         let b = bias.to_vec1::<f32>()?;
         let mut out = vec![0f32; x.elem_count()];
@@ -124,7 +125,7 @@ pub fn group_norm(
     }
     let cg = c / groups;
     let bn = n / frames;
-    if x.device().is_cpu() && x.dtype() == DType::F32 {
+    if crate::kernels::is_cpu_f32(x) {
         let w = weight.to_vec1::<f32>()?;
         let b = bias.to_vec1::<f32>()?;
         let mut out = vec![0f32; x.elem_count()];
@@ -248,8 +249,15 @@ pub fn attention(q: &Tensor, k: &Tensor, v: &Tensor, heads: usize, max_score_ele
     let kt = k.transpose(1, 2)?;
     let nb = n * heads;
     let per_bh = lq * lk;
+    let softmax = |s: &Tensor| -> Result<Tensor> {
+        if crate::kernels::is_differentiable() {
+            crate::kernels::softmax_last_dim_differentiable(s)
+        } else {
+            candle_nn::ops::softmax_last_dim(s)
+        }
+    };
     let out = if nb * per_bh <= max_score_elems {
-        let s = candle_nn::ops::softmax_last_dim(&q.matmul(&kt)?)?;
+        let s = softmax(&q.matmul(&kt)?)?;
         s.matmul(&v)?
     } else if per_bh <= max_score_elems {
         let bs = (max_score_elems / per_bh).max(1);
@@ -257,7 +265,7 @@ pub fn attention(q: &Tensor, k: &Tensor, v: &Tensor, heads: usize, max_score_ele
         let mut i = 0;
         while i < nb {
             let m = bs.min(nb - i);
-            let s = candle_nn::ops::softmax_last_dim(&q.narrow(0, i, m)?.matmul(&kt.narrow(0, i, m)?)?)?;
+            let s = softmax(&q.narrow(0, i, m)?.matmul(&kt.narrow(0, i, m)?)?)?;
             parts.push(s.matmul(&v.narrow(0, i, m)?)?);
             i += m;
         }
@@ -271,7 +279,7 @@ pub fn attention(q: &Tensor, k: &Tensor, v: &Tensor, heads: usize, max_score_ele
             let mut j = 0;
             while j < lq {
                 let m = qb.min(lq - j);
-                let s = candle_nn::ops::softmax_last_dim(&qh.narrow(1, j, m)?.matmul(&kh)?)?;
+                let s = softmax(&qh.narrow(1, j, m)?.matmul(&kh)?)?;
                 parts.push(s.matmul(&vh)?);
                 j += m;
             }
@@ -287,6 +295,15 @@ pub fn sigmoid_scalar(t: &Tensor) -> Result<f64> {
     let v = t.flatten_all()?.to_dtype(DType::F64)?.to_vec1::<f64>()?;
     let m = v.first().copied().unwrap_or(0.0);
     Ok(1.0 / (1.0 + (-m).exp()))
+}
+
+/// sgm `AlphaBlender` (`learned_with_images`, image_only_indicator = 0) from ops with a backward:
+/// `alpha·a + (1 − alpha)·b`, alpha = sigmoid(mix) as a tensor (mix: 1 element), so `mix` gets a gradient.
+pub fn blend_learned(a: &Tensor, b: &Tensor, mix: &Tensor) -> Result<Tensor> {
+    let m = mix.flatten_all()?.to_dtype(a.dtype())?.reshape(())?;
+    let alpha = (m.neg()?.exp()? + 1.0)?.recip()?;
+    let one_minus = alpha.affine(-1.0, 1.0)?;
+    a.broadcast_mul(&alpha)?.add(&b.broadcast_mul(&one_minus)?)
 }
 
 /// `alpha·a + (1−alpha)·b`.

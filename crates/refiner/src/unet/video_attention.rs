@@ -3,7 +3,7 @@
 
 use candle_core::{Result, Tensor};
 
-use super::util::{attention, sigmoid_scalar, timestep_embedding, Linear, Norm};
+use super::util::{attention, blend_learned, sigmoid_scalar, timestep_embedding, Linear, Norm};
 use crate::kernels::{self, AttnOperand, SeqLayout};
 use super::weights::Weights;
 
@@ -267,6 +267,8 @@ pub struct SpatialVideoTransformer {
     time_stack: Vec<VideoTransformerBlock>,
     time_pos_embed: (Linear, Linear),
     alpha: f64,
+    /// `time_mixer.mix_factor`: alpha as a tensor in differentiable mode.
+    mix: Tensor,
     channels: usize,
     max_period: f32,
 }
@@ -281,20 +283,16 @@ impl SpatialVideoTransformer {
             blocks.push(BasicTransformerBlock::load(w, &format!("{p}.transformer_blocks.{d}"), inner, heads, d_head, ctx)?);
             time_stack.push(VideoTransformerBlock::load(w, &format!("{p}.time_stack.{d}"), inner, heads, d_head, ctx)?);
         }
-        Ok(Self {
-            norm: norm(w, &format!("{p}.norm"), ch, 1e-6)?,
-            proj_in: linear(w, &format!("{p}.proj_in"), ch, inner, true)?,
-            proj_out: linear(w, &format!("{p}.proj_out"), inner, ch, true)?,
-            blocks,
-            time_stack,
-            time_pos_embed: (
-                linear(w, &format!("{p}.time_pos_embed.0"), ch, ch * 4, true)?,
-                linear(w, &format!("{p}.time_pos_embed.2"), ch * 4, ch, true)?,
-            ),
-            alpha: sigmoid_scalar(&w.get(&format!("{p}.time_mixer.mix_factor"), &[1])?)?,
-            channels: ch,
-            max_period,
-        })
+        // Weights are requested in this order (seeded random weights depend on it).
+        let norm = norm(w, &format!("{p}.norm"), ch, 1e-6)?;
+        let proj_in = linear(w, &format!("{p}.proj_in"), ch, inner, true)?;
+        let proj_out = linear(w, &format!("{p}.proj_out"), inner, ch, true)?;
+        let time_pos_embed = (
+            linear(w, &format!("{p}.time_pos_embed.0"), ch, ch * 4, true)?,
+            linear(w, &format!("{p}.time_pos_embed.2"), ch * 4, ch, true)?,
+        );
+        let mix = w.get(&format!("{p}.time_mixer.mix_factor"), &[1])?;
+        Ok(Self { norm, proj_in, proj_out, blocks, time_stack, time_pos_embed, alpha: sigmoid_scalar(&mix)?, mix, channels: ch, max_period })
     }
 
     /// x: (B·T, C, H, W); context: (B·T, Lc, D).
@@ -313,6 +311,11 @@ impl SpatialVideoTransformer {
         for (block, mix) in self.blocks.iter().zip(&self.time_stack) {
             h = block.forward(&h, context, max_elems)?;
             let hm = h.broadcast_add(&emb)?;
+            if kernels::is_differentiable() {
+                let t = mix.forward(&hm, &time_context, frames, splits, max_elems, (&h, 0.0))?;
+                h = blend_learned(&h, &t, &self.mix)?;
+                continue;
+            }
             // AlphaBlender: alpha·spatial + (1 − alpha)·temporal, folded into the temporal block's last gemm.
             h = mix.forward(&hm, &time_context, frames, splits, max_elems, (&h, self.alpha as f32))?;
         }

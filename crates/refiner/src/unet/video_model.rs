@@ -1,11 +1,11 @@
 //! sgm `video_model.py`: `VideoResBlock` and `VideoUNet` (input_blocks / middle_block / output_blocks / out).
 
 use candle_core::{Result, Tensor};
-use mvsplat360_nn::conv::{conv2d, conv2d_fused, Conv2dConfig, ConvEpilogue};
+use mvsplat360_nn::conv::{Conv2dConfig, ConvEpilogue};
 
 use crate::kernels;
 
-use super::util::{sigmoid_scalar, timestep_embedding, Linear, Norm};
+use super::util::{blend_learned, sigmoid_scalar, timestep_embedding, Linear, Norm};
 use super::video_attention::{linear, norm, SpatialVideoTransformer};
 use super::weights::Weights;
 use super::VideoUNetConfig;
@@ -32,32 +32,42 @@ impl Conv {
 
     fn forward_fused(&self, x: &Tensor, epi: ConvEpilogue) -> Result<Tensor> {
         let _p = crate::prof::scope(if self.cfg.stride == 1 { "unet.conv" } else { "unet.conv_stride2" });
-        if self.cfg.stride == 1 || epi.item_bias.is_some() || epi.residual.is_some() || epi.upsample2x {
-            conv2d_fused(x, &self.w, Some(&self.b), self.cfg, epi)
-        } else {
-            conv2d(x, &self.w, Some(&self.b), self.cfg)
-        }
+        kernels::conv2d_epilogue(x, &self.w, Some(&self.b), self.cfg, epi)
     }
 }
 
 /// Conv3d with kernel (kt, 1, 1), padding (kt/2, 0, 0) on (B·T, C, H, W), see [`kernels::temporal_conv`].
 #[derive(Debug)]
 struct TemporalConv {
-    w: Tensor, // (Cout, kt·Cin), tap-major columns
+    /// (Cout, kt·Cin), tap-major columns; for trainable weights the stored (Cout, Cin, kt, 1, 1) `Var`
+    /// instead, rearranged at every call so updates of the `Var` are seen.
+    w: Tensor,
+    trainable: bool,
     b: Tensor,
     kt: usize,
 }
 
+fn tap_major(w5: &Tensor, o: usize, i: usize, kt: usize) -> Result<Tensor> {
+    w5.reshape((o, i, kt))?.transpose(1, 2)?.contiguous()?.reshape((o, kt * i))
+}
+
 impl TemporalConv {
     fn load(w: &Weights, p: &str, i: usize, o: usize, kt: usize) -> Result<Self> {
-        let wt = w.get(&format!("{p}.weight"), &[o, i, kt, 1, 1])?;
-        let wt = wt.reshape((o, i, kt))?.transpose(1, 2)?.contiguous()?.reshape((o, kt * i))?;
-        Ok(Self { w: wt, b: w.get(&format!("{p}.bias"), &[o])?, kt })
+        let w5 = w.get(&format!("{p}.weight"), &[o, i, kt, 1, 1])?;
+        let trainable = w.is_trainable();
+        let wt = if trainable { w5 } else { tap_major(&w5, o, i, kt)? };
+        Ok(Self { w: wt, trainable, b: w.get(&format!("{p}.bias"), &[o])?, kt })
     }
 
     fn forward(&self, x: &Tensor, frames: usize, epi: ConvEpilogue) -> Result<Tensor> {
         let _p = crate::prof::scope("unet.temporal_conv");
-        kernels::temporal_conv(x, &self.w, &self.b, self.kt, frames, epi.item_bias, epi.residual, epi.scale.unwrap_or(1.0))
+        let w = if self.trainable {
+            let (o, i) = (self.w.dim(0)?, self.w.dim(1)?);
+            tap_major(&self.w, o, i, self.kt)?
+        } else {
+            self.w.clone()
+        };
+        kernels::temporal_conv(x, &w, &self.b, self.kt, frames, epi.item_bias, epi.residual, epi.scale.unwrap_or(1.0))
     }
 }
 
@@ -131,21 +141,28 @@ pub struct VideoResBlock {
     spatial: ResBlock,
     time_stack: ResBlock,
     alpha: f64,
+    /// `time_mixer.mix_factor` (1 element): alpha = sigmoid(mix) is recomputed from it in differentiable mode.
+    mix: Tensor,
 }
 
 impl VideoResBlock {
     fn load(w: &Weights, p: &str, i: usize, o: usize, cfg: &VideoUNetConfig, eps: f64) -> Result<Self> {
         let emb = cfg.model_channels * 4;
-        Ok(Self {
-            spatial: ResBlock::load(w, p, i, o, emb, eps, None)?,
-            time_stack: ResBlock::load(w, &format!("{p}.time_stack"), o, o, emb, eps, Some(cfg.video_kernel_size[0]))?,
-            alpha: sigmoid_scalar(&w.get(&format!("{p}.time_mixer.mix_factor"), &[1])?)?,
-        })
+        // Weights are requested in this order (seeded random weights depend on it).
+        let spatial = ResBlock::load(w, p, i, o, emb, eps, None)?;
+        let time_stack = ResBlock::load(w, &format!("{p}.time_stack"), o, o, emb, eps, Some(cfg.video_kernel_size[0]))?;
+        let mix = w.get(&format!("{p}.time_mixer.mix_factor"), &[1])?;
+        Ok(Self { spatial, time_stack, alpha: sigmoid_scalar(&mix)?, mix })
     }
 
     /// alpha·xs + (1−alpha)·(xs + h_t) = xs + (1−alpha)·h_t, folded into the temporal block's last conv.
     fn forward(&self, x: &Tensor, emb_act: &Tensor, frames: usize) -> Result<Tensor> {
         let xs = self.spatial.forward(x, emb_act, frames, None)?;
+        if kernels::is_differentiable() {
+            // time_stack returns xs + h_t (identity skip): alpha·xs + (1 − alpha)·(xs + h_t), alpha a tensor.
+            let xt = self.time_stack.forward(&xs, emb_act, frames, None)?;
+            return blend_learned(&xs, &xt, &self.mix);
+        }
         self.time_stack.forward(&xs, emb_act, frames, Some((1.0 - self.alpha) as f32))
     }
 }

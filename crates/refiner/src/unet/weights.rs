@@ -6,7 +6,7 @@ use std::collections::{BTreeSet, HashMap};
 use std::path::{Path, PathBuf};
 
 use candle_core::safetensors::MmapedSafetensors;
-use candle_core::{DType, Device, Result, Tensor};
+use candle_core::{DType, Device, Result, Tensor, Var};
 use rayon::prelude::*;
 
 use super::{UNetError, VideoUNetConfig};
@@ -56,6 +56,9 @@ pub struct Weights {
     counter: RefCell<u64>,
     /// Random mode: every tensor handed out, by sgm name (to save a random model as a state dict).
     recorded: RefCell<Vec<(String, Tensor)>>,
+    /// Trainable mode: every tensor is handed out as a `Var` (listed here by sgm name).
+    trainable: bool,
+    vars: RefCell<Vec<(String, Var)>>,
 }
 
 impl Weights {
@@ -112,7 +115,36 @@ impl Weights {
             unexpected,
             counter: RefCell::new(0),
             recorded: RefCell::new(Vec::new()),
+            trainable: false,
+            vars: RefCell::new(Vec::new()),
         }
+    }
+
+    /// Hand every tensor out as a (copied) `Var`, so that a forward in the kernels' differentiable mode
+    /// ([`crate::kernels::set_differentiable`]) gives the weights gradients; [`Self::take_vars`] lists them.
+    /// Costs one copy of the weights; the model rearranges its temporal-conv weights at every call then.
+    pub fn trainable(mut self) -> Self {
+        self.trainable = true;
+        self
+    }
+
+    pub fn is_trainable(&self) -> bool {
+        self.trainable
+    }
+
+    /// The `Var`s handed out so far in trainable mode, by sgm name.
+    pub fn take_vars(&self) -> Vec<(String, Var)> {
+        std::mem::take(&mut *self.vars.borrow_mut())
+    }
+
+    fn hand_out(&self, name: &str, t: Tensor) -> Result<Tensor> {
+        if !self.trainable {
+            return Ok(t);
+        }
+        let v = Var::from_tensor(&t)?;
+        let out = v.as_tensor().clone();
+        self.vars.borrow_mut().push((name.to_string(), v));
+        Ok(out)
     }
 
     /// Tensor `name` (sgm name, no prefix) as f32 with the expected shape. Missing or wrongly shaped
@@ -124,7 +156,7 @@ impl Weights {
                 *c += 1;
                 let t = random_tensor(name, shape, seed.wrapping_mul(0x9E37_79B9_7F4A_7C15).wrapping_add(*c), &self.device)?;
                 self.recorded.borrow_mut().push((name.to_string(), t.clone()));
-                Ok(t)
+                self.hand_out(name, t)
             }
             Source::File { st, map, .. } => {
                 let Some(stored) = map.get(name) else {
@@ -145,7 +177,7 @@ impl Weights {
                 if t.dtype() != DType::F32 {
                     t = t.to_dtype(DType::F32)?;
                 }
-                Ok(t)
+                self.hand_out(name, t)
             }
         }
     }

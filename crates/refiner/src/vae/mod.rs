@@ -237,6 +237,14 @@ impl AutoencoderKL {
         Ok(Self::build(&StrictWeights::random(seed, "VAE", device), cfg)?)
     }
 
+    /// Seeded random weights handed out as `Var`s (gradient tests), with the `Var`s by model name.
+    pub fn random_trainable(cfg: &AutoencoderConfig, seed: u64, device: &Device) -> Result<(Self, Vec<(String, candle_core::Var)>), VaeError> {
+        cfg.validate().map_err(|msg| VaeError::Config { path: PathBuf::from("<AutoencoderConfig>"), msg })?;
+        let w = StrictWeights::random(seed, "VAE", device).trainable();
+        let model = Self::build(&w, cfg)?;
+        Ok((model, w.take_vars()))
+    }
+
     /// Build from any weight source (crate-internal: random state dicts).
     pub(crate) fn build_with(w: &StrictWeights, cfg: &AutoencoderConfig) -> candle_core::Result<Self> {
         Self::build(w, cfg)

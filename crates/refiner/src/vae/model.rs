@@ -1,8 +1,8 @@
 //! sgm `diffusionmodules/model.py`: `ResnetBlock`, `AttnBlock`, `Downsample`, `Upsample`, `Encoder`.
-//! Inference only (fused candle ops are fine).
+//! Fast inference kernels by default; composed differentiable ops in the kernels' differentiable mode.
 
 use candle_core::{Result, Tensor};
-use mvsplat360_nn::conv::{conv2d, conv2d_fused, Conv2dConfig, ConvEpilogue};
+use mvsplat360_nn::conv::{Conv2dConfig, ConvEpilogue};
 
 use super::weights::StrictWeights;
 use super::AutoencoderConfig;
@@ -33,11 +33,7 @@ impl Conv {
 
     pub fn forward_fused(&self, x: &Tensor, epi: ConvEpilogue) -> Result<Tensor> {
         let _p = crate::prof::scope(if self.cfg.stride == 1 { "vae.conv" } else { "vae.conv_stride2" });
-        if self.cfg.stride == 1 || epi.residual.is_some() || epi.upsample2x {
-            conv2d_fused(x, &self.w, Some(&self.b), self.cfg, epi)
-        } else {
-            conv2d(x, &self.w, Some(&self.b), self.cfg)
-        }
+        crate::kernels::conv2d_epilogue(x, &self.w, Some(&self.b), self.cfg, epi)
     }
 }
 

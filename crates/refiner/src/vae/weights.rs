@@ -10,7 +10,7 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 
 use candle_core::safetensors::MmapedSafetensors;
-use candle_core::{DType, Device, Tensor};
+use candle_core::{DType, Device, Tensor, Var};
 
 #[derive(Debug, thiserror::Error)]
 pub enum WeightsError {
@@ -59,6 +59,9 @@ pub struct StrictWeights {
     missing: RefCell<Vec<String>>,
     mismatched: RefCell<Vec<String>>,
     device: Device,
+    /// Trainable mode: every tensor is handed out as a `Var` (listed here by model name).
+    trainable: bool,
+    vars: RefCell<Vec<(String, Var)>>,
 }
 
 /// Memory-map a safetensors file.
@@ -141,7 +144,31 @@ impl StrictWeights {
             missing: RefCell::new(Vec::new()),
             mismatched: RefCell::new(Vec::new()),
             device: device.clone(),
+            trainable: false,
+            vars: RefCell::new(Vec::new()),
         }
+    }
+
+    /// Hand every tensor out as a (copied) `Var`, so that a forward in the kernels' differentiable mode
+    /// ([`crate::kernels::set_differentiable`]) gives the weights gradients; [`Self::take_vars`] lists them.
+    pub fn trainable(mut self) -> Self {
+        self.trainable = true;
+        self
+    }
+
+    /// The `Var`s handed out so far in trainable mode, by model name.
+    pub fn take_vars(&self) -> Vec<(String, Var)> {
+        std::mem::take(&mut *self.vars.borrow_mut())
+    }
+
+    fn hand_out(&self, name: &str, t: Tensor) -> candle_core::Result<Tensor> {
+        if !self.trainable {
+            return Ok(t);
+        }
+        let v = Var::from_tensor(&t)?;
+        let out = v.as_tensor().clone();
+        self.vars.borrow_mut().push((name.to_string(), v));
+        Ok(out)
     }
 
     /// The tensors handed out so far in random mode, by model name (empty for file-backed weights).
@@ -186,7 +213,7 @@ impl StrictWeights {
             *c += 1;
             let t = random_tensor(name, shape, self.seed.wrapping_mul(0x9E37_79B9_7F4A_7C15).wrapping_add(*c), &self.device)?;
             self.recorded.borrow_mut().push((name.to_string(), t.clone()));
-            return Ok(t);
+            return self.hand_out(name, t);
         }
         let Some(recipe) = self.recipes.get(name) else {
             self.missing.borrow_mut().push(name.to_string());
@@ -226,7 +253,7 @@ impl StrictWeights {
             self.mismatched.borrow_mut().push(format!("{name}: file {:?}, model {shape:?}", t.dims()));
             return self.placeholder(shape);
         }
-        Ok(t)
+        self.hand_out(name, t)
     }
 
     /// Strict check: any missing, unexpected or wrongly shaped key is one error listing all of them.

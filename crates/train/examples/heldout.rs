@@ -1,0 +1,114 @@
+//! Held-out table for MODEL.md: per scene, 5 context views by farthest-point sampling, every other view a
+//! target; PSNR / SSIM / LPIPS (VGG) of each model's 3DGS renders and of the baseline that copies the photo of
+//! the context camera nearest each target.
+//!
+//!     cargo run --release -p mvsplat360-train --example heldout -- \
+//!         --model step0=out/train/shipped/model-step0 --model final=assets/models/default data/heldout/*
+
+use std::path::PathBuf;
+
+use candle_core::{Device, Tensor};
+use mvsplat360_dataset::ImageF32;
+use mvsplat360_pipeline::model::ModelArgs;
+use mvsplat360_pipeline::render::{self, RenderRequest, Silent};
+use mvsplat360_pipeline::views::{ContextSpec, TargetSpec};
+
+fn scores(lp: &mvsplat360_metrics::lpips::Lpips, preds: &[ImageF32], gts: &[ImageF32]) -> anyhow::Result<[f64; 3]> {
+    let (mut p, mut s, mut l) = (0.0, 0.0, 0.0);
+    for (a, b) in preds.iter().zip(gts) {
+        let (w, h) = (a.width as usize, a.height as usize);
+        p += mvsplat360_metrics::psnr::psnr(&a.data, &b.data);
+        s += mvsplat360_metrics::ssim::ssim(&a.data, &b.data, 3, h, w)?;
+        let ta = Tensor::from_slice(&a.data, (1, 3, h, w), &Device::Cpu)?;
+        let tb = Tensor::from_slice(&b.data, (1, 3, h, w), &Device::Cpu)?;
+        l += lp.distance(&ta, &tb)?[0] as f64;
+    }
+    let n = preds.len().max(1) as f64;
+    Ok([p / n, s / n, l / n])
+}
+
+fn main() -> anyhow::Result<()> {
+    mvsplat360_pipeline::setup::init_process();
+    let mut models: Vec<(String, PathBuf)> = Vec::new();
+    let mut scenes: Vec<PathBuf> = Vec::new();
+    let mut json_out: Option<PathBuf> = None;
+    let mut args = std::env::args().skip(1);
+    while let Some(a) = args.next() {
+        match a.as_str() {
+            "--model" => {
+                let v = args.next().ok_or_else(|| anyhow::anyhow!("--model name=DIR"))?;
+                let (n, d) = v.split_once('=').ok_or_else(|| anyhow::anyhow!("--model name=DIR, got {v}"))?;
+                models.push((n.into(), d.into()));
+            }
+            "--json" => json_out = args.next().map(Into::into),
+            _ => scenes.push(a.into()),
+        }
+    }
+    anyhow::ensure!(!models.is_empty() && !scenes.is_empty(), "usage: heldout --model name=DIR [--model …] [--json FILE] SCENE…");
+    let lp = mvsplat360_metrics::lpips::Lpips::load(None, mvsplat360_metrics::lpips::Net::Vgg, &Device::Cpu)?;
+    let mut rows = Vec::new();
+    println!("| scene | method | PSNR ↑ | SSIM ↑ | LPIPS ↓ |\n|---|---|---|---|---|");
+    for scene in &scenes {
+        let name = scene.file_name().map(|s| s.to_string_lossy().to_string()).unwrap_or_default();
+        let n = mvsplat360_dataset::read_scene(scene)?.len();
+        let mut baseline_done = false;
+        for (mname, dir) in &models {
+            let req = RenderRequest {
+                scene: scene.clone(),
+                scene_key: None,
+                context: ContextSpec::Count(5),
+                targets: TargetSpec::Views((0..n).collect()),
+                model: ModelArgs { ckpt: Some(dir.clone()), refiner: Some(mvsplat360_pipeline::model::RefinerArg::None), ..Default::default() },
+                size: None,
+                scene_scale: mvsplat360_pipeline::scale::SceneScale::Auto,
+                refine: Default::default(),
+                splat: false,
+                metrics: false,
+                weights_dir: None,
+                video: false,
+                fps: 8,
+                out: std::env::temp_dir(),
+            };
+            let mut p = render::prepare(&req, &Silent)?;
+            // Targets = every view that is not a context view.
+            let keep: Vec<usize> = (0..n).filter(|i| !p.choice.context.contains(i)).collect();
+            p.target_cameras = keep.iter().map(|&i| p.target_cameras[i].clone()).collect();
+            p.target_photos = keep.iter().map(|&i| p.target_photos[i].clone()).collect();
+            let gts: Vec<ImageF32> = p.target_photos.iter().map(|x| x.clone().expect("view targets have photos")).collect();
+            if !baseline_done {
+                let preds: Vec<ImageF32> = p
+                    .target_cameras
+                    .iter()
+                    .map(|t| {
+                        let k = (0..p.context_cameras.len())
+                            .min_by(|&a, &b| (p.context_cameras[a].center() - t.center()).norm().total_cmp(&(p.context_cameras[b].center() - t.center()).norm()))
+                            .unwrap_or(0);
+                        p.context_images[k].clone()
+                    })
+                    .collect();
+                let [ps, ss, ls] = scores(&lp, &preds, &gts)?;
+                println!("| {name} | nearest context photo | {ps:.2} | {ss:.3} | {ls:.3} |");
+                rows.push(serde_json::json!({"scene": name, "method": "nearest-context", "psnr": ps, "ssim": ss, "lpips": ls, "targets": gts.len()}));
+                baseline_done = true;
+            }
+            let g = render::encode(&p, &Silent)?;
+            let near = p.spec.data.near;
+            let far = p.spec.data.far;
+            let out = render::rasterize_targets(&g, &p.target_cameras, near, far, &Silent)?;
+            let preds: Vec<ImageF32> = out
+                .iter()
+                .map(|(rgb, _)| {
+                    let (_, h, w) = rgb.dims3().unwrap();
+                    ImageF32 { width: w as u32, height: h as u32, data: rgb.clamp(0f32, 1f32).unwrap().flatten_all().unwrap().to_vec1().unwrap() }
+                })
+                .collect();
+            let [ps, ss, ls] = scores(&lp, &preds, &gts)?;
+            println!("| {name} | {mname} (3DGS) | {ps:.2} | {ss:.3} | {ls:.3} |");
+            rows.push(serde_json::json!({"scene": name, "method": format!("{mname} 3DGS"), "psnr": ps, "ssim": ss, "lpips": ls, "targets": gts.len()}));
+        }
+    }
+    if let Some(j) = json_out {
+        std::fs::write(&j, serde_json::to_string_pretty(&rows)?)?;
+    }
+    Ok(())
+}

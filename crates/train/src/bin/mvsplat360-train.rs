@@ -1,0 +1,47 @@
+//! Stand-alone trainer (`mvsplat360-train --config C [--resume]`): the same loop as `mvsplat360 train`, in a
+//! small binary for background jobs and the crate's kill-and-resume test. Prints one JSON line per step.
+
+fn main() {
+    let mut config = None;
+    let mut opts = mvsplat360_train::RunOptions::default();
+    let mut args = std::env::args().skip(1);
+    while let Some(a) = args.next() {
+        match a.as_str() {
+            "--config" => config = args.next(),
+            "--resume" => opts.resume = true,
+            "--weights-dir" => opts.weights_dir = args.next().map(Into::into),
+            "-h" | "--help" => {
+                println!("usage: mvsplat360-train --config <toml> [--resume] [--weights-dir DIR]");
+                return;
+            }
+            other => {
+                eprintln!("error: unknown argument `{other}` (see --help)");
+                std::process::exit(2);
+            }
+        }
+    }
+    let Some(config) = config else {
+        eprintln!("error: --config <toml> is required");
+        std::process::exit(2);
+    };
+    mvsplat360_pipeline::setup::init_process();
+    let result = mvsplat360_train::TrainConfig::from_file(config.as_ref()).and_then(|cfg| mvsplat360_train::run(&cfg, &opts, &Lines));
+    match result {
+        Ok(s) => eprintln!("done: {} steps, model in {}", s.steps, s.model_dir.display()),
+        Err(e) => {
+            eprintln!("error: {e}");
+            std::process::exit(1);
+        }
+    }
+}
+
+struct Lines;
+
+impl mvsplat360_train::Monitor for Lines {
+    fn note(&self, msg: &str) {
+        eprintln!("{msg}");
+    }
+    fn step(&self, rec: &mvsplat360_train::StepRecord, _total: u64) {
+        println!("{}", serde_json::to_string(rec).unwrap_or_default());
+    }
+}

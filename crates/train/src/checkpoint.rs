@@ -1,0 +1,106 @@
+//! Checkpoints: `<out>/checkpoints/step-NNNNNNN/{model,optimizer}.safetensors + state.json`, each written to a
+//! temporary folder and renamed into place, so a kill at any moment leaves the previous checkpoint intact.
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+use candle_core::{Device, Tensor};
+use serde::{Deserialize, Serialize};
+
+use crate::error::{Result, TrainError};
+
+/// What besides tensors a run needs to continue exactly: the step and the seed (every step's randomness is
+/// derived from `(seed, step)`, so this is the whole RNG state).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct State {
+    pub step: u64,
+    pub seed: u64,
+    /// The config the run started with (TOML), to refuse resuming with an incompatible one.
+    pub config: String,
+    /// Seconds of training so far (all sessions).
+    pub train_seconds: f64,
+}
+
+pub fn dir(out: &Path) -> PathBuf {
+    out.join("checkpoints")
+}
+
+fn step_dir(out: &Path, step: u64) -> PathBuf {
+    dir(out).join(format!("step-{step:07}"))
+}
+
+/// Write a checkpoint and delete all but the newest `keep`.
+pub fn save(out: &Path, state: &State, model: &[(String, Tensor)], optim: &[(String, Tensor)], keep: usize) -> Result<PathBuf> {
+    let werr = |p: &Path, e: &dyn std::fmt::Display| TrainError::Write { path: p.to_path_buf(), msg: e.to_string() };
+    let root = dir(out);
+    std::fs::create_dir_all(&root).map_err(|e| werr(&root, &e))?;
+    let tmp = root.join(format!(".tmp-step-{:07}", state.step));
+    if tmp.exists() {
+        std::fs::remove_dir_all(&tmp).map_err(|e| werr(&tmp, &e))?;
+    }
+    std::fs::create_dir_all(&tmp).map_err(|e| werr(&tmp, &e))?;
+    let save_map = |name: &str, t: &[(String, Tensor)]| -> Result<()> {
+        let map: HashMap<String, Tensor> = t.iter().cloned().collect();
+        let p = tmp.join(name);
+        candle_core::safetensors::save(&map, &p).map_err(|e| werr(&p, &e))?;
+        Ok(())
+    };
+    save_map("model.safetensors", model)?;
+    save_map("optimizer.safetensors", optim)?;
+    let js = serde_json::to_string_pretty(state).map_err(|e| werr(&tmp, &e))?;
+    std::fs::write(tmp.join("state.json"), js).map_err(|e| werr(&tmp, &e))?;
+    sync_dir(&tmp);
+    let fin = step_dir(out, state.step);
+    if fin.exists() {
+        std::fs::remove_dir_all(&fin).map_err(|e| werr(&fin, &e))?;
+    }
+    std::fs::rename(&tmp, &fin).map_err(|e| werr(&fin, &e))?;
+    sync_dir(&root);
+    let all = list(out)?;
+    if all.len() > keep {
+        for (_, p) in &all[..all.len() - keep] {
+            let _ = std::fs::remove_dir_all(p);
+        }
+    }
+    Ok(fin)
+}
+
+fn sync_dir(p: &Path) {
+    if let Ok(f) = std::fs::File::open(p) {
+        let _ = f.sync_all();
+    }
+}
+
+/// Complete checkpoints, oldest first.
+pub fn list(out: &Path) -> Result<Vec<(u64, PathBuf)>> {
+    let root = dir(out);
+    let Ok(rd) = std::fs::read_dir(&root) else { return Ok(vec![]) };
+    let mut v: Vec<(u64, PathBuf)> = rd
+        .filter_map(|e| e.ok())
+        .filter_map(|e| {
+            let name = e.file_name().to_string_lossy().to_string();
+            let step = name.strip_prefix("step-")?.parse::<u64>().ok()?;
+            e.path().join("state.json").is_file().then(|| (step, e.path()))
+        })
+        .collect();
+    v.sort();
+    Ok(v)
+}
+
+/// A loaded checkpoint.
+pub struct Loaded {
+    pub state: State,
+    pub model: HashMap<String, Tensor>,
+    pub optim: HashMap<String, Tensor>,
+    pub path: PathBuf,
+}
+
+pub fn load_latest(out: &Path) -> Result<Option<Loaded>> {
+    let Some((_, p)) = list(out)?.pop() else { return Ok(None) };
+    let cerr = |e: &dyn std::fmt::Display| TrainError::Checkpoint(format!("{}: {e}", p.display()));
+    let text = std::fs::read_to_string(p.join("state.json")).map_err(|e| cerr(&e))?;
+    let state: State = serde_json::from_str(&text).map_err(|e| cerr(&e))?;
+    let model = candle_core::safetensors::load(p.join("model.safetensors"), &Device::Cpu).map_err(|e| cerr(&e))?;
+    let optim = candle_core::safetensors::load(p.join("optimizer.safetensors"), &Device::Cpu).map_err(|e| cerr(&e))?;
+    Ok(Some(Loaded { state, model, optim, path: p }))
+}

@@ -1,0 +1,294 @@
+//! The training configuration (`mvsplat360 train --config <toml>`). Encoder fields keep the official YAML names;
+//! paths are relative to the working directory.
+
+use std::path::{Path, PathBuf};
+
+use mvsplat360_encoder::EncoderCostVolumeCfg;
+use serde::{Deserialize, Serialize};
+
+use crate::error::{Result, TrainError};
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TrainConfig {
+    pub model: ModelSection,
+    pub data: DataSection,
+    pub train: TrainSection,
+}
+
+/// What is trained: the encoder at a fixed input size (the refiner's losses live in [`crate::loss::diffusion`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ModelSection {
+    /// Experiment name written into the model folder.
+    #[serde(default = "default_experiment")]
+    pub experiment: String,
+    /// Training (and the shipped model's) input size; multiples of the encoder's 64.
+    pub width: u32,
+    pub height: u32,
+    #[serde(default = "one")]
+    pub near: f32,
+    #[serde(default = "hundred")]
+    pub far: f32,
+    /// Encoder config (official names; unspecified fields = DL3DV experiment defaults).
+    #[serde(default)]
+    pub encoder: EncoderCostVolumeCfg,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "lowercase", deny_unknown_fields)]
+pub enum Source {
+    /// Procedural scenes rendered on the fly: `count` distinct seeds starting at `seed`.
+    Procedural {
+        count: u64,
+        #[serde(default)]
+        seed: u64,
+        #[serde(default = "default_views")]
+        views: usize,
+    },
+    /// A folder of scenes (each subfolder with `transforms.json` or COLMAP `sparse/`), e.g. POV-Ray renders.
+    Folder { path: PathBuf },
+    /// `.torch` chunks (RE10K/DL3DV layout): a chunk file or a folder of them, streamed one chunk at a time.
+    Chunks { path: PathBuf },
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DataSection {
+    pub sources: Vec<Source>,
+    /// Probability of each source per step (default: equal).
+    #[serde(default)]
+    pub weights: Vec<f64>,
+    #[serde(default = "five")]
+    pub num_context: usize,
+    /// Targets per step (official: 14).
+    #[serde(default = "fourteen")]
+    pub num_target: usize,
+    /// Frame-gap window [min, max] of the sampler; omitted: the whole sequence (a closed 360° loop), see
+    /// [`crate::sampler`].
+    #[serde(default)]
+    pub gap: Option<[usize; 2]>,
+    /// Treat sequences as closed loops (indices wrap around).
+    #[serde(default = "yes")]
+    pub closed_loop: bool,
+    /// Random horizontal flips (image and camera together).
+    #[serde(default = "yes")]
+    pub flip: bool,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LrGroup {
+    /// Parameters whose name contains this string get `scale` × the scheduled lr.
+    pub contains: String,
+    pub scale: f64,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TrainSection {
+    /// Optimizer steps.
+    pub steps: u64,
+    /// Peak learning rate of the one-cycle schedule.
+    #[serde(default = "default_lr")]
+    pub lr: f64,
+    #[serde(default)]
+    pub lr_groups: Vec<LrGroup>,
+    #[serde(default = "default_pct_start")]
+    pub pct_start: f64,
+    /// Micro-batches per optimizer step (losses are averaged over them, as Lightning does).
+    #[serde(default = "two")]
+    pub accumulate: u32,
+    /// Gradient-norm clipping (0 = off).
+    #[serde(default = "default_clip")]
+    pub clip_grad_norm: f64,
+    #[serde(default)]
+    pub seed: u64,
+    #[serde(default = "one_f64")]
+    pub mse_weight: f64,
+    #[serde(default = "default_lpips")]
+    pub lpips_weight: f64,
+    /// LPIPS applies from this step on.
+    #[serde(default)]
+    pub lpips_after_step: u64,
+    /// Rasterizer backward: `official` (what the official CUDA backward returns, used in training) or `exact`
+    /// (the true derivative; for gradient checks).
+    #[serde(default)]
+    pub raster_grad: RasterGrad,
+    /// Name prefixes of parameters that stay fixed (e.g. `encoder.backbone`).
+    #[serde(default)]
+    pub freeze: Vec<String>,
+    /// Initial weights: a model folder or a weights file with `encoder.*` keys (official checkpoints included).
+    #[serde(default)]
+    pub init: Option<PathBuf>,
+    #[serde(default = "hundred_u64")]
+    pub checkpoint_every: u64,
+    /// Checkpoints kept on disk (older ones are deleted).
+    #[serde(default = "three")]
+    pub keep_checkpoints: usize,
+    /// Output folder (checkpoints, log.jsonl, loss.png, the final model folder).
+    pub out: PathBuf,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum RasterGrad {
+    #[default]
+    Official,
+    Exact,
+}
+
+fn default_experiment() -> String {
+    "project".into()
+}
+fn one() -> f32 {
+    1.0
+}
+fn hundred() -> f32 {
+    100.0
+}
+fn default_views() -> usize {
+    32
+}
+fn five() -> usize {
+    5
+}
+fn fourteen() -> usize {
+    14
+}
+fn yes() -> bool {
+    true
+}
+fn default_lr() -> f64 {
+    2e-4
+}
+fn default_pct_start() -> f64 {
+    0.01
+}
+fn two() -> u32 {
+    2
+}
+fn default_clip() -> f64 {
+    0.5
+}
+fn one_f64() -> f64 {
+    1.0
+}
+fn default_lpips() -> f64 {
+    0.05
+}
+fn hundred_u64() -> u64 {
+    100
+}
+fn three() -> usize {
+    3
+}
+
+impl TrainConfig {
+    pub fn from_file(path: &Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path).map_err(|e| TrainError::Config { path: path.into(), msg: format!("cannot read: {e}") })?;
+        Self::from_toml(&text, path)
+    }
+
+    pub fn from_toml(text: &str, path: &Path) -> Result<Self> {
+        let cfg: Self = toml::from_str(text).map_err(|e| TrainError::Config { path: path.into(), msg: e.to_string() })?;
+        cfg.validate(path)?;
+        Ok(cfg)
+    }
+
+    pub fn to_toml(&self) -> String {
+        toml::to_string_pretty(self).unwrap_or_default()
+    }
+
+    /// The encoder config actually built (view count and depth range from the other sections).
+    pub fn encoder(&self) -> EncoderCostVolumeCfg {
+        let mut e = self.model.encoder.clone();
+        e.num_views = self.data.num_context;
+        e.near = self.model.near;
+        e.far = self.model.far;
+        e.costvolume_nearest_n_views = e.costvolume_nearest_n_views.min(self.data.num_context);
+        e.multiview_trans_nearest_n_views = e.multiview_trans_nearest_n_views.min(self.data.num_context);
+        e
+    }
+
+    fn validate(&self, path: &Path) -> Result<()> {
+        let bad = |field: &str, msg: String| Err(TrainError::Config { path: path.into(), msg: format!("`{field}`: {msg}") });
+        let m = self.model.encoder.image_multiple() as u32;
+        if self.model.width == 0 || self.model.height == 0 || self.model.width % m != 0 || self.model.height % m != 0 {
+            return bad("model.width/height", format!("{}x{} must be positive multiples of {m}", self.model.width, self.model.height));
+        }
+        if !(self.model.near > 0.0 && self.model.far > self.model.near) {
+            return bad("model.near/far", format!("need 0 < near < far, got {} and {}", self.model.near, self.model.far));
+        }
+        if self.data.sources.is_empty() {
+            return bad("data.sources", "add at least one source (procedural, folder or chunks)".into());
+        }
+        if !self.data.weights.is_empty() && (self.data.weights.len() != self.data.sources.len() || self.data.weights.iter().any(|w| !(*w >= 0.0)) || self.data.weights.iter().sum::<f64>() <= 0.0) {
+            return bad("data.weights", "one non-negative weight per source, not all zero".into());
+        }
+        if self.data.num_context < 2 {
+            return bad("data.num_context", "the cost volume needs at least 2 context views".into());
+        }
+        if self.data.num_target == 0 {
+            return bad("data.num_target", "must be at least 1".into());
+        }
+        if let Some([lo, hi]) = self.data.gap {
+            if lo > hi || hi < self.data.num_context {
+                return bad("data.gap", format!("[{lo}, {hi}] must satisfy min ≤ max and max ≥ num_context"));
+            }
+        }
+        if self.train.steps == 0 {
+            return bad("train.steps", "must be at least 1".into());
+        }
+        if !(self.train.lr > 0.0 && self.train.lr.is_finite()) {
+            return bad("train.lr", format!("{} is not a positive number", self.train.lr));
+        }
+        if !(self.train.pct_start > 0.0 && self.train.pct_start < 1.0) {
+            return bad("train.pct_start", "must lie in (0, 1)".into());
+        }
+        if self.train.accumulate == 0 {
+            return bad("train.accumulate", "must be at least 1".into());
+        }
+        if self.train.checkpoint_every == 0 {
+            return bad("train.checkpoint_every", "must be at least 1".into());
+        }
+        if self.train.keep_checkpoints == 0 {
+            return bad("train.keep_checkpoints", "keep at least 1 (resuming needs it)".into());
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const MIN: &str = r#"
+[model]
+width = 128
+height = 64
+[data]
+sources = [{ kind = "procedural", count = 10 }]
+[train]
+steps = 5
+out = "out/x"
+"#;
+
+    #[test]
+    fn defaults_are_the_official_settings() {
+        let c = TrainConfig::from_toml(MIN, Path::new("t.toml")).unwrap();
+        assert_eq!((c.train.accumulate, c.train.clip_grad_norm, c.train.pct_start, c.train.lpips_weight), (2, 0.5, 0.01, 0.05));
+        assert_eq!((c.data.num_context, c.data.num_target), (5, 14));
+        assert_eq!(c.encoder().num_views, 5);
+        let back = TrainConfig::from_toml(&c.to_toml(), Path::new("t.toml")).unwrap();
+        assert_eq!(back, c);
+    }
+
+    #[test]
+    fn errors_name_the_field() {
+        let e = TrainConfig::from_toml(&MIN.replace("width = 128", "width = 100"), Path::new("c.toml")).unwrap_err().to_string();
+        assert!(e.contains("c.toml") && e.contains("model.width"), "{e}");
+        let e = TrainConfig::from_toml(&MIN.replace("steps = 5", "steps = 5\nbogus = 1"), Path::new("c.toml")).unwrap_err().to_string();
+        assert!(e.contains("bogus"), "{e}");
+    }
+}

@@ -1,0 +1,137 @@
+//! Training scenes at the training size: procedural (rendered on demand), folders of posed photos, `.torch`
+//! chunks (streamed one chunk at a time). Folder and chunk scenes are scaled like `render --scene-scale auto`
+//! does with user scenes, so training and inference see the same depth range.
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+use mvsplat360_camera::Camera;
+use mvsplat360_dataset::{ImageF32, Scene};
+use mvsplat360_pipeline::preprocess::{InputSize, Preprocess};
+use rand::Rng;
+
+use crate::config::Source;
+use crate::data::procedural::{self, GenOptions};
+use crate::error::{Result, TrainError};
+
+/// One scene ready for the sampler: every view at the training size.
+#[derive(Debug, Clone)]
+pub struct TrainScene {
+    pub name: String,
+    pub images: Vec<ImageF32>,
+    pub cameras: Vec<Camera>,
+}
+
+/// A source of scenes with a cache of what it has loaded.
+pub struct SceneSource {
+    kind: Kind,
+    pre: Preprocess,
+    cache: HashMap<usize, TrainScene>,
+}
+
+enum Kind {
+    Procedural { count: u64, seed: u64, views: usize, width: u32, height: u32 },
+    Folder { scenes: Vec<PathBuf> },
+    Chunks { files: Vec<PathBuf>, loaded: Option<(usize, Vec<Scene>)> },
+}
+
+impl SceneSource {
+    pub fn open(src: &Source, width: u32, height: u32, multiple: u32) -> Result<Self> {
+        let pre = Preprocess { size: InputSize::Fixed { width, height }, multiple };
+        let kind = match src {
+            Source::Procedural { count, seed, views } => {
+                if *count == 0 || *views < 3 {
+                    return Err(TrainError::Data(format!("procedural source: need count ≥ 1 and views ≥ 3 (got {count}, {views})")));
+                }
+                Kind::Procedural { count: *count, seed: *seed, views: *views, width, height }
+            }
+            Source::Folder { path } => Kind::Folder { scenes: scene_dirs(path)? },
+            Source::Chunks { path } => Kind::Chunks { files: chunk_files(path)?, loaded: None },
+        };
+        Ok(Self { kind, pre, cache: HashMap::new() })
+    }
+
+    /// A random scene of this source.
+    pub fn draw(&mut self, rng: &mut impl Rng) -> Result<TrainScene> {
+        match &mut self.kind {
+            Kind::Procedural { count, seed, views, width, height } => {
+                let s = *seed + rng.gen_range(0..*count);
+                let g = procedural::generate(s, &GenOptions { views: *views, width: *width, height: *height, samples: 2 });
+                let images = g.views.iter().map(|v| ImageF32 { width: *width, height: *height, data: v.image.clone() }).collect();
+                let cameras = g.views.into_iter().map(|v| v.camera).collect();
+                Ok(TrainScene { name: g.name, images, cameras })
+            }
+            Kind::Folder { scenes } => {
+                let i = rng.gen_range(0..scenes.len());
+                if let Some(s) = self.cache.get(&i) {
+                    return Ok(s.clone());
+                }
+                let scene = mvsplat360_dataset::read_scene(&scenes[i]).map_err(|e| TrainError::Data(format!("{}: {e}", scenes[i].display())))?;
+                let s = prepare(&scene, &self.pre)?;
+                self.cache.insert(i, s.clone());
+                Ok(s)
+            }
+            Kind::Chunks { files, loaded } => {
+                // Stream: stay on one chunk for a while, as the official loader iterates chunk by chunk.
+                let switch = loaded.as_ref().is_none_or(|_| rng.gen_bool(0.05));
+                if switch {
+                    let f = rng.gen_range(0..files.len());
+                    let scenes = mvsplat360_dataset::torch_chunk::read_chunk(&files[f])
+                        .map_err(|e| TrainError::Data(format!("{}: {e}", files[f].display())))?
+                        .into_iter()
+                        .map(|c| c.into_scene(&files[f]))
+                        .collect::<std::result::Result<Vec<_>, _>>()
+                        .map_err(|e| TrainError::Data(format!("{}: {e}", files[f].display())))?;
+                    if scenes.is_empty() {
+                        return Err(TrainError::Data(format!("{}: the chunk holds no scene", files[f].display())));
+                    }
+                    *loaded = Some((f, scenes));
+                }
+                let (_, scenes) = loaded.as_ref().expect("loaded above");
+                let s = &scenes[rng.gen_range(0..scenes.len())];
+                prepare(s, &self.pre)
+            }
+        }
+    }
+}
+
+/// Preprocess every view to the training size.
+pub fn prepare(scene: &Scene, pre: &Preprocess) -> Result<TrainScene> {
+    let mut images = Vec::with_capacity(scene.len());
+    let mut cameras = Vec::with_capacity(scene.len());
+    for i in 0..scene.len() {
+        let img = scene.image(i).map_err(|e| TrainError::Data(format!("scene {}: {e}", scene.name)))?;
+        let (img, cam) = pre.view(&img, &scene.cameras[i])?;
+        images.push(img);
+        cameras.push(cam);
+    }
+    Ok(TrainScene { name: scene.name.clone(), images, cameras })
+}
+
+/// Scene folders under `path` (itself when it is a scene).
+fn scene_dirs(path: &Path) -> Result<Vec<PathBuf>> {
+    let is_scene = |p: &Path| p.join("transforms.json").is_file() || p.join("sparse").is_dir();
+    if is_scene(path) {
+        return Ok(vec![path.to_path_buf()]);
+    }
+    let rd = std::fs::read_dir(path).map_err(|e| TrainError::Data(format!("{}: {e} (a folder source needs a folder of scenes)", path.display())))?;
+    let mut out: Vec<PathBuf> = rd.filter_map(|e| e.ok().map(|e| e.path())).filter(|p| p.is_dir() && is_scene(p)).collect();
+    out.sort();
+    if out.is_empty() {
+        return Err(TrainError::Data(format!("{}: no scene folders (with transforms.json or sparse/) inside", path.display())));
+    }
+    Ok(out)
+}
+
+fn chunk_files(path: &Path) -> Result<Vec<PathBuf>> {
+    if path.is_file() {
+        return Ok(vec![path.to_path_buf()]);
+    }
+    let rd = std::fs::read_dir(path).map_err(|e| TrainError::Data(format!("{}: {e} (a chunks source needs a .torch file or a folder of them)", path.display())))?;
+    let mut out: Vec<PathBuf> = rd.filter_map(|e| e.ok().map(|e| e.path())).filter(|p| p.extension().is_some_and(|x| x == "torch")).collect();
+    out.sort();
+    if out.is_empty() {
+        return Err(TrainError::Data(format!("{}: no .torch chunks inside", path.display())));
+    }
+    Ok(out)
+}

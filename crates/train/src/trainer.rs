@@ -1,0 +1,398 @@
+//! The training loop: sample views, encode, rasterize the targets, MSE + LPIPS, accumulate, clip, Adam with the
+//! one-cycle schedule; checkpoints and a JSONL log that a resumed run continues exactly.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use candle_core::{DType, Device, IndexOp, Tensor, Var};
+use candle_nn::{VarBuilder, VarMap};
+use mvsplat360_camera::Camera;
+use mvsplat360_encoder::encoder_costvolume::camera_tensors;
+use mvsplat360_encoder::EncoderCostVolume;
+use mvsplat360_metrics::lpips::Lpips;
+use mvsplat360_pipeline::model::{DataConfig, ModelConfig, MODEL_FORMAT};
+use mvsplat360_pipeline::render::raster_camera;
+use mvsplat360_pipeline::scale::{scene_transform, SceneScale};
+use mvsplat360_splat::{Gaussians, RenderOptions};
+use rand::{Rng, SeedableRng};
+use serde::{Deserialize, Serialize};
+
+use crate::checkpoint::{self, State};
+use crate::config::TrainConfig;
+use crate::error::{Result, TrainError};
+use crate::optim::{clip_grad_norm, Adam, OneCycle, Param};
+use crate::sampler::{self, SamplerSettings};
+use crate::scenes::{SceneSource, TrainScene};
+
+/// Progress and interruption, supplied by the caller (the CLI shows a bar; tests stay silent).
+pub trait Monitor {
+    fn note(&self, _msg: &str) {}
+    fn step(&self, _rec: &StepRecord, _total: u64) {}
+    /// Checked after every step; true = write a checkpoint and stop.
+    fn should_stop(&self) -> bool {
+        false
+    }
+}
+
+pub struct Quiet;
+impl Monitor for Quiet {}
+
+/// One line of `log.jsonl`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StepRecord {
+    /// Optimizer steps done (1-based).
+    pub step: u64,
+    pub loss: f64,
+    pub mse: f64,
+    #[serde(default)]
+    pub lpips: Option<f64>,
+    pub lr: f64,
+    pub grad_norm: f64,
+    /// Wall seconds of this step.
+    pub seconds: f64,
+}
+
+#[derive(Debug, Clone, Default)]
+pub struct RunOptions {
+    /// Continue from the newest checkpoint in `train.out` (a fresh start when there is none).
+    pub resume: bool,
+    /// Folder of the metric weights (LPIPS); None = the default search.
+    pub weights_dir: Option<PathBuf>,
+}
+
+#[derive(Debug, Clone)]
+pub struct Summary {
+    pub steps: u64,
+    pub last: Option<StepRecord>,
+    pub model_dir: PathBuf,
+    pub train_seconds: f64,
+    pub lpips: bool,
+}
+
+/// Everything trainable, built from a config.
+pub struct Model {
+    pub varmap: VarMap,
+    pub encoder: EncoderCostVolume,
+    pub cfg: TrainConfig,
+}
+
+impl Model {
+    /// The encoder with seeded initial weights, or `train.init`'s.
+    pub fn new(cfg: &TrainConfig) -> Result<Self> {
+        let dev = Device::Cpu;
+        let ecfg = cfg.encoder();
+        let varmap = VarMap::new();
+        let encoder = EncoderCostVolume::new(VarBuilder::from_varmap(&varmap, DType::F32, &dev).pp("encoder"), &ecfg)?;
+        let init = mvsplat360_encoder::weights::random_tensors(cfg.train.seed, &dev, |vb| EncoderCostVolume::new(vb.pp("encoder"), &ecfg))?;
+        {
+            let data = varmap.data().lock().map_err(|_| TrainError::Data("varmap poisoned".into()))?;
+            for (name, var) in data.iter() {
+                var.set(&init[name])?;
+            }
+        }
+        let m = Self { varmap, encoder, cfg: cfg.clone() };
+        if let Some(p) = &cfg.train.init {
+            crate::init::load_into(&m.varmap, p)?;
+        }
+        Ok(m)
+    }
+
+    /// (name, var), sorted by name.
+    pub fn vars(&self) -> Vec<(String, Var)> {
+        let data = self.varmap.data().lock().expect("varmap lock");
+        let mut v: Vec<(String, Var)> = data.iter().map(|(k, v)| (k.clone(), v.clone())).collect();
+        v.sort_by(|a, b| a.0.cmp(&b.0));
+        v
+    }
+
+    pub fn state_dict(&self) -> Vec<(String, Tensor)> {
+        self.vars().into_iter().map(|(k, v)| (k, v.as_tensor().detach())).collect()
+    }
+
+    pub fn load_state_dict(&self, sd: &std::collections::HashMap<String, Tensor>) -> Result<()> {
+        for (name, var) in self.vars() {
+            let t = sd.get(&name).ok_or_else(|| TrainError::Checkpoint(format!("model weights lack `{name}`")))?;
+            if t.dims() != var.dims() {
+                return Err(TrainError::Checkpoint(format!("`{name}` has shape {:?}, the model {:?}", t.dims(), var.dims())));
+            }
+            var.set(&t.to_dtype(DType::F32)?)?;
+        }
+        Ok(())
+    }
+
+    /// The model-folder config of this model (3DGS only).
+    pub fn model_config(&self) -> ModelConfig {
+        let m = &self.cfg.model;
+        ModelConfig {
+            format: MODEL_FORMAT.into(),
+            data: DataConfig { experiment: m.experiment.clone(), image_width: m.width, image_height: m.height, near: m.near, far: m.far },
+            encoder: self.cfg.encoder(),
+            refiner: None,
+        }
+    }
+}
+
+/// One training example at model scale: context and targets with their photos.
+pub struct Example {
+    pub context_images: Tensor,
+    pub context_cameras: Vec<Camera>,
+    pub target_images: Tensor,
+    pub target_cameras: Vec<Camera>,
+}
+
+/// Randomness of optimizer step `step`, micro-batch `micro`: a pure function of the seed, so that a resumed
+/// run draws exactly what the uninterrupted one drew.
+pub fn step_rng(seed: u64, step: u64, micro: u32) -> rand::rngs::StdRng {
+    let mut x = seed ^ 0x9E37_79B9_7F4A_7C15u64.wrapping_mul(step.wrapping_add(1)) ^ ((micro as u64) << 48);
+    // splitmix64 finaliser
+    x = (x ^ (x >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    x = (x ^ (x >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    rand::rngs::StdRng::seed_from_u64(x ^ (x >> 31))
+}
+
+/// Build an example from a scene: sample views, scale like `render --scene-scale auto`, flip.
+pub fn make_example(scene: &TrainScene, s: &SamplerSettings, near: f32, far: f32, rng: &mut impl Rng) -> Result<Option<Example>> {
+    let Some(v) = sampler::sample(&scene.cameras, s, rng) else { return Ok(None) };
+    let ctx: Vec<Camera> = v.context.iter().map(|&i| scene.cameras[i].clone()).collect();
+    let (tf, _) = scene_transform(SceneScale::Auto, &ctx, near, far);
+    let prep = |idx: &[usize]| -> Result<(Tensor, Vec<Camera>)> {
+        let (w, h) = (scene.images[idx[0]].width as usize, scene.images[idx[0]].height as usize);
+        let mut data = Vec::with_capacity(idx.len() * 3 * w * h);
+        let mut cams = Vec::with_capacity(idx.len());
+        for &i in idx {
+            let mut img = scene.images[i].data.clone();
+            let mut cam = tf.apply(&scene.cameras[i]);
+            if v.flip {
+                sampler::flip_image(&mut img, w);
+                cam = sampler::flip_camera(&cam);
+            }
+            data.extend_from_slice(&img);
+            cams.push(cam);
+        }
+        Ok((Tensor::from_vec(data, (idx.len(), 3, h, w), &Device::Cpu)?, cams))
+    };
+    let (ci, cc) = prep(&v.context)?;
+    let (ti, tc) = prep(&v.target)?;
+    Ok(Some(Example { context_images: ci, context_cameras: cc, target_images: ti, target_cameras: tc }))
+}
+
+/// Encoder forward and target renders: (renders (T,3,H,W), Gaussians).
+pub fn render_example(model: &Model, ex: &Example) -> Result<(Tensor, Gaussians)> {
+    let dev = Device::Cpu;
+    let v = ex.context_cameras.len();
+    let k: Vec<[f64; 4]> = ex.context_cameras.iter().map(|c| c.normalized_intrinsics()).collect();
+    let c2w: Vec<[[f64; 4]; 4]> = ex.context_cameras.iter().map(|c| c.c2w).collect();
+    let (intr, extr) = camera_tensors(&k, &c2w, &dev)?;
+    let (near, far) = (model.cfg.model.near, model.cfg.model.far);
+    let nt = Tensor::full(near, (1, v), &dev)?;
+    let ft = Tensor::full(far, (1, v), &dev)?;
+    let g = model.encoder.forward(&ex.context_images.unsqueeze(0)?, &intr, &extr, &nt, &ft)?;
+    let gs = Gaussians {
+        means: g.means.i(0)?,
+        covariances: g.covariances.i(0)?,
+        opacities: g.opacities.i(0)?,
+        harmonics: g.harmonics.i(0)?,
+        feature_harmonics: g.feature_harmonics.i(0)?,
+    };
+    let mut renders = Vec::with_capacity(ex.target_cameras.len());
+    for c in &ex.target_cameras {
+        let grad_mode = match model.cfg.train.raster_grad {
+            crate::config::RasterGrad::Official => mvsplat360_splat::GradMode::Official,
+            crate::config::RasterGrad::Exact => mvsplat360_splat::GradMode::Exact,
+        };
+        let r = mvsplat360_splat::render(&gs, &raster_camera(c, near, far), &RenderOptions { grad_mode, ..RenderOptions::default() })?;
+        renders.push(r.rgb);
+    }
+    Ok((Tensor::stack(&renders, 0)?, gs))
+}
+
+/// The 3DGS losses of one example: (total, mse, lpips).
+pub fn losses(cfg: &TrainConfig, lpips: Option<&Lpips>, step: u64, pred: &Tensor, gt: &Tensor) -> Result<(Tensor, Tensor, Option<Tensor>)> {
+    let mse = crate::loss::mse(pred, gt)?;
+    let mut total = (&mse * cfg.train.mse_weight)?;
+    let mut lp = None;
+    if let Some(l) = lpips.filter(|_| step >= cfg.train.lpips_after_step && cfg.train.lpips_weight > 0.0) {
+        let v = crate::loss::lpips(l, pred, gt)?;
+        total = (total + (&v * cfg.train.lpips_weight)?)?;
+        lp = Some(v);
+    }
+    Ok((total, mse, lp))
+}
+
+/// Train as configured; returns when `train.steps` are done or the monitor asks to stop.
+pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Summary> {
+    let out = cfg.train.out.clone();
+    std::fs::create_dir_all(&out).map_err(|e| TrainError::Write { path: out.clone(), msg: e.to_string() })?;
+    let model = Model::new(cfg)?;
+    let multiple = cfg.model.encoder.image_multiple() as u32;
+    let mut sources = cfg
+        .data
+        .sources
+        .iter()
+        .map(|s| SceneSource::open(s, cfg.model.width, cfg.model.height, multiple))
+        .collect::<Result<Vec<_>>>()?;
+    let lpips = if cfg.train.lpips_weight > 0.0 {
+        match Lpips::load(opts.weights_dir.as_deref(), mvsplat360_metrics::lpips::Net::Vgg, &Device::Cpu) {
+            Ok(l) => Some(l),
+            Err(e) => {
+                mon.note(&format!("training without LPIPS (its VGG weights are missing: {e}); run scripts/metric-weights/fetch"));
+                None
+            }
+        }
+    } else {
+        None
+    };
+    let frozen = |n: &str| cfg.train.freeze.iter().any(|p| n.starts_with(p.as_str()));
+    let params: Vec<Param> = model
+        .vars()
+        .into_iter()
+        .filter(|(n, _)| !frozen(n))
+        .map(|(name, var)| {
+            let lr_scale = cfg.train.lr_groups.iter().find(|g| name.contains(&g.contains)).map(|g| g.scale).unwrap_or(1.0);
+            Param { name, var, lr_scale }
+        })
+        .collect();
+    if params.is_empty() {
+        return Err(TrainError::Config { path: PathBuf::from("train.freeze"), msg: "every parameter is frozen; nothing to train".into() });
+    }
+    let mut adam = Adam::new(params)?;
+    let sched = OneCycle::new(cfg.train.lr, cfg.train.steps, cfg.train.pct_start);
+    let config_text = cfg.to_toml();
+
+    let mut start = 0u64;
+    let mut train_seconds = 0.0;
+    if opts.resume {
+        if let Some(ck) = checkpoint::load_latest(&out)? {
+            if ck.state.config != config_text {
+                return Err(TrainError::Checkpoint(format!(
+                    "{} was written with a different config; resume with the same config or choose another `train.out`",
+                    ck.path.display()
+                )));
+            }
+            model.load_state_dict(&ck.model)?;
+            adam.load_state(&ck.optim)?;
+            start = ck.state.step;
+            train_seconds = ck.state.train_seconds;
+            mon.note(&format!("resuming from {} (step {start})", ck.path.display()));
+        } else {
+            mon.note("no checkpoint to resume from; starting at step 0");
+        }
+    } else if !checkpoint::list(&out)?.is_empty() {
+        return Err(TrainError::Checkpoint(format!(
+            "{} already holds checkpoints; pass --resume to continue them or choose another output folder",
+            out.display()
+        )));
+    }
+    if start == 0 {
+        // The step-0 model, for before/after comparisons.
+        mvsplat360_pipeline::model::write_model_dir(&out.join("model-step0"), &model.model_config(), &model.state_dict())?;
+    }
+    let log_path = out.join("log.jsonl");
+    let mut records = crate::log::read(&log_path)?.into_iter().filter(|r| r.step <= start).collect::<Vec<_>>();
+    crate::log::rewrite(&log_path, &records)?;
+    let mut log = std::fs::OpenOptions::new().append(true).create(true).open(&log_path).map_err(|e| TrainError::Write { path: log_path.clone(), msg: e.to_string() })?;
+
+    let settings = SamplerSettings {
+        num_context: cfg.data.num_context,
+        num_target: cfg.data.num_target,
+        gap: cfg.data.gap,
+        closed_loop: cfg.data.closed_loop,
+        flip: cfg.data.flip,
+    };
+    let weights: Vec<f64> = if cfg.data.weights.is_empty() { vec![1.0; sources.len()] } else { cfg.data.weights.clone() };
+    let wsum: f64 = weights.iter().sum();
+    let accum = cfg.train.accumulate;
+    let save = |adam: &Adam, step: u64, secs: f64| -> Result<()> {
+        let state = State { step, seed: cfg.train.seed, config: config_text.clone(), train_seconds: secs };
+        checkpoint::save(&out, &state, &model.state_dict(), &adam.state_tensors()?, cfg.train.keep_checkpoints)?;
+        Ok(())
+    };
+    let mut step = start;
+    while step < cfg.train.steps {
+        let t0 = Instant::now();
+        let mut grads: Vec<Option<Tensor>> = vec![None; adam.params.len()];
+        let (mut sum_loss, mut sum_mse, mut sum_lp) = (0f64, 0f64, None::<f64>);
+        for micro in 0..accum {
+            let mut rng = step_rng(cfg.train.seed, step, micro);
+            let ex = draw_example(&mut sources, &weights, wsum, &settings, cfg, &mut rng)?;
+            let (pred, _) = render_example(&model, &ex)?;
+            let (total, mse, lp) = losses(cfg, lpips.as_ref(), step, &pred, &ex.target_images)?;
+            let tv = total.to_scalar::<f32>()? as f64;
+            if !tv.is_finite() {
+                return Err(TrainError::NonFinite { step: step + 1, what: format!("loss {tv}") });
+            }
+            sum_loss += tv / accum as f64;
+            sum_mse += mse.to_scalar::<f32>()? as f64 / accum as f64;
+            if let Some(l) = lp {
+                *sum_lp.get_or_insert(0.0) += l.to_scalar::<f32>()? as f64 / accum as f64;
+            }
+            // Lightning divides each micro-batch's loss by the accumulation count.
+            let g = (total / accum as f64)?.backward()?;
+            for (i, p) in adam.params.iter().enumerate() {
+                if let Some(gi) = g.get(p.var.as_tensor()) {
+                    grads[i] = Some(match grads[i].take() {
+                        None => gi.clone(),
+                        Some(a) => (a + gi)?,
+                    });
+                }
+            }
+        }
+        let norm = if cfg.train.clip_grad_norm > 0.0 { clip_grad_norm(&mut grads, cfg.train.clip_grad_norm)? } else { crate::optim::grad_norm(&grads)? };
+        if !norm.is_finite() {
+            return Err(TrainError::NonFinite { step: step + 1, what: format!("gradient norm {norm}") });
+        }
+        let lr = sched.lr(step);
+        adam.step(&grads, lr)?;
+        step += 1;
+        let secs = t0.elapsed().as_secs_f64();
+        train_seconds += secs;
+        let rec = StepRecord { step, loss: sum_loss, mse: sum_mse, lpips: sum_lp, lr, grad_norm: norm, seconds: secs };
+        let line = serde_json::to_string(&rec).map_err(|e| TrainError::Write { path: log_path.clone(), msg: e.to_string() })?;
+        writeln!(log, "{line}").and_then(|_| log.flush()).map_err(|e| TrainError::Write { path: log_path.clone(), msg: e.to_string() })?;
+        records.push(rec.clone());
+        mon.step(&rec, cfg.train.steps);
+        let stop = mon.should_stop();
+        if step % cfg.train.checkpoint_every == 0 || step == cfg.train.steps || stop {
+            save(&adam, step, train_seconds)?;
+            let _ = crate::log::plot(&records, &out.join("loss.png"));
+        }
+        if stop {
+            return Err(TrainError::Interrupted);
+        }
+    }
+    let model_dir = out.join("model");
+    mvsplat360_pipeline::model::write_model_dir(&model_dir, &model.model_config(), &model.state_dict())?;
+    let _ = crate::log::plot(&records, &out.join("loss.png"));
+    Ok(Summary { steps: step, last: records.last().cloned(), model_dir, train_seconds, lpips: lpips.is_some() })
+}
+
+fn draw_example(
+    sources: &mut [SceneSource],
+    weights: &[f64],
+    wsum: f64,
+    s: &SamplerSettings,
+    cfg: &TrainConfig,
+    rng: &mut impl Rng,
+) -> Result<Example> {
+    for _ in 0..20 {
+        let mut u = rng.gen_range(0.0..wsum);
+        let mut k = 0;
+        while k + 1 < weights.len() && u >= weights[k] {
+            u -= weights[k];
+            k += 1;
+        }
+        let scene = sources[k].draw(rng)?;
+        if let Some(ex) = make_example(&scene, s, cfg.model.near, cfg.model.far, rng)? {
+            return Ok(ex);
+        }
+    }
+    Err(TrainError::Data(format!(
+        "no scene has enough views for {} context + targets; add longer sequences or lower data.num_context",
+        s.num_context
+    )))
+}
+
+pub fn out_dir(cfg: &TrainConfig) -> &Path {
+    &cfg.train.out
+}
