@@ -43,7 +43,8 @@ fn mse_gradient() {
 }
 
 /// LPIPS (real VGG weights; `scripts/metric-weights/fetch` installs them): autograd vs central differences on
-/// the pixels with the largest gradients. Tolerance: 3% relative (f32 network, h = 1e-2).
+/// the 6 pixels with the largest gradients, h = 1e-4. ReLU and max-pool kinks of VGG within ±h make single
+/// differences deviate (measured up to 7%), so: each within 10%, their mean within 4%.
 #[test]
 fn lpips_gradient() {
     let dev = Device::Cpu;
@@ -72,28 +73,37 @@ fn lpips_gradient() {
     let g: Vec<f32> = grads.get(pa.as_tensor()).unwrap().flatten_all().unwrap().to_vec1().unwrap();
     let mut order: Vec<usize> = (0..g.len()).collect();
     order.sort_by(|&i, &j| g[j].abs().total_cmp(&g[i].abs()));
-    for &i in order.iter().take(4) {
+    let mut rels = Vec::new();
+    for &i in order.iter().take(6) {
         let x = entry(pa.as_tensor(), i);
-        let hh = 1e-2f32;
+        let hh = 1e-4f32;
         let f = |v: f32| mvsplat360_train::loss::lpips(&net, &with_entry(pa.as_tensor(), i, v), &gb).unwrap().to_scalar::<f32>().unwrap() as f64;
         let fd = (f(x + hh) - f(x - hh)) / (2.0 * hh as f64);
         let rel = (fd - g[i] as f64).abs() / (g[i].abs() as f64);
-        assert!(rel <= 3e-2, "pixel {i}: autograd {} vs central difference {fd} (rel {rel:.3})", g[i]);
+        assert!(rel <= 0.1, "pixel {i}: autograd {} vs central difference {fd} (rel {rel:.3})", g[i]);
+        rels.push(rel);
     }
+    let mean = rels.iter().sum::<f64>() / rels.len() as f64;
+    assert!(mean <= 0.04, "mean relative error {mean:.3} over the 6 pixels ({rels:?})");
 }
 
 /// End to end: MSE of target renders w.r.t. encoder parameters, through the exact rasterizer backward and the
 /// encoder's backward. Checked on the entry with the largest gradient of a few tensors from different parts
-/// of the encoder; tolerance 5% relative (f32 through ~40 layers; h = 2e-3).
+/// of the encoder; tolerance 5% relative. The loss is strongly curved in these parameters (a depth change moves
+/// Gaussians across pixels): central differences approach the autograd value only below h ≈ 1e-3 (measured:
+/// backbone conv1 0.089 at h = 1e-3, 0.0914 at 3e-4, autograd 0.0934), so h = 3e-4, where f32 noise stays
+/// below ~2.5%.
 #[test]
 fn encoder_parameter_gradients() {
     let dir = tempfile::tempdir().unwrap();
     let mut cfg = common::tiny_config(dir.path(), 1, "");
     cfg.train.raster_grad = RasterGrad::Exact;
+    // 128×64: the size the tolerance below was measured at.
+    cfg.model.width = 128;
     cfg.data.sources = vec![Source::Folder { path: repo().join("assets/woodbox") }];
     cfg.data.flip = false;
     let model = Model::new(&cfg).unwrap();
-    let mut src = mvsplat360_train::scenes::SceneSource::open(&cfg.data.sources[0], 128, 64, 64).unwrap();
+    let mut src = mvsplat360_train::scenes::SceneSource::open(&cfg.data.sources[0], cfg.model.width, cfg.model.height, 64).unwrap();
     let mut rng = rand::rngs::StdRng::seed_from_u64(2);
     let scene = src.draw(&mut rng).unwrap();
     let s = mvsplat360_train::sampler::SamplerSettings { num_context: 3, num_target: 2, gap: None, closed_loop: true, flip: false };
@@ -113,7 +123,7 @@ fn encoder_parameter_gradients() {
         let i = (0..gv.len()).max_by(|&a, &b| gv[a].abs().total_cmp(&gv[b].abs())).unwrap();
         let orig = var.as_tensor().copy().unwrap();
         let x = entry(&orig, i);
-        let h = 2e-3f32;
+        let h = 3e-4f32;
         let f = |v: f32| -> f64 {
             var.set(&with_entry(&orig, i, v)).unwrap();
             loss_of(&model).to_dtype(DType::F64).unwrap().to_scalar::<f64>().unwrap()

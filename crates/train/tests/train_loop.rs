@@ -11,6 +11,7 @@ use mvsplat360_train::{log, Quiet, RunOptions};
 fn tiny_config_loss_decreases() {
     let dir = tempfile::tempdir().unwrap();
     let mut cfg = common::tiny_config(dir.path(), 20, "");
+    cfg.train.accumulate = 1;
     // One scene, no flips: what changes between steps is only which views are targets.
     cfg.data.sources = vec![mvsplat360_train::config::Source::Procedural { count: 1, seed: 3, views: 12 }];
     cfg.data.flip = false;

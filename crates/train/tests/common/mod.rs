@@ -10,7 +10,7 @@ pub fn tiny_config(out: &Path, steps: u64, extra_train: &str) -> TrainConfig {
     let text = format!(
         r#"
 [model]
-width = 128
+width = 64
 height = 64
 [model.encoder]
 d_feature = 32
