@@ -31,7 +31,7 @@ pub struct SamplerSettings {
 /// Draw one sample; `None` when the sequence is too short for the settings.
 pub fn sample(cameras: &[Camera], s: &SamplerSettings, rng: &mut impl Rng) -> Option<ViewSample> {
     let n = cameras.len();
-    if n < s.num_context + 1 {
+    if n < s.num_context.max(2) {
         return None;
     }
     let window: Vec<usize> = match s.gap {
