@@ -65,7 +65,7 @@ pub fn plot(records: &[StepRecord], path: &Path) -> Result<()> {
         }
         let mut chart = b.build_cartesian_2d(0f64..max_step, (lo..hi).log_scale()).map_err(|e| perr(&e))?;
         let mut mesh = chart.configure_mesh();
-        mesh.x_desc("optimizer step").y_desc("loss");
+        mesh.x_desc("optimizer step").y_desc("loss").y_label_formatter(&|v| format!("{v:.3}")).x_label_formatter(&|v| format!("{v:.0}"));
         if !labels {
             mesh.disable_x_mesh().disable_y_mesh();
         }
@@ -73,7 +73,7 @@ pub fn plot(records: &[StepRecord], path: &Path) -> Result<()> {
             mesh.draw().map_err(|e| perr(&e))?;
         }
         let smooth = |f: &dyn Fn(&StepRecord) -> f64| -> Vec<(f64, f64)> {
-            let k = (records.len() / 50).max(1);
+            let k = (records.len() / 20).clamp(1, 100);
             records
                 .iter()
                 .enumerate()
