@@ -80,6 +80,9 @@ fn torch_chunk_written_by_torch_save() {
     assert_eq!(index["woodbox_b"], "000000.torch");
 
     let full = read_scene(&woodbox()).unwrap();
+    let stored = stored_images(&chunk);
+    assert_eq!(stored.len(), 5, "the chunk stores 3 + 2 encoded images");
+    let mut used: Vec<usize> = Vec::new();
     let a = read_scene(&chunk).unwrap();
     let b = read_scene_with(&chunk, Some("woodbox_b")).unwrap();
     assert_eq!(a.name, "woodbox_a");
@@ -91,11 +94,118 @@ fn torch_chunk_written_by_torch_save() {
             assert_same_camera(&scene.cameras[k], &expect, 1e-5, "chunk");
             let img = scene.image(k).unwrap();
             assert_eq!((img.width, img.height), (224, 128));
-            let mean = |d: &[f32]| d.iter().map(|&x| x as f64).sum::<f64>() / d.len() as f64;
-            let m_full = mean(&full.image(v).unwrap().data);
-            assert!((mean(&img.data) - m_full).abs() < 0.01, "view {v}: mean colour differs");
+            // Pixels, exactly: the image the reader returns is the one stored for this view, decoded unchanged
+            // (no channel swap, transpose, flip, crop or rescale).
+            let hits: Vec<usize> = stored.iter().enumerate().filter(|(_, s)| s.data == img.data).map(|(i, _)| i).collect();
+            assert_eq!(hits.len(), 1, "{} view {v}: matches {} of the stored images exactly", scene.name, hits.len());
+            assert!(!used.contains(&hits[0]), "{} view {v}: stored image {} returned twice", scene.name, hits[0]);
+            used.push(hits[0]);
+            // ...and it shows this view: per pixel against the original photo shrunk the way the chunk writer
+            // did (PIL bicubic, see scripts/make-torch-chunk).
+            let want = pil_bicubic_half(&full.image(v).unwrap());
+            let d: Vec<f64> = img.data.iter().zip(&want).map(|(a, b)| (*a as f64 - b).abs() * 255.0).collect();
+            let max = d.iter().fold(0f64, |m, &x| m.max(x));
+            let mut sorted = d.clone();
+            sorted.sort_by(f64::total_cmp);
+            let p99 = sorted[sorted.len() * 99 / 100];
+            let lossless = scene.name == "woodbox_b";
+            eprintln!("{} view {v}: |reader - PIL bicubic of the original| max {max:.1}/255, p99 {p99:.1}/255", scene.name);
+            let (max_tol, p99_tol) = if lossless { PNG_TOL } else { JPEG_TOL };
+            assert!(max <= max_tol && p99 <= p99_tol, "{} view {v}: pixels differ from the original view (max {max:.1}, p99 {p99:.1} levels)", scene.name);
+            // The same test with the view's neighbour in the scene must fail (the check tells views apart).
+            let other = pil_bicubic_half(&full.image((v + 1) % full.len()).unwrap());
+            let p99_other = {
+                let mut d: Vec<f64> = img.data.iter().zip(&other).map(|(a, b)| (*a as f64 - b).abs() * 255.0).collect();
+                d.sort_by(f64::total_cmp);
+                d[d.len() * 99 / 100]
+            };
+            eprintln!("  ...against view {}: p99 {p99_other:.1}/255", (v + 1) % full.len());
+            assert!(p99_other > 3.0 * p99.max(1.0), "view {v} is not told apart from view {}", (v + 1) % full.len());
         }
     }
+    assert_eq!(used.len(), stored.len(), "every stored image is some view's");
+}
+
+/// Per-pixel tolerance (max, 99th percentile), in 8-bit levels, of a chunk image against [`pil_bicubic_half`] of
+/// the original photo: the PNG views (lossless) only see PIL's fixed-point rounding and the two JPEG decoders of the
+/// original (measured max 3, p99 1); the JPEG views (quality 85) add their own compression error (measured max
+/// 28, p99 11). A neighbouring view differs by p99 81–122 levels.
+const PNG_TOL: (f64, f64) = (6.0, 3.0);
+const JPEG_TOL: (f64, f64) = (56.0, 22.0);
+
+/// The encoded images stored in a `.torch` chunk, found without the torch reader: every zip member holding a
+/// PNG or JPEG stream (the uint8 storages), decoded by the `image` crate into planar f32 like the reader's.
+fn stored_images(chunk: &Path) -> Vec<mvsplat360_dataset::image::ImageF32> {
+    use std::io::Read;
+    let mut zip = zip::ZipArchive::new(std::fs::File::open(chunk).unwrap()).unwrap();
+    let mut out = Vec::new();
+    for i in 0..zip.len() {
+        let mut f = zip.by_index(i).unwrap();
+        let mut bytes = Vec::new();
+        f.read_to_end(&mut bytes).unwrap();
+        let is_png = bytes.starts_with(&[0x89, b'P', b'N', b'G']);
+        let is_jpeg = bytes.starts_with(&[0xFF, 0xD8, 0xFF]);
+        if !(is_png || is_jpeg) {
+            continue;
+        }
+        let rgb = image::load_from_memory(&bytes).unwrap().to_rgb8();
+        let (w, h) = rgb.dimensions();
+        let mut data = vec![0f32; 3 * (w * h) as usize];
+        for (x, y, p) in rgb.enumerate_pixels() {
+            for c in 0..3 {
+                data[c * (w * h) as usize + (y * w + x) as usize] = p[c] as f32 / 255.0;
+            }
+        }
+        out.push(mvsplat360_dataset::image::ImageF32 { width: w, height: h, data });
+    }
+    out
+}
+
+/// PIL's `Image.resize((W/2, H/2), BICUBIC)` (a = −0.5, support scaled by 2 for the 2× reduction, horizontal
+/// pass then vertical, 8-bit rounding after each) in f64; planar RGB in [0, 1].
+fn pil_bicubic_half(src: &mvsplat360_dataset::image::ImageF32) -> Vec<f64> {
+    let (w, h) = (src.width as usize, src.height as usize);
+    let (ow, oh) = (w / 2, h / 2);
+    let cubic = |x: f64| {
+        let a = -0.5;
+        let x = x.abs();
+        if x < 1.0 {
+            ((a + 2.0) * x - (a + 3.0)) * x * x + 1.0
+        } else if x < 2.0 {
+            (((x - 5.0) * x + 8.0) * x - 4.0) * a
+        } else {
+            0.0
+        }
+    };
+    // Taps of output index `o` over an input axis of length n (PIL's precompute_coeffs).
+    let taps = |o: usize, n: usize| -> Vec<(usize, f64)> {
+        let scale = 2.0;
+        let support = 2.0 * scale;
+        let center = (o as f64 + 0.5) * scale;
+        let lo = ((center - support + 0.5).floor().max(0.0)) as usize;
+        let hi = ((center + support + 0.5).floor() as usize).min(n);
+        let ws: Vec<(usize, f64)> = (lo..hi).map(|x| (x, cubic((x as f64 - center + 0.5) / scale))).collect();
+        let sum: f64 = ws.iter().map(|t| t.1).sum();
+        ws.into_iter().map(|(x, wt)| (x, wt / sum)).collect()
+    };
+    let round8 = |v: f64| (v * 255.0).round().clamp(0.0, 255.0) / 255.0;
+    let mut out = vec![0f64; 3 * ow * oh];
+    for c in 0..3 {
+        let plane = &src.data[c * w * h..(c + 1) * w * h];
+        let mut horiz = vec![0f64; ow * h];
+        for y in 0..h {
+            for x in 0..ow {
+                horiz[y * ow + x] = round8(taps(x, w).iter().map(|&(i, wt)| wt * plane[y * w + i] as f64).sum());
+            }
+        }
+        for y in 0..oh {
+            let ty = taps(y, h);
+            for x in 0..ow {
+                out[c * ow * oh + y * ow + x] = round8(ty.iter().map(|&(i, wt)| wt * horiz[i * ow + x]).sum());
+            }
+        }
+    }
+    out
 }
 
 #[test]

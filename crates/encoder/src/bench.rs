@@ -39,6 +39,15 @@ pub fn set_threads(threads: usize) -> Result<(), BenchError> {
     Ok(())
 }
 
+/// Run `f` on a pool of `threads` worker threads (0 = all cores), which candle's CPU kernels and rayon use.
+fn on_threads<T: Send>(threads: usize, f: impl FnOnce() -> Result<T, BenchError> + Send) -> Result<T, BenchError> {
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .map_err(|e| BenchError::Setup(format!("cannot build a {threads}-thread pool: {e}")))?;
+    pool.install(f)
+}
+
 /// Synthetic context: smooth images in [0,1], cameras on an arc looking at the origin, normalised K.
 pub fn synthetic_context(b: usize, v: usize, h: usize, w: usize, device: &Device) -> candle_core::Result<[Tensor; 5]> {
     let mut img = Vec::with_capacity(b * v * 3 * h * w);
@@ -86,7 +95,10 @@ fn median(mut xs: Vec<f64>) -> f64 {
 
 /// Backbone only (CNN + transformer), for a breakdown of the encoder time.
 pub fn run_backbone_bench(views: usize, height: usize, width: usize, threads: usize, runs: usize) -> Result<serde_json::Value, BenchError> {
-    set_threads(threads)?;
+    on_threads(threads, || backbone_bench(views, height, width, runs))
+}
+
+fn backbone_bench(views: usize, height: usize, width: usize, runs: usize) -> Result<serde_json::Value, BenchError> {
     let cfg = EncoderCostVolumeCfg { num_views: views, ..Default::default() };
     let dev = Device::Cpu;
     let build = |vb: VarBuilder| BackboneMultiview::new(vb.pp("encoder").pp("backbone"), cfg.d_feature, cfg.num_transformer_layers, cfg.ffn_dim_expansion);
@@ -106,13 +118,16 @@ pub fn run_backbone_bench(views: usize, height: usize, width: usize, threads: us
         }
     }
     Ok(json!({"bench": "encoder_backbone", "views": views, "height": height, "width": width,
-        "forward_ms": median(times), "peak_mib": peak_rss_mib()}))
+        "threads": rayon::current_num_threads(), "forward_ms": median(times), "peak_mib": peak_rss_mib()}))
 }
 
 /// The full encoder (DL3DV configuration, `views` context views, random weights): median forward time over `runs`
-/// runs after one warm-up, and the process's peak RSS.
+/// runs after one warm-up, and the process's peak RSS, on `threads` worker threads (0 = all cores).
 pub fn run_encoder_bench(views: usize, height: usize, width: usize, threads: usize, runs: usize) -> Result<serde_json::Value, BenchError> {
-    set_threads(threads)?;
+    on_threads(threads, || encoder_bench(views, height, width, runs))
+}
+
+fn encoder_bench(views: usize, height: usize, width: usize, runs: usize) -> Result<serde_json::Value, BenchError> {
     let cfg = EncoderCostVolumeCfg { num_views: views, ..Default::default() };
     let dev = Device::Cpu;
     let build = |vb: VarBuilder| crate::EncoderCostVolume::new(vb.pp("encoder"), &cfg);
@@ -129,5 +144,5 @@ pub fn run_encoder_bench(views: usize, height: usize, width: usize, threads: usi
         }
     }
     Ok(json!({"bench": "encoder", "views": views, "height": height, "width": width,
-        "forward_ms": median(times), "peak_mib": peak_rss_mib()}))
+        "threads": rayon::current_num_threads(), "forward_ms": median(times), "peak_mib": peak_rss_mib()}))
 }

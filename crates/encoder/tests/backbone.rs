@@ -46,11 +46,6 @@ fn backbone_matches_official_intermediates() {
         report(&name, &out.block_outputs[i], tk::get(&inter, &name));
     }
     report("backbone.trans_features", &out.trans_features, tk::get(&inter, "backbone.trans_features"));
-    // Sanity: the last block output and trans_features are the same data in two layouts.
-    let last = out.block_outputs.last().unwrap();
-    let (b, v, c, h, w) = out.trans_features.dims5().unwrap();
-    let relaid = last.reshape((v, b, h, w, c)).unwrap().permute((1, 0, 4, 2, 3)).unwrap();
-    tk::assert_close("relayout", &relaid.i(0).unwrap(), &out.trans_features.i(0).unwrap(), 0.0);
 }
 
 /// Every trainable backbone Var receives a non-zero gradient (composed LayerNorm/softmax in the trainable path),

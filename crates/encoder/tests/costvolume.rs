@@ -1,6 +1,6 @@
 //! Depth-predictor parity against the official PyTorch encoder (fixtures/encoder, README "Intermediates"), fed
 //! with the fixture's own backbone features so it does not depend on the backbone port.
-//! Tolerance: normalised error e = max|Δ| / max(1, max|ref|) ≤ 2e-4 (README: f32 reference noise ≤ 3.1e-5).
+//! Tolerances: element-wise |ours − official| ≤ atol + rtol·|official| (see the constants).
 
 use candle_core::{DType, Device, IndexOp, Tensor};
 use mvsplat360_encoder::config::EncoderCostVolumeCfg;
@@ -8,12 +8,26 @@ use mvsplat360_encoder::costvolume::{DepthPredictorInput, DepthPredictorMultiVie
 use mvsplat360_encoder::weights::load_strict;
 use mvsplat360_testkit as tk;
 
-const TOL: f64 = 2e-4;
+/// Intermediates: |ours − official| ≤ ATOL_FRAC·max(1, max|official|) + RTOL·|official| per entry. The absolute
+/// part scales with the tensor because entries near zero are sums of large terms (cost volume up to ~140) and carry
+/// their f32 noise; measured need at RTOL: ≤ 6.6e-7 × max(1, max|ref|) (refine UNet, corr-refine UNet; cost volume
+/// 3.9e-7).
+const ATOL_FRAC: f64 = 2e-6;
+const RTOL: f64 = 1e-3;
+/// (atol, rtol) of the outputs. Measured: depths and scales max rel 5.6e-5; disparity rtol ≥ 2.3e-5 at atol 1e-6;
+/// densities / opacities max |Δ| 4.8e-7; means rtol ≥ 5.6e-5 at atol 1e-4; covariances rtol ≥ 1.4e-4 at atol
+/// 1e-6; rotations atol ≥ 4e-6 at rtol 1e-4; SH atol ≥ 5.9e-6 × the degree's mask at rtol 1e-3.
+const OPACITY: (f64, f64) = (1e-6, 1e-5);
+const ROTATION: (f64, f64) = (1.5e-5, 1e-4);
+const SCALE: (f64, f64) = (1e-6, 2e-4);
+const MEAN: (f64, f64) = (1e-4, 2e-4);
+const COVARIANCE: (f64, f64) = (1e-6, 5e-4);
+const DEPTH: (f64, f64) = (1e-6, 2e-4);
+const DISPARITY: (f64, f64) = (1e-6, 1e-4);
+const SH: (f64, f64) = (2e-5, 1e-3);
 
-fn report(name: &str, a: &Tensor, e: &Tensor, tol: f64) {
-    let (d, m) = tk::max_abs_diff(a, e);
-    eprintln!("{name}: max abs {d:.3e}, max|ref| {m:.3e}, e {:.3e}", d / m.max(1.0));
-    tk::assert_close_norm(name, a, e, tol);
+fn sh_mask(l: usize) -> f64 {
+    if l == 0 { 1.0 } else { 0.1 * 0.25f64.powi(l as i32) }
 }
 
 #[test]
@@ -40,8 +54,12 @@ fn depth_predictor_matches_official_intermediates() {
     };
     let out = model.forward_with_intermediates(&inp).unwrap();
     let it = out.intermediates.as_ref().unwrap();
-    report("depth.disparity_candidates", &it.disparity_candidates.i(0).unwrap(), tk::get(&inter, "depth.disparity_candidates"), 1e-6);
-    report("depth.cost_volume", &it.cost_volume, tk::get(&inter, "depth.cost_volume"), TOL);
+    let mut fails: Vec<String> = Vec::new();
+    let mut check = |name: &str, a: &Tensor, e: &Tensor, tol: (f64, f64)| fails.extend(tk::allclose(name, a, e, tol.0, tol.1));
+    check("depth.disparity_candidates", &it.disparity_candidates.i(0).unwrap(), tk::get(&inter, "depth.disparity_candidates"), (1e-7, 1e-6));
+    let scaled = |e: &Tensor| (ATOL_FRAC * tk::to_f64(e).iter().fold(1f64, |m, x| m.max(x.abs())), RTOL);
+    let cv = tk::get(&inter, "depth.cost_volume");
+    check("depth.cost_volume", &it.cost_volume, cv, scaled(cv));
     for (name, t) in [
         ("depth.corr_refine_net.out", &it.corr_refine_net_out),
         ("depth.cost_volume_refined", &it.cost_volume_refined),
@@ -54,33 +72,39 @@ fn depth_predictor_matches_official_intermediates() {
         ("depth.refine_unet.out", &it.refine_unet_out),
         ("depth.to_disparity.out", &it.to_disparity_out),
     ] {
-        report(name, t, tk::get(&inter, name), TOL);
+        let e = tk::get(&inter, name);
+        check(name, t, e, scaled(e));
     }
     // raw Gaussians [B,V,C,H,W] vs the fixture's (v b) layout (B = 1 here).
     let (b, v, c, h, w) = out.raw_gaussians.dims5().unwrap();
     let raw_vb = out.raw_gaussians.permute((1, 0, 2, 3, 4)).unwrap().reshape((v * b, c, h, w)).unwrap();
-    report("depth.to_gaussians.out", &raw_vb, tk::get(&inter, "depth.to_gaussians.out"), TOL);
+    let e = tk::get(&inter, "depth.to_gaussians.out");
+    check("depth.to_gaussians.out", &raw_vb, e, scaled(e));
 
-    // Depths: normalised e ≤ 2e-3 and, as disparity, max-abs ≤ 1e-4 (README).
     let want = tk::get(&outputs, "depths").reshape((b, v, h, w)).unwrap();
-    report("depths", &out.depths, &want, 2e-3);
-    tk::assert_close("disparity (1/depths)", &out.depths.recip().unwrap(), &want.recip().unwrap(), 1e-4);
+    check("depths", &out.depths, &want, DEPTH);
+    check("disparity (1/depths)", &out.depths.recip().unwrap(), &want.recip().unwrap(), DISPARITY);
     let dens = tk::get(&inter, "adapter.in.opacities").reshape((b, v, h, w)).unwrap();
-    report("densities", &out.densities, &dens, TOL);
+    check("densities", &out.densities, &dens, OPACITY);
 
     // Depth predictor → adapter, end to end against the official Gaussians.
     let g = mvsplat360_encoder::common::gaussians_from_prediction(&cfg, &out, inp.extrinsics, inp.intrinsics, (h, w)).unwrap();
     for (name, t, tol) in [
-        ("gaussians.means", &g.means, 2e-3),
-        ("gaussians.covariances", &g.covariances, 2e-3),
-        ("gaussians.scales", &g.scales, 2e-3),
-        ("gaussians.rotations", &g.rotations, 2e-3),
-        ("gaussians.opacities", &g.opacities, TOL),
-        ("gaussians.harmonics", &g.harmonics, TOL),
-        ("gaussians.feature_harmonics", &g.feature_harmonics, TOL),
+        ("gaussians.means", &g.means, MEAN),
+        ("gaussians.covariances", &g.covariances, COVARIANCE),
+        ("gaussians.scales", &g.scales, SCALE),
+        ("gaussians.rotations", &g.rotations, ROTATION),
+        ("gaussians.opacities", &g.opacities, OPACITY),
     ] {
-        report(&format!("end-to-end {name}"), t, tk::get(&outputs, name), tol);
+        check(&format!("end-to-end {name}"), t, tk::get(&outputs, name), tol);
     }
+    for (name, ours, degrees) in [("gaussians.harmonics", &g.harmonics, 4), ("gaussians.feature_harmonics", &g.feature_harmonics, 2)] {
+        for l in 0..=degrees {
+            let e = tk::sh_degree_block(tk::get(&outputs, name), l);
+            check(&format!("end-to-end {name} degree {l}"), &tk::sh_degree_block(ours, l), &e, (SH.0 * sh_mask(l), SH.1));
+        }
+    }
+    tk::assert_no_failures("depth predictor vs official", &fails);
 }
 
 /// Every trainable parameter of the depth predictor and the input features receive a non-zero, finite gradient

@@ -1,11 +1,20 @@
 //! Parity with the official rasterizer's golden fixtures (forward images, per-Gaussian buffers, gradients),
-//! via both the cov3d and the scales+quats input paths. Tolerances from rasterizer/README.md.
+//! via both the cov3d and the scales+quats input paths. Forward tolerances from rasterizer/README.md; gradients
+//! element-wise (see GRAD_ATOL / GRAD_RTOL).
 
 use mvsplat360_splat::cpu::{self, CovInput, GradMode, PixelGrads};
 use mvsplat360_testkit::get;
 
 mod common;
-use common::{check_abs, check_rel, to_planar, v32, vi, CovPath, Fixture};
+use common::{check_abs, check_rel, clamped_jacobian, close_report, max_abs, to_planar, v32, vi, CovPath, Fixture};
+
+/// Gradients, element-wise: |ours − fixture| ≤ GRAD_ATOL·max|fixture| + GRAD_RTOL·|fixture| (was max |Δ| ≤
+/// 1e-4·max|fixture|). The absolute part stays proportional to the tensor's largest gradient because a small entry
+/// is a sum of large per-pixel terms and carries their f32 noise: the smallest passing atol at GRAD_RTOL, measured
+/// on `medium` (`small` needs less), is 6.4e-6 × max for means (README f32-vs-f64: 2.89e-3 of 453), 7.7e-6 for
+/// means2d, 9.0e-6 for cov3d, 2.8e-6 for features, 1.6e-6 for SH, 9.5e-7 for opacities.
+const GRAD_ATOL: f64 = 3e-5;
+const GRAD_RTOL: f64 = 1e-4;
 
 fn run(file: &str) {
     let fx = Fixture::load(file);
@@ -50,19 +59,34 @@ fn run(file: &str) {
 
         let pg = PixelGrads { rgb: w1, features: w2, alpha: None, depth: None };
         let g = cpu::backward(&inp, &settings, &out, &pg, GradMode::Official).unwrap();
-        let tol = 1e-4;
-        check_rel("grad_means", &g.means, &v32(get(m, "grad_means")), tol);
-        check_rel("grad_opacities", &g.opacities, &v32(get(m, "grad_opacities")), tol);
-        check_rel("grad_sh", &g.sh, &v32(get(m, "grad_sh")), tol);
-        check_rel("grad_features", &g.features, &v32(get(m, "grad_features")), tol);
-        check_rel("grad_means2d_ndc", &g.means2d_ndc, &v32(get(m, "grad_means2d_ndc")), tol);
+        let mut grads: Vec<(&str, &[f32], usize)> = vec![
+            ("grad_means", &g.means[..], 3),
+            ("grad_opacities", &g.opacities[..], 1),
+            ("grad_sh", &g.sh[..], 3 * fx.sh_coeffs),
+            ("grad_features", &g.features[..], nf),
+            ("grad_means2d_ndc", &g.means2d_ndc[..], 2),
+        ];
         match cov {
-            CovInput::Cov3d(_) => check_rel("grad_cov3d", &g.cov3d, &v32(get(m, "grad_cov3d")), tol),
+            CovInput::Cov3d(_) => grads.push(("grad_cov3d", &g.cov3d[..], 6)),
             CovInput::ScaleRot { .. } => {
-                check_rel("grad_scales", g.scales.as_ref().unwrap(), &v32(get(m, "grad_scales")), tol);
-                check_rel("grad_quats", g.quats.as_ref().unwrap(), &v32(get(m, "grad_quats")), tol);
+                grads.push(("grad_scales", g.scales.as_deref().unwrap(), 3));
+                grads.push(("grad_quats", g.quats.as_deref().unwrap(), 4));
             }
         }
+        let mut fails = Vec::new();
+        for &(name, ours, _) in &grads {
+            let want = v32(get(m, name));
+            // Element-wise; atol is a fraction of the tensor's largest gradient (entries near zero only carry
+            // the f32 noise of the large terms they sum).
+            fails.extend(close_report(name, ours, &want, GRAD_ATOL * max_abs(&want), GRAD_RTOL));
+        }
+        // The fixtures do not test the official clamped-Jacobian gradient: `medium`'s only visible Gaussian outside
+        // the 1.3·tan(fov) cone has all-zero gradients (it blends into no pixel), `small` has none, and the hidden
+        // variant's six are not in this folder. tests/grad_check.rs checks that gradient against finite differences.
+        let clamped = clamped_jacobian(&fx.means, &radii, &cam);
+        let zero = clamped.iter().all(|&i| v32(get(m, "grad_means"))[3 * i..3 * i + 3].iter().all(|&x| x == 0.0));
+        eprintln!("visible clamped-Jacobian Gaussians: {clamped:?} (fixture gradients all zero: {zero})");
+        mvsplat360_testkit::assert_no_failures(&format!("{file} gradients via {path:?}"), &fails);
         // Determinism: a second backward gives bit-identical gradients.
         let g2 = cpu::backward(&inp, &settings, &out, &pg, GradMode::Official).unwrap();
         assert_eq!(g.means, g2.means);

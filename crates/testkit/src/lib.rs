@@ -86,3 +86,133 @@ pub fn assert_close_rel_max(name: &str, actual: &Tensor, expected: &Tensor, tol:
     let (d, m) = max_abs_diff(actual, expected);
     assert!(d <= tol * m.max(f64::MIN_POSITIVE), "{name}: max abs diff {d:.3e} > {tol:.1e} x max|ref| {m:.3e}");
 }
+
+/// Element-wise comparison of `actual` against `expected` with |a − e| ≤ atol + rtol·|e| per entry.
+#[derive(Debug, Clone, Copy)]
+pub struct Spread {
+    /// Entries compared.
+    pub n: usize,
+    /// max |a − e|.
+    pub max_abs: f64,
+    /// max |a − e| / |e| over the entries with |e| > 0 (the f32 noise relative to each value).
+    pub max_rel: f64,
+    /// max |a − e| / (atol + rtol·|e|): ≤ 1 passes; the headroom left by the tolerance.
+    pub worst_ratio: f64,
+    /// Index, actual and expected value of the entry with the largest ratio.
+    pub worst: (usize, f64, f64),
+    /// Entries over the tolerance.
+    pub n_bad: usize,
+    /// max |e|.
+    pub max_ref: f64,
+    /// Smallest rtol that passes with this atol, and smallest atol that passes with this rtol.
+    pub rtol_needed: f64,
+    pub atol_needed: f64,
+}
+
+/// [`Spread`] of two equally long slices (compared in f64). Panics on a length mismatch or a non-finite
+/// `actual` entry whose reference is finite.
+pub fn spread(actual: &[f64], expected: &[f64], atol: f64, rtol: f64) -> Spread {
+    assert_eq!(actual.len(), expected.len(), "length mismatch");
+    let mut s = Spread { n: actual.len(), max_abs: 0.0, max_rel: 0.0, worst_ratio: 0.0, worst: (0, 0.0, 0.0), n_bad: 0, max_ref: 0.0, rtol_needed: 0.0, atol_needed: 0.0 };
+    for (i, (&a, &e)) in actual.iter().zip(expected).enumerate() {
+        assert!(a.is_finite() || !e.is_finite(), "entry {i}: actual {a} is not finite (expected {e})");
+        let d = (a - e).abs();
+        let tol = atol + rtol * e.abs();
+        let ratio = if tol > 0.0 { d / tol } else if d == 0.0 { 0.0 } else { f64::INFINITY };
+        s.max_abs = s.max_abs.max(d);
+        s.max_ref = s.max_ref.max(e.abs());
+        s.atol_needed = s.atol_needed.max(d - rtol * e.abs());
+        if d > atol {
+            s.rtol_needed = s.rtol_needed.max(if e != 0.0 { (d - atol) / e.abs() } else { f64::INFINITY });
+        }
+        if e != 0.0 {
+            s.max_rel = s.max_rel.max(d / e.abs());
+        }
+        if ratio > 1.0 || ratio.is_nan() {
+            s.n_bad += 1;
+        }
+        if ratio > s.worst_ratio || (i == 0 && ratio.is_nan()) {
+            s.worst_ratio = ratio;
+            s.worst = (i, a, e);
+        }
+    }
+    s
+}
+
+/// Compare every entry with |a − e| ≤ atol + rtol·|e| (numpy's `allclose` rule), print the spread so a
+/// tolerance can be justified from the log, and return the failure message, if any. An all-zero reference
+/// fails (the check would be vacuous).
+pub fn allclose_report(name: &str, actual: &[f64], expected: &[f64], atol: f64, rtol: f64) -> Option<String> {
+    let s = spread(actual, expected, atol, rtol);
+    eprintln!(
+        "{name}: n {}, max abs {:.3e}, max rel {:.3e}, max|ref| {:.3e}; worst {:.3} of tol (atol {atol:.1e}, rtol {rtol:.1e}) at [{}] {:.6e} vs {:.6e}; passes with rtol >= {:.2e} at this atol, atol >= {:.2e} at this rtol",
+        s.n, s.max_abs, s.max_rel, s.max_ref, s.worst_ratio, s.worst.0, s.worst.1, s.worst.2, s.rtol_needed, s.atol_needed.max(0.0)
+    );
+    if s.max_ref == 0.0 && s.n > 0 {
+        return Some(format!("{name}: reference is all zeros"));
+    }
+    (s.n_bad > 0).then(|| {
+        format!(
+            "{name}: {} of {} entries exceed |a-e| <= {atol:.1e} + {rtol:.1e}|e| (worst: [{}] {:.6e} vs {:.6e}, {:.2}x tol; max abs {:.3e})",
+            s.n_bad, s.n, s.worst.0, s.worst.1, s.worst.2, s.worst_ratio, s.max_abs
+        )
+    })
+}
+
+/// Assert [`allclose_report`] finds no failure.
+pub fn assert_allclose_slice(name: &str, actual: &[f64], expected: &[f64], atol: f64, rtol: f64) {
+    if let Some(msg) = allclose_report(name, actual, expected, atol, rtol) {
+        panic!("{msg}");
+    }
+}
+
+/// A tensor's values in f64, row-major.
+pub fn to_f64(t: &Tensor) -> Vec<f64> {
+    t.contiguous().unwrap().to_dtype(DType::F64).unwrap().flatten_all().unwrap().to_vec1::<f64>().unwrap()
+}
+
+/// [`allclose_report`] for two tensors of the same shape.
+pub fn allclose(name: &str, actual: &Tensor, expected: &Tensor, atol: f64, rtol: f64) -> Option<String> {
+    assert_eq!(actual.dims(), expected.dims(), "{name}: shape mismatch");
+    allclose_report(name, &to_f64(actual), &to_f64(expected), atol, rtol)
+}
+
+/// [`assert_allclose_slice`] for two tensors of the same shape.
+pub fn assert_allclose(name: &str, actual: &Tensor, expected: &Tensor, atol: f64, rtol: f64) {
+    if let Some(msg) = allclose(name, actual, expected, atol, rtol) {
+        panic!("{msg}");
+    }
+}
+
+/// Panics listing every failure collected by [`allclose`] / [`allclose_report`] (so one run reports them all).
+pub fn assert_no_failures(what: &str, failures: &[String]) {
+    assert!(failures.is_empty(), "{what}: {} check(s) failed:\n{}", failures.len(), failures.join("\n"));
+}
+
+/// The slice of coefficients of SH degree `l` along the last dimension (k = l² .. (l+1)²).
+pub fn sh_degree_block(t: &Tensor, l: usize) -> Tensor {
+    let last = t.rank() - 1;
+    t.narrow(last, l * l, 2 * l + 1).unwrap()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn allclose_rule_is_per_entry() {
+        let e = [1.0, 1e-3, -200.0, 0.0];
+        // Each entry just inside atol + rtol|e|.
+        let a: Vec<f64> = e.iter().map(|&x: &f64| x + 0.99 * (1e-6 + 1e-4 * x.abs())).collect();
+        assert_allclose_slice("inside", &a, &e, 1e-6, 1e-4);
+        // An error fine for the largest value but not for a small one must fail.
+        let mut b = e.to_vec();
+        b[1] += 1e-4;
+        let s = spread(&b, &e, 1e-6, 1e-4);
+        assert_eq!(s.n_bad, 1);
+        assert_eq!(s.worst.0, 1);
+        assert!(std::panic::catch_unwind(|| assert_allclose_slice("outside", &b, &e, 1e-6, 1e-4)).is_err());
+        assert!(std::panic::catch_unwind(|| assert_allclose_slice("zeros", &[0.0], &[0.0], 1e-6, 1e-4)).is_err());
+        assert!(std::panic::catch_unwind(|| assert_allclose_slice("nan", &[f64::NAN], &[1.0], 1e-6, 1e-4)).is_err());
+    }
+}

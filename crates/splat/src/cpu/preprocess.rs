@@ -712,10 +712,16 @@ mod tests {
         for inp in &inputs {
             let want = preprocess_scalar(&f, inp);
             assert!(want.radii.iter().filter(|&&r| r > 0).count() > n / 2, "scene mostly culled");
+            // Record the path each cap really selects: on a CPU without AVX-512 the first two are one path.
+            let mut ran_paths = Vec::new();
             for max in [Isa::Avx512, Isa::Avx2, Isa::Portable] {
                 set_max_isa(max);
+                let ran = crate::cpu::simd::isa();
                 let got = preprocess(&f, inp);
                 set_max_isa(Isa::Avx512);
+                if !ran_paths.contains(&ran) {
+                    ran_paths.push(ran);
+                }
                 assert_eq!(got.radii, want.radii);
                 assert_eq!(got.tiles_touched, want.tiles_touched);
                 assert_eq!(got.clamped, want.clamped);
@@ -733,6 +739,12 @@ mod tests {
                     let nv = 4 + inp.num_features;
                     assert_eq!(bits(&got.vals[nv * i..nv * i + nv]), bits(&want.vals[nv * i..nv * i + nv]));
                 }
+            }
+            eprintln!("lane paths compared with the scalar reference: {ran_paths:?}");
+            assert!(ran_paths.contains(&Isa::Portable), "the portable lane path never ran");
+            #[cfg(target_arch = "x86_64")]
+            if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
+                assert!(ran_paths.len() >= 2, "only {ran_paths:?} ran: no vector path was compared");
             }
         }
     }

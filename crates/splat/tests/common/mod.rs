@@ -160,3 +160,42 @@ pub fn count_diff<T: PartialEq>(a: &[T], b: &[T]) -> usize {
     assert_eq!(a.len(), b.len(), "length");
     a.iter().zip(b).filter(|(x, y)| x != y).count()
 }
+
+/// Element-wise |a − b| ≤ atol + rtol·|b| for every entry (testkit's `allclose` rule); returns the failure.
+pub fn close_report(name: &str, a: &[f32], b: &[f32], atol: f64, rtol: f64) -> Option<String> {
+    let a: Vec<f64> = a.iter().map(|&x| x as f64).collect();
+    let b: Vec<f64> = b.iter().map(|&x| x as f64).collect();
+    mvsplat360_testkit::allclose_report(name, &a, &b, atol, rtol)
+}
+
+/// Assert [`close_report`] finds nothing.
+pub fn check_close(name: &str, a: &[f32], b: &[f32], atol: f64, rtol: f64) {
+    if let Some(m) = close_report(name, a, b, atol, rtol) {
+        panic!("{m}");
+    }
+}
+
+/// max |v|.
+pub fn max_abs(v: &[f32]) -> f64 {
+    v.iter().fold(0f64, |m, &x| m.max((x as f64).abs()))
+}
+
+/// Visible Gaussians whose view-space centre lies outside the 1.3·tan(fov) cone in x or y: the rasterizer
+/// clamps t.x/t.z (t.y/t.z) in the EWA Jacobian there, and the fork's backward treats the clamped value as a
+/// constant.
+pub fn clamped_jacobian(means: &[f32], radii: &[i64], cam: &RasterCamera) -> Vec<usize> {
+    let v = &cam.viewmatrix;
+    let tf = cam.tanfov();
+    (0..radii.len())
+        .filter(|&i| {
+            let p = &means[3 * i..3 * i + 3];
+            let t: Vec<f32> = (0..3).map(|r| v[r][0] * p[0] + v[r][1] * p[1] + v[r][2] * p[2] + v[r][3]).collect();
+            radii[i] > 0 && ((t[0] / t[2]).abs() > 1.3 * tf[0] || (t[1] / t[2]).abs() > 1.3 * tf[1])
+        })
+        .collect()
+}
+
+/// Rows `idx` of an (N, c) buffer.
+pub fn rows(v: &[f32], c: usize, idx: &[usize]) -> Vec<f32> {
+    idx.iter().flat_map(|&i| v[c * i..c * i + c].to_vec()).collect()
+}
