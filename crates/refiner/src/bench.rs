@@ -24,7 +24,7 @@ fn median(mut v: Vec<f64>) -> f64 {
 }
 
 /// Time `runs` guided UNet steps (batch 2·frames: [uncond; cond]) of the MVSplat360 config with random
-/// weights on `threads` threads; `vae_decode_ms` is measured only when a decoder is given.
+/// weights on `threads` threads (0 = all cores; the JSON's `threads` is the pool size that ran); `vae_decode_ms` is measured only when a decoder is given.
 pub fn run_refiner_bench_with(
     cfg: &VideoUNetConfig,
     frames: usize,
@@ -34,8 +34,9 @@ pub fn run_refiner_bench_with(
     runs: usize,
     decoder: Option<&dyn LatentDecoder>,
 ) -> Result<serde_json::Value, UNetError> {
+    // 0 = all cores (rayon's default), as `--threads` documents; `threads.max(1)` used to turn it into one.
     let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(threads.max(1))
+        .num_threads(threads)
         .build()
         .map_err(|e| UNetError::Config { path: "<bench>".into(), msg: e.to_string() })?;
     pool.install(|| {
@@ -87,7 +88,7 @@ pub fn run_refiner_bench_with(
             "frames": frames,
             "latent_h": latent_h,
             "latent_w": latent_w,
-            "threads": threads,
+            "threads": rayon::current_num_threads(),
             "unet_step_ms": median(times.clone()),
             "unet_step_runs_ms": times,
             "vae_decode_ms": vae_ms,
@@ -107,3 +108,34 @@ pub fn run_refiner_bench(frames: usize, latent_h: usize, latent_w: usize, thread
     run_refiner_bench_with(&VideoUNetConfig::default(), frames, latent_h, latent_w, threads, runs, Some(&vae))
 }
 
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn tiny() -> VideoUNetConfig {
+        VideoUNetConfig {
+            model_channels: 32,
+            channel_mult: vec![1, 2],
+            attention_resolutions: vec![1, 2],
+            num_res_blocks: 1,
+            num_head_channels: 16,
+            context_dim: 32,
+            adm_in_channels: Some(32),
+            ..VideoUNetConfig::default()
+        }
+    }
+
+    /// `threads` 0 means all cores (it used to run on one), any other value that many; the JSON says which.
+    #[test]
+    fn threads_zero_means_all_cores() {
+        let cores = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
+        for (asked, want) in [(0, cores), (1, 1), (3, 3)] {
+            let v = run_refiner_bench_with(&tiny(), 2, 8, 8, asked, 1, None).unwrap();
+            assert_eq!(v["threads"], want, "--threads {asked}: {v}");
+            assert_eq!(v["bench"], "refiner");
+            assert!(v["unet_step_ms"].as_f64().is_some_and(|t| t >= 0.0), "{v}");
+            assert!(v["vae_decode_ms"].is_null(), "{v}");
+        }
+    }
+}

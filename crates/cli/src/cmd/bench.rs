@@ -9,11 +9,34 @@ pub struct Args {
     what: What,
 }
 
+/// `--threads`, one setting for every bench: 0 = all cores, N = N worker threads.
 #[derive(clap::Args, Clone, Copy)]
-struct Common {
+struct Threads {
     /// Worker threads (0 = all cores).
     #[arg(long, default_value_t = 0)]
     threads: usize,
+}
+
+impl Threads {
+    /// The worker count this setting means: all cores (the machine's available parallelism) for 0.
+    fn count(self) -> usize {
+        resolve_threads(self.threads)
+    }
+}
+
+/// 0 → the number of cores (`std::thread::available_parallelism`), otherwise `threads` itself.
+pub fn resolve_threads(threads: usize) -> usize {
+    if threads > 0 {
+        threads
+    } else {
+        std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1)
+    }
+}
+
+#[derive(clap::Args, Clone, Copy)]
+struct Common {
+    #[command(flatten)]
+    threads: Threads,
     /// Timed runs after one warm-up; the median is reported.
     #[arg(long, default_value_t = 5)]
     runs: usize,
@@ -82,6 +105,8 @@ enum What {
         /// Timed runs after one warm-up; the median is reported.
         #[arg(long, default_value_t = 3)]
         runs: usize,
+        #[command(flatten)]
+        threads: Threads,
     },
 }
 
@@ -96,7 +121,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 width,
                 height,
                 features,
-                threads: common.threads,
+                threads: common.threads.count(),
                 runs: common.runs,
             };
             mvsplat360_splat::bench::run_raster_bench(&opts)?
@@ -106,22 +131,28 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 anyhow::bail!("bench encoder: need --views ≥ 2 and --height/--width multiples of 64 (got {views}, {height}x{width})");
             }
             if backbone_only {
-                mvsplat360_encoder::bench::run_backbone_bench(views, height, width, common.threads, common.runs)?
+                mvsplat360_encoder::bench::run_backbone_bench(views, height, width, common.threads.count(), common.runs)?
             } else {
-                mvsplat360_encoder::bench::run_encoder_bench(views, height, width, common.threads, common.runs)?
+                mvsplat360_encoder::bench::run_encoder_bench(views, height, width, common.threads.count(), common.runs)?
             }
         }
         What::Refiner { frames, latent_h, latent_w, common } => {
             if frames == 0 || latent_h == 0 || latent_w == 0 || latent_h % 8 != 0 || latent_w % 8 != 0 {
                 anyhow::bail!("bench refiner: need --frames ≥ 1 and latent sizes that are positive multiples of 8 (three 2× downsamplings) (got {frames}, {latent_h}x{latent_w})");
             }
-            mvsplat360_refiner::bench::run_refiner_bench(frames, latent_h, latent_w, common.threads, common.runs)?
+            mvsplat360_refiner::bench::run_refiner_bench(frames, latent_h, latent_w, common.threads.count(), common.runs)?
         }
-        What::Metrics { width, height, runs } => {
+        What::Metrics { width, height, runs, threads } => {
             if width < 11 || height < 11 {
                 anyhow::bail!("bench metrics: --width and --height must be at least 11 (the SSIM window)");
             }
-            mvsplat360_metrics::bench::run_metrics_bench(width, height, runs)
+            mvsplat360_metrics::bench::run_metrics_bench_with(&mvsplat360_metrics::bench::MetricsBenchOpts {
+                width,
+                height,
+                runs,
+                threads: threads.count(),
+                weights_dir: None,
+            })
         }
     };
     println!("{line}");

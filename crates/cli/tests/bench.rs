@@ -1,0 +1,100 @@
+//! `mvsplat360 bench` on tiny inputs: each subcommand prints one JSON line with the documented fields, and
+//! `--threads` means what its help says (0 = all cores, N = N) for every bench. No timing is asserted, only that
+//! the timing fields are non-negative numbers.
+
+use std::process::Command;
+
+use serde_json::Value;
+
+fn cores() -> usize {
+    std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1)
+}
+
+/// Run `mvsplat360 bench <args>` and parse its one stdout line.
+fn bench(args: &[&str]) -> Value {
+    let home = tempfile::tempdir().unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_mvsplat360"))
+        .arg("bench")
+        .args(args)
+        // No metric-network weights: keeps `bench metrics` to the closed-form metrics (and fast).
+        .env("MVSPLAT360_METRIC_WEIGHTS", home.path())
+        .env("HOME", home.path())
+        .env_remove("RAYON_NUM_THREADS")
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "bench {args:?} failed: {}", String::from_utf8_lossy(&out.stderr));
+    let stdout = String::from_utf8(out.stdout).unwrap();
+    let lines: Vec<&str> = stdout.lines().collect();
+    assert_eq!(lines.len(), 1, "one JSON line expected, got {stdout:?}");
+    serde_json::from_str(lines[0]).unwrap_or_else(|e| panic!("not JSON ({e}): {}", lines[0]))
+}
+
+fn time_field(v: &Value, key: &str) {
+    let t = v[key].as_f64().unwrap_or_else(|| panic!("`{key}` is not a number in {v}"));
+    assert!(t.is_finite() && t >= 0.0, "`{key}` = {t} in {v}");
+}
+
+#[test]
+fn raster_fields_and_threads() {
+    for (threads, want) in [("0", cores()), ("1", 1), ("2", 2)] {
+        let v = bench(&["raster", "--gaussians", "3000", "--width", "48", "--height", "32", "--features", "3", "--runs", "1", "--threads", threads]);
+        assert_eq!(v["bench"], "raster");
+        assert_eq!((v["gaussians"].as_u64(), v["width"].as_u64(), v["height"].as_u64(), v["features"].as_u64()), (Some(3000), Some(48), Some(32), Some(3)), "{v}");
+        time_field(&v, "forward_ms");
+        time_field(&v, "forward_backward_ms");
+        assert!(v["pairs"].as_u64().is_some_and(|p| p > 0), "{v}");
+        assert!(v["visible"].as_u64().is_some_and(|n| n > 0 && n <= 3000), "{v}");
+        assert_eq!(v["threads"].as_u64(), Some(want as u64), "--threads {threads}: {v}");
+    }
+}
+
+#[test]
+fn encoder_fields_and_threads() {
+    for (extra, name) in [(None, "encoder"), (Some("--backbone-only"), "encoder_backbone")] {
+        for (threads, want) in [("0", cores()), ("1", 1)] {
+            let mut args = vec!["encoder", "--views", "3", "--height", "64", "--width", "64", "--runs", "1", "--threads", threads];
+            args.extend(extra);
+            let v = bench(&args);
+            assert_eq!(v["bench"], name);
+            assert_eq!((v["views"].as_u64(), v["height"].as_u64(), v["width"].as_u64()), (Some(3), Some(64), Some(64)), "{v}");
+            time_field(&v, "forward_ms");
+            time_field(&v, "peak_mib");
+            assert_eq!(v["threads"].as_u64(), Some(want as u64), "--threads {threads}: {v}");
+        }
+    }
+}
+
+#[test]
+fn metrics_fields_and_threads() {
+    for (threads, want) in [("0", cores()), ("1", 1)] {
+        let v = bench(&["metrics", "--width", "16", "--height", "12", "--runs", "1", "--threads", threads]);
+        assert_eq!(v["bench"], "metrics");
+        assert_eq!((v["width"].as_u64(), v["height"].as_u64(), v["runs"].as_u64()), (Some(16), Some(12), Some(1)), "{v}");
+        assert_eq!(v["threads"].as_u64(), Some(want as u64), "--threads {threads}: {v}");
+        let ips = &v["images_per_s"];
+        for k in ["psnr", "ssim"] {
+            assert!(ips[k].as_f64().is_some_and(|x| x > 0.0), "{k}: {v}");
+        }
+        // Without weights the networks are null and `notes` says why.
+        for k in ["lpips", "dists", "fid"] {
+            assert!(ips[k].is_null(), "{k} without weights: {v}");
+        }
+        assert_eq!(v["notes"].as_array().map(|n| n.len()), Some(3), "{v}");
+        time_field(&v, "frechet_ms");
+    }
+}
+
+#[test]
+fn bad_sizes_are_clear_errors() {
+    for (args, needle) in [
+        (&["raster", "--width", "0"][..], "must be positive"),
+        (&["encoder", "--height", "100"][..], "multiples of 64"),
+        (&["refiner", "--latent-h", "12"][..], "multiples of 8"),
+        (&["metrics", "--width", "5"][..], "at least 11"),
+    ] {
+        let out = Command::new(env!("CARGO_BIN_EXE_mvsplat360")).arg("bench").args(args).output().unwrap();
+        assert!(!out.status.success(), "{args:?} should fail");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains(needle), "{args:?}: expected `{needle}` in {err}");
+    }
+}
