@@ -39,6 +39,8 @@ enum Command {
     Train(cmd::train::Args),
     /// Benchmarks printing one JSON line each (median of repeated runs after a warm-up).
     Bench(cmd::bench::Args),
+    /// Look at a render's results in the browser: 3D Gaussians, the video, frames side by side, settings.
+    View(cmd::view::Args),
 }
 
 fn main() {
@@ -63,6 +65,7 @@ fn main() {
         Command::Metrics(a) => cmd::metrics::run(a, cli.quiet),
         Command::Weights(a) => cmd::weights::run(a, cli.quiet),
         Command::Bench(a) => cmd::bench::run(a),
+        Command::View(a) => cmd::view::run(a),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

@@ -8,5 +8,6 @@ pub mod metrics;
 pub mod progress;
 pub mod render;
 pub mod train;
+pub mod view;
 pub mod views;
 pub mod weights;

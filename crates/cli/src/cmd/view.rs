@@ -1,0 +1,44 @@
+//! `mvsplat360 view`: a render's results in the browser (3D Gaussians, video, frame comparison, run settings).
+
+use std::io::Write;
+use std::path::PathBuf;
+
+use anyhow::Context;
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// The --out folder of `mvsplat360 render` (needs gaussians.ply, cameras.json and run.json; refined frames,
+    /// ground truth, video and metrics.json are shown when present).
+    pub out_dir: PathBuf,
+    /// Port to listen on, on 127.0.0.1 only (0: any free port; the address is printed).
+    #[arg(long, default_value_t = 8080)]
+    pub port: u16,
+    /// Open the page in the default web browser.
+    #[arg(long)]
+    pub open: bool,
+    /// Instead of serving, write the page and a copy of the folder's files to DIR, a self-contained site for
+    /// any static web host (DIR must be new, empty or an earlier export).
+    #[arg(long = "static", value_name = "DIR", conflicts_with_all = ["port", "open"])]
+    pub static_dir: Option<PathBuf>,
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let out = mvsplat360_viewer::OutDir::open(&args.out_dir).context("cannot view this folder")?;
+    if let Some(dest) = &args.static_dir {
+        mvsplat360_viewer::write_static(&out, dest).context("cannot write the static site")?;
+        println!("wrote {} (serve it with any static web server; opening index.html from disk does not work)", dest.display());
+        return Ok(());
+    }
+    let server = mvsplat360_viewer::Server::bind(out, args.port)?;
+    let url = server.url().to_string();
+    // One line on stdout (flushed at once): scripts and tests read the address from it.
+    println!("serving {} at {url} (Ctrl-C to stop)", args.out_dir.display());
+    std::io::stdout().flush().ok();
+    if args.open {
+        if let Err(e) = open::that_detached(&url) {
+            eprintln!("warning: could not open a browser ({e}); open {url} yourself");
+        }
+    }
+    server.serve(4);
+    Ok(())
+}

@@ -1,0 +1,157 @@
+//! The server over real sockets: the page and the folder's files are served; path escapes in every encoding are
+//! refused (the request line is sent byte for byte, as no HTTP client would normalise it); the static export.
+
+use std::io::{Read, Write};
+use std::net::TcpStream;
+use std::path::Path;
+use std::time::Duration;
+
+use mvsplat360_viewer::{OutDir, Server};
+
+const SECRET: &str = "SECRET-BESIDE-THE-FOLDER";
+
+/// A render folder (small stand-in files) inside `root`, with a secret file beside it and a symlink out of it.
+fn out_dir(root: &Path) -> std::path::PathBuf {
+    let out = root.join("out");
+    std::fs::create_dir_all(out.join("frames/gsplat")).unwrap();
+    std::fs::write(out.join("gaussians.ply"), b"ply\nformat binary_little_endian 1.0\nend_header\n").unwrap();
+    std::fs::write(
+        out.join("cameras.json"),
+        r#"{"cameras":[{"role":"target","c2w":[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]],"K":[[100,0,64],[0,100,32],[0,0,1]],"width":128,"height":64}]}"#,
+    )
+    .unwrap();
+    std::fs::write(out.join("run.json"), r#"{"scene_name":"test"}"#).unwrap();
+    std::fs::write(out.join("frames/gsplat/0000.png"), b"PNG0").unwrap();
+    std::fs::write(out.join("video.mp4"), (0u8..=99).collect::<Vec<u8>>()).unwrap();
+    std::fs::write(root.join("secret.txt"), SECRET).unwrap();
+    #[cfg(unix)]
+    {
+        // Named like a frame, so only the "resolves inside the folder" check can stop it.
+        std::os::unix::fs::symlink(root.join("secret.txt"), out.join("frames/gsplat/0001.png")).unwrap();
+    }
+    out
+}
+
+fn start(out: &Path) -> String {
+    let server = Server::bind(OutDir::open(out).unwrap(), 0).unwrap();
+    let url = server.url().trim_end_matches('/').trim_start_matches("http://").to_string();
+    std::thread::spawn(move || server.serve(2));
+    url
+}
+
+/// Send `request_target` verbatim; (status, body).
+fn raw_get(addr: &str, request_target: &str, extra: &str) -> (u16, Vec<u8>) {
+    let mut s = TcpStream::connect(addr).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+    write!(s, "GET {request_target} HTTP/1.1\r\nHost: {addr}\r\n{extra}Connection: close\r\n\r\n").unwrap();
+    let mut buf = Vec::new();
+    s.read_to_end(&mut buf).unwrap();
+    let head_end = buf.windows(4).position(|w| w == b"\r\n\r\n").expect("HTTP response head");
+    let head = String::from_utf8_lossy(&buf[..head_end]).to_string();
+    let status: u16 = head.split(' ').nth(1).and_then(|c| c.parse().ok()).expect("status code");
+    (status, buf[head_end + 4..].to_vec())
+}
+
+#[test]
+fn serves_the_page_and_the_folder() {
+    let t = tempfile::tempdir().unwrap();
+    let addr = start(&out_dir(t.path()));
+    let (st, body) = raw_get(&addr, "/", "");
+    assert_eq!(st, 200);
+    assert!(String::from_utf8_lossy(&body).contains("viewer.js"));
+    let (st, body) = raw_get(&addr, "/viewer.js", "");
+    assert_eq!(st, 200);
+    assert!(body.len() > 100_000, "bundle is {} bytes", body.len());
+    assert_eq!(raw_get(&addr, "/THIRD_PARTY_LICENSES.txt", "").0, 200);
+    let (st, body) = raw_get(&addr, "/manifest.json", "");
+    assert_eq!(st, 200);
+    let m: serde_json::Value = serde_json::from_slice(&body).unwrap();
+    assert_eq!(m["files"]["video"], "video.mp4");
+    assert!(m["files"].get("metrics").is_none());
+    assert_eq!(raw_get(&addr, "/data/run.json", "").1, br#"{"scene_name":"test"}"#);
+    assert_eq!(raw_get(&addr, "/data/frames/gsplat/0000.png", "").1, b"PNG0");
+    assert_eq!(raw_get(&addr, "/data/frames/gsplat/0000.png?v=1", "").1, b"PNG0");
+    // A video seek asks for a byte range.
+    let (st, body) = raw_get(&addr, "/data/video.mp4", "Range: bytes=10-19\r\n");
+    assert_eq!((st, body), (206, (10u8..20).collect::<Vec<u8>>()));
+    assert_eq!(raw_get(&addr, "/data/video.mp4", "Range: bytes=500-\r\n").0, 416);
+    // Files that are not the page's: not found, even inside the folder; no listings.
+    for target in ["/nope", "/data/frames/gt/0000.png", "/data/frames/gsplat"] {
+        assert_eq!(raw_get(&addr, target, "").0, 404, "{target}");
+    }
+    for target in ["/data/", "/data/frames/", "/data/frames/gsplat/"] {
+        let (st, body) = raw_get(&addr, target, "");
+        assert!(matches!(st, 400 | 404) && !String::from_utf8_lossy(&body).contains("0000.png"), "{target}: {st}");
+    }
+    std::fs::write(t.path().join("out/notes.txt"), "x").unwrap();
+    assert_eq!(raw_get(&addr, "/data/notes.txt", "").0, 404);
+}
+
+#[test]
+fn path_escapes_are_refused() {
+    let t = tempfile::tempdir().unwrap();
+    let addr = start(&out_dir(t.path()));
+    let secret_dir = t.path().display().to_string();
+    // (request target, status): 400 = refused as a path (the decoded path climbs, is absolute or has a backslash),
+    // 404 = not a file of the page, 403 = a listed name that resolves outside the folder (symlink).
+    let attempts: Vec<(String, u16)> = vec![
+        ("/../secret.txt".into(), 404),
+        ("/data/../secret.txt".into(), 400),
+        ("/data/../../secret.txt".into(), 400),
+        ("/data/frames/../../secret.txt".into(), 400),
+        ("/data/%2e%2e/secret.txt".into(), 400),
+        ("/data/%2E%2E/secret.txt".into(), 400),
+        ("/data/.%2e/secret.txt".into(), 400),
+        ("/data/..%2fsecret.txt".into(), 400),
+        ("/data/..%2Fsecret.txt".into(), 400),
+        ("/data/%2e%2e%2fsecret.txt".into(), 400),
+        ("/data/%252e%252e/secret.txt".into(), 404), // decoded once: a folder literally named "%2e%2e"
+        ("/data/..\\secret.txt".into(), 400),
+        ("/data/..%5csecret.txt".into(), 400),
+        ("/data/frames\\..\\..\\secret.txt".into(), 400),
+        (format!("/data{secret_dir}/secret.txt"), 404), // a relative path that merely looks like one
+        (format!("/data/{secret_dir}/secret.txt"), 400),
+        (format!("/data/%2f{}/secret.txt", secret_dir.trim_start_matches('/')), 400),
+        ("/data//etc/passwd".into(), 400),
+        ("/data/%2fetc%2fpasswd".into(), 400),
+        ("/etc/passwd".into(), 404),
+        ("/data/C:/Windows/win.ini".into(), 400),
+        ("/data/./run.json".into(), 400),
+        ("/data/run.json%00.png".into(), 400),
+        ("/data/frames/gsplat/0001.png".into(), 403), // the symlink out of the folder
+        (format!("http://{addr}/../secret.txt"), 400),
+    ];
+    for (target, want) in &attempts {
+        let (st, body) = raw_get(&addr, target, "");
+        let text = String::from_utf8_lossy(&body);
+        assert!(!text.contains(SECRET) && !text.contains("root:"), "{target} leaked: {text}");
+        assert_eq!(st, *want, "{target}");
+    }
+    // Not served, not even the request: the server is read-only.
+    let mut s = TcpStream::connect(&addr).unwrap();
+    write!(s, "PUT /data/run.json HTTP/1.1\r\nHost: x\r\nContent-Length: 2\r\nConnection: close\r\n\r\n{{}}").unwrap();
+    let mut buf = String::new();
+    s.read_to_string(&mut buf).unwrap();
+    assert!(buf.starts_with("HTTP/1.1 405"), "{buf}");
+    assert_eq!(std::fs::read_to_string(t.path().join("out/run.json")).unwrap(), r#"{"scene_name":"test"}"#);
+}
+
+#[test]
+fn static_export_is_self_contained() {
+    let t = tempfile::tempdir().unwrap();
+    let out = out_dir(t.path());
+    std::fs::remove_file(out.join("frames/gsplat/0001.png")).ok();
+    let dir = OutDir::open(&out).unwrap();
+    let site = t.path().join("site");
+    mvsplat360_viewer::write_static(&dir, &site).unwrap();
+    for f in ["index.html", "viewer.js", "THIRD_PARTY_LICENSES.txt", "manifest.json", "data/gaussians.ply", "data/cameras.json", "data/run.json", "data/video.mp4", "data/frames/gsplat/0000.png"] {
+        assert!(site.join(f).is_file(), "{f}");
+    }
+    // Again over an earlier export: fine. Into a folder with other things, or inside the render: refused.
+    mvsplat360_viewer::write_static(&dir, &site).unwrap();
+    let other = t.path().join("other");
+    std::fs::create_dir_all(&other).unwrap();
+    std::fs::write(other.join("keep.txt"), "x").unwrap();
+    assert!(mvsplat360_viewer::write_static(&dir, &other).unwrap_err().to_string().contains("not empty"));
+    assert!(mvsplat360_viewer::write_static(&dir, &out.join("site")).unwrap_err().to_string().contains("inside the render folder"));
+}
