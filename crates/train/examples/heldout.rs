@@ -27,11 +27,36 @@ fn scores(lp: &mvsplat360_metrics::lpips::Lpips, preds: &[ImageF32], gts: &[Imag
     Ok([p / n, s / n, l / n])
 }
 
+/// Rows of (prediction | photo) for every 4th target, to look at.
+fn contact_sheet(path: &std::path::Path, preds: &[ImageF32], gts: &[ImageF32]) -> anyhow::Result<()> {
+    let rows: Vec<usize> = (0..preds.len()).step_by(4).collect();
+    let (w, h) = (preds[0].width, preds[0].height);
+    let mut img = image::RgbImage::new(2 * w, h * rows.len() as u32);
+    for (r, &i) in rows.iter().enumerate() {
+        for (col, src) in [&preds[i], &gts[i]].into_iter().enumerate() {
+            let plane = (w * h) as usize;
+            for y in 0..h {
+                for x in 0..w {
+                    let k = (y * w + x) as usize;
+                    let px = std::array::from_fn(|c| (src.data[c * plane + k].clamp(0.0, 1.0) * 255.0).round() as u8);
+                    img.put_pixel(col as u32 * w + x, r as u32 * h + y, image::Rgb(px));
+                }
+            }
+        }
+    }
+    if let Some(dir) = path.parent() {
+        std::fs::create_dir_all(dir)?;
+    }
+    img.save(path)?;
+    Ok(())
+}
+
 fn main() -> anyhow::Result<()> {
     mvsplat360_pipeline::setup::init_process();
     let mut models: Vec<(String, PathBuf)> = Vec::new();
     let mut scenes: Vec<PathBuf> = Vec::new();
     let mut json_out: Option<PathBuf> = None;
+    let mut dump: Option<PathBuf> = None;
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         match a.as_str() {
@@ -41,10 +66,11 @@ fn main() -> anyhow::Result<()> {
                 models.push((n.into(), d.into()));
             }
             "--json" => json_out = args.next().map(Into::into),
+            "--dump" => dump = args.next().map(Into::into),
             _ => scenes.push(a.into()),
         }
     }
-    anyhow::ensure!(!models.is_empty() && !scenes.is_empty(), "usage: heldout --model name=DIR [--model …] [--json FILE] SCENE…");
+    anyhow::ensure!(!models.is_empty() && !scenes.is_empty(), "usage: heldout --model name=DIR [--model …] [--json FILE] [--dump DIR] SCENE…");
     let lp = mvsplat360_metrics::lpips::Lpips::load(None, mvsplat360_metrics::lpips::Net::Vgg, &Device::Cpu)?;
     let mut rows = Vec::new();
     println!("| scene | method | PSNR ↑ | SSIM ↑ | LPIPS ↓ |\n|---|---|---|---|---|");
@@ -102,6 +128,9 @@ fn main() -> anyhow::Result<()> {
                     ImageF32 { width: w as u32, height: h as u32, data: rgb.clamp(0f32, 1f32).unwrap().flatten_all().unwrap().to_vec1().unwrap() }
                 })
                 .collect();
+            if let Some(d) = &dump {
+                contact_sheet(&d.join(format!("{name}-{mname}.png")), &preds, &gts)?;
+            }
             let [ps, ss, ls] = scores(&lp, &preds, &gts)?;
             println!("| {name} | {mname} (3DGS) | {ps:.2} | {ss:.3} | {ls:.3} |");
             rows.push(serde_json::json!({"scene": name, "method": format!("{mname} 3DGS"), "psnr": ps, "ssim": ss, "lpips": ls, "targets": gts.len()}));

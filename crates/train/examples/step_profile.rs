@@ -17,6 +17,8 @@ fn main() -> anyhow::Result<()> {
         num_context: cfg.data.num_context,
         num_target: cfg.data.num_target,
         gap: cfg.data.gap,
+        gap_initial: None,
+        warm_up: 1.0,
         closed_loop: true,
         flip: false,
     };

@@ -68,6 +68,12 @@ pub struct DataSection {
     /// [`crate::sampler`].
     #[serde(default)]
     pub gap: Option<[usize; 2]>,
+    /// Curriculum: the window's gap at step 0, widening linearly to `gap` (or the whole sequence) over
+    /// `gap_warm_up_steps` (the official `initial_{min,max}_distance_between_context_views` and `warm_up_steps`).
+    #[serde(default)]
+    pub gap_initial: Option<[usize; 2]>,
+    #[serde(default)]
+    pub gap_warm_up_steps: u64,
     /// Treat sequences as closed loops (indices wrap around).
     #[serde(default = "yes")]
     pub closed_loop: bool,
@@ -99,6 +105,10 @@ pub struct TrainSection {
     /// Micro-batches per optimizer step (losses are averaged over them, as Lightning does).
     #[serde(default = "two")]
     pub accumulate: u32,
+    /// Run the micro-batches of one step on parallel threads (more cores busy, memory × `accumulate`); the
+    /// result equals the sequential run's up to float summation order inside the kernels.
+    #[serde(default)]
+    pub parallel_micro_batches: bool,
     /// Gradient-norm clipping (0 = off).
     #[serde(default = "default_clip")]
     pub clip_grad_norm: f64,
@@ -232,6 +242,11 @@ impl TrainConfig {
         if self.data.num_target == 0 {
             return bad("data.num_target", "must be at least 1".into());
         }
+        if let Some([lo, hi]) = self.data.gap_initial {
+            if lo > hi || hi < self.data.num_context {
+                return bad("data.gap_initial", format!("[{lo}, {hi}] must satisfy min ≤ max and max ≥ num_context"));
+            }
+        }
         if let Some([lo, hi]) = self.data.gap {
             if lo > hi || hi < self.data.num_context {
                 return bad("data.gap", format!("[{lo}, {hi}] must satisfy min ≤ max and max ≥ num_context"));
@@ -290,5 +305,22 @@ out = "out/x"
         assert!(e.contains("c.toml") && e.contains("model.width"), "{e}");
         let e = TrainConfig::from_toml(&MIN.replace("steps = 5", "steps = 5\nbogus = 1"), Path::new("c.toml")).unwrap_err().to_string();
         assert!(e.contains("bogus"), "{e}");
+    }
+
+    /// Every committed recipe parses and validates; a bad curriculum window names its field.
+    #[test]
+    fn committed_configs_parse() {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/train");
+        let mut n = 0;
+        for e in std::fs::read_dir(&dir).unwrap() {
+            let p = e.unwrap().path();
+            if p.extension().is_some_and(|x| x == "toml") {
+                TrainConfig::from_file(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
+                n += 1;
+            }
+        }
+        assert!(n >= 2, "expected the shipped and curriculum recipes in {}", dir.display());
+        let e = TrainConfig::from_toml(&MIN.replace("count = 10 }]", "count = 10 }]\ngap_initial = [6, 3]"), Path::new("c.toml")).unwrap_err().to_string();
+        assert!(e.contains("data.gap_initial"), "{e}");
     }
 }

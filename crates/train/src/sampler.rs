@@ -24,8 +24,24 @@ pub struct SamplerSettings {
     pub num_context: usize,
     pub num_target: usize,
     pub gap: Option<[usize; 2]>,
+    /// Curriculum (the official sampler's `initial_*_distance_between_context_views`): the window starts at this
+    /// gap and widens linearly to `gap` (the whole sequence when `gap` is None) as `warm_up` goes 0 → 1.
+    pub gap_initial: Option<[usize; 2]>,
+    /// Fraction of the curriculum's warm-up done, in [0, 1].
+    pub warm_up: f64,
     pub closed_loop: bool,
     pub flip: bool,
+}
+
+impl SamplerSettings {
+    /// The window's [min, max] gap for a sequence of `n` views at the current warm-up; None = the whole sequence.
+    pub fn gap_now(&self, n: usize) -> Option<[usize; 2]> {
+        let Some(init) = self.gap_initial else { return self.gap };
+        let fin = self.gap.unwrap_or([n, n]);
+        let t = self.warm_up.clamp(0.0, 1.0);
+        let lerp = |a: usize, b: usize| (a as f64 + (b as f64 - a as f64) * t).round() as usize;
+        Some([lerp(init[0], fin[0]), lerp(init[1], fin[1])])
+    }
 }
 
 /// Draw one sample; `None` when the sequence is too short for the settings.
@@ -34,7 +50,7 @@ pub fn sample(cameras: &[Camera], s: &SamplerSettings, rng: &mut impl Rng) -> Op
     if n < s.num_context.max(2) {
         return None;
     }
-    let window: Vec<usize> = match s.gap {
+    let window: Vec<usize> = match s.gap_now(n) {
         None => (0..n).collect(),
         Some([lo, hi]) => {
             let hi = hi.min(if s.closed_loop { n } else { n - 1 });
@@ -127,7 +143,7 @@ mod tests {
     fn whole_loop_context_is_spread_and_targets_disjoint() {
         let cams = ring(32);
         let mut rng = rand::rngs::StdRng::seed_from_u64(3);
-        let s = SamplerSettings { num_context: 5, num_target: 27, gap: None, closed_loop: true, flip: false };
+        let s = SamplerSettings { num_context: 5, num_target: 27, gap: None, gap_initial: None, warm_up: 0.0, closed_loop: true, flip: false };
         let v = sample(&cams, &s, &mut rng).unwrap();
         assert_eq!(v.context.len(), 5);
         assert_eq!(v.target.len(), 27);
@@ -145,7 +161,7 @@ mod tests {
     fn gap_window_bounds_every_view() {
         let cams = ring(200);
         let mut rng = rand::rngs::StdRng::seed_from_u64(1);
-        let s = SamplerSettings { num_context: 2, num_target: 4, gap: Some([45, 60]), closed_loop: false, flip: true };
+        let s = SamplerSettings { num_context: 2, num_target: 4, gap: Some([45, 60]), gap_initial: None, warm_up: 0.0, closed_loop: false, flip: true };
         for _ in 0..50 {
             let v = sample(&cams, &s, &mut rng).unwrap();
             let all: Vec<usize> = v.context.iter().chain(&v.target).copied().collect();
@@ -165,5 +181,34 @@ mod tests {
         let f = flip_camera(&c);
         let (u2, v2, z2) = f.project(&Vector3::new(-p.x, p.y, p.z));
         assert!((u2 - (c.width as f64 - u)).abs() < 1e-9 && (v2 - v).abs() < 1e-9 && (z2 - z).abs() < 1e-9, "{u},{v} → {u2},{v2}");
+    }
+
+    #[test]
+    fn curriculum_widens_the_window_linearly_to_the_whole_loop() {
+        let mut s = SamplerSettings { num_context: 5, num_target: 4, gap: None, gap_initial: Some([6, 10]), warm_up: 0.0, closed_loop: true, flip: false };
+        assert_eq!(s.gap_now(32), Some([6, 10]));
+        s.warm_up = 0.5;
+        assert_eq!(s.gap_now(32), Some([19, 21]));
+        s.warm_up = 2.0;
+        assert_eq!(s.gap_now(32), Some([32, 32]));
+        s.gap = Some([20, 24]);
+        s.warm_up = 0.25;
+        // 6 + 14/4 = 9.5 and 10 + 14/4 = 13.5, rounded half away from zero.
+        assert_eq!(s.gap_now(32), Some([10, 14]));
+        // Early in the curriculum every view of a sample lies in a window of at most 10 consecutive views.
+        s.gap = None;
+        s.warm_up = 0.0;
+        let cams = ring(32);
+        let mut rng = rand::rngs::StdRng::seed_from_u64(3);
+        for _ in 0..50 {
+            let v = sample(&cams, &s, &mut rng).unwrap();
+            let all: Vec<usize> = v.context.iter().chain(&v.target).copied().collect();
+            // Circular span: the largest gap between sorted indices leaves the rest inside one window.
+            let mut idx = all.clone();
+            idx.sort_unstable();
+            idx.dedup();
+            let largest = (0..idx.len()).map(|k| (idx[(k + 1) % idx.len()] + 32 - idx[k]) % 32).max().unwrap();
+            assert!(32 - largest < 10, "views {idx:?} span more than 10");
+        }
     }
 }

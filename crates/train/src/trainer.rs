@@ -293,10 +293,12 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
     crate::log::rewrite(&log_path, &records)?;
     let mut log = std::fs::OpenOptions::new().append(true).create(true).open(&log_path).map_err(|e| TrainError::Write { path: log_path.clone(), msg: e.to_string() })?;
 
-    let settings = SamplerSettings {
+    let mut settings = SamplerSettings {
         num_context: cfg.data.num_context,
         num_target: cfg.data.num_target,
         gap: cfg.data.gap,
+        gap_initial: cfg.data.gap_initial,
+        warm_up: 0.0,
         closed_loop: cfg.data.closed_loop,
         flip: cfg.data.flip,
     };
@@ -311,28 +313,55 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
     let mut step = start;
     while step < cfg.train.steps {
         let t0 = Instant::now();
+        settings.warm_up = if cfg.data.gap_warm_up_steps == 0 { 1.0 } else { step as f64 / cfg.data.gap_warm_up_steps as f64 };
         let mut grads: Vec<Option<Tensor>> = vec![None; adam.params.len()];
         let (mut sum_loss, mut sum_mse, mut sum_lp) = (0f64, 0f64, None::<f64>);
+        // Examples are drawn in micro-batch order (sources cache scenes); forward and backward may then run in
+        // parallel, and gradients are summed in micro-batch order either way.
+        let mut examples = Vec::with_capacity(accum as usize);
         for micro in 0..accum {
             let mut rng = step_rng(cfg.train.seed, step, micro);
-            let ex = draw_example(&mut sources, &weights, wsum, &settings, cfg, &mut rng)?;
-            let (pred, _) = render_example(&model, &ex)?;
+            examples.push(draw_example(&mut sources, &weights, wsum, &settings, cfg, &mut rng)?);
+        }
+        let micro_step = |ex: &Example| -> Result<MicroResult> {
+            let (pred, _) = render_example(&model, ex)?;
             let (total, mse, lp) = losses(cfg, lpips.as_ref(), step, &pred, &ex.target_images)?;
             let tv = total.to_scalar::<f32>()? as f64;
             if !tv.is_finite() {
                 return Err(TrainError::NonFinite { step: step + 1, what: format!("loss {tv}") });
             }
-            sum_loss += tv / accum as f64;
-            sum_mse += mse.to_scalar::<f32>()? as f64 / accum as f64;
-            if let Some(l) = lp {
-                *sum_lp.get_or_insert(0.0) += l.to_scalar::<f32>()? as f64 / accum as f64;
-            }
             // Lightning divides each micro-batch's loss by the accumulation count.
             let g = (total / accum as f64)?.backward()?;
-            for (i, p) in adam.params.iter().enumerate() {
-                if let Some(gi) = g.get(p.var.as_tensor()) {
+            let grads = adam.params.iter().map(|p| g.get(p.var.as_tensor()).cloned()).collect();
+            Ok(MicroResult {
+                loss: tv,
+                mse: mse.to_scalar::<f32>()? as f64,
+                lpips: lp.map(|l| l.to_scalar::<f32>()).transpose()?.map(|l| l as f64),
+                grads,
+            })
+        };
+        let results: Vec<Result<MicroResult>> = if cfg.train.parallel_micro_batches && accum > 1 {
+            std::thread::scope(|sc| {
+                let handles: Vec<_> = examples.iter().map(|ex| sc.spawn(|| micro_step(ex))).collect();
+                handles
+                    .into_iter()
+                    .map(|h| h.join().unwrap_or_else(|_| Err(TrainError::Data("a micro-batch thread panicked".into()))))
+                    .collect()
+            })
+        } else {
+            examples.iter().map(micro_step).collect()
+        };
+        for r in results {
+            let r = r?;
+            sum_loss += r.loss / accum as f64;
+            sum_mse += r.mse / accum as f64;
+            if let Some(l) = r.lpips {
+                *sum_lp.get_or_insert(0.0) += l / accum as f64;
+            }
+            for (i, gi) in r.grads.into_iter().enumerate() {
+                if let Some(gi) = gi {
                     grads[i] = Some(match grads[i].take() {
-                        None => gi.clone(),
+                        None => gi,
                         Some(a) => (a + gi)?,
                     });
                 }
@@ -365,6 +394,13 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
     mvsplat360_pipeline::model::write_model_dir(&model_dir, &model.model_config(), &model.state_dict())?;
     let _ = crate::log::plot(&records, &out.join("loss.png"));
     Ok(Summary { steps: step, last: records.last().cloned(), model_dir, train_seconds, lpips: lpips.is_some() })
+}
+
+struct MicroResult {
+    loss: f64,
+    mse: f64,
+    lpips: Option<f64>,
+    grads: Vec<Option<Tensor>>,
 }
 
 fn draw_example(

@@ -106,7 +106,7 @@ fn encoder_parameter_gradients() {
     let mut src = mvsplat360_train::scenes::SceneSource::open(&cfg.data.sources[0], cfg.model.width, cfg.model.height, 64).unwrap();
     let mut rng = rand::rngs::StdRng::seed_from_u64(2);
     let scene = src.draw(&mut rng).unwrap();
-    let s = mvsplat360_train::sampler::SamplerSettings { num_context: 3, num_target: 2, gap: None, closed_loop: true, flip: false };
+    let s = mvsplat360_train::sampler::SamplerSettings { num_context: 3, num_target: 2, gap: None, gap_initial: None, warm_up: 0.0, closed_loop: true, flip: false };
     let ex = make_example(&scene, &s, 1.0, 100.0, &mut rng).unwrap().unwrap();
     let loss_of = |m: &Model| -> Tensor {
         let (pred, _) = render_example(m, &ex).unwrap();

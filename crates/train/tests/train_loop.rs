@@ -121,3 +121,61 @@ fn chunk_source_trains() {
     let sum = mvsplat360_train::run(&cfg, &RunOptions::default(), &Quiet).unwrap();
     assert!(sum.last.unwrap().loss.is_finite());
 }
+
+/// Micro-batches on parallel threads give the sequential run's losses and weights (the kernels' own summation
+/// order is the same; only the threads differ), and the curriculum's window is used from step 0.
+#[test]
+fn parallel_micro_batches_match_sequential() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = |name: &str, parallel: bool| {
+        let mut cfg = common::tiny_config(&dir.path().join(name), 3, "");
+        cfg.train.parallel_micro_batches = parallel;
+        cfg.data.gap_initial = Some([4, 6]);
+        cfg.data.gap_warm_up_steps = 10;
+        let s = mvsplat360_train::run(&cfg, &RunOptions::default(), &Quiet).unwrap();
+        let recs = log::read(&dir.path().join(name).join("log.jsonl")).unwrap();
+        let w = candle_core::safetensors::load(s.model_dir.join("model.safetensors"), &candle_core::Device::Cpu).unwrap();
+        (recs, w)
+    };
+    let (ra, wa) = run("seq", false);
+    let (rb, wb) = run("par", true);
+    assert_eq!(ra.len(), 3);
+    for (a, b) in ra.iter().zip(&rb) {
+        assert!((a.loss - b.loss).abs() <= 1e-6 * a.loss.abs().max(1e-12), "step {}: {} vs {}", a.step, a.loss, b.loss);
+        assert!((a.grad_norm - b.grad_norm).abs() <= 1e-5 * a.grad_norm, "step {}: grad norm {} vs {}", a.step, a.grad_norm, b.grad_norm);
+    }
+    let mut worst = 0f32;
+    for (k, ta) in &wa {
+        let d = (ta - &wb[k]).unwrap().abs().unwrap().flatten_all().unwrap().max(0).unwrap().to_scalar::<f32>().unwrap();
+        worst = worst.max(d);
+    }
+    assert!(worst <= 1e-6, "weights differ by {worst}");
+}
+
+/// SIGTERM (how background jobs are stopped) finishes the step, writes a checkpoint of it and exits with 130.
+#[test]
+fn sigterm_checkpoints_the_last_step() {
+    let bin = env!("CARGO_BIN_EXE_mvsplat360-train");
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("t");
+    let mut cfg = common::tiny_config(&out, 50, "");
+    cfg.train.checkpoint_every = 1000;
+    let p = dir.path().join("cfg.toml");
+    std::fs::write(&p, cfg.to_toml()).unwrap();
+    let mut child = Command::new(bin).args(["--config", p.to_str().unwrap()]).stdout(Stdio::null()).stderr(Stdio::null()).spawn().unwrap();
+    let t0 = Instant::now();
+    while log::read(&out.join("log.jsonl")).unwrap().len() < 2 {
+        assert!(t0.elapsed() < Duration::from_secs(120), "the run did not reach step 2");
+        assert!(child.try_wait().unwrap().is_none(), "the run ended early");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let st = Command::new("kill").args(["-TERM", &child.id().to_string()]).status().unwrap();
+    assert!(st.success());
+    let code = child.wait().unwrap().code();
+    assert_eq!(code, Some(130), "expected exit 130 after SIGTERM");
+    let steps = log::read(&out.join("log.jsonl")).unwrap().len();
+    assert!(steps < 50, "stopped too late to test anything");
+    let ck = mvsplat360_train::checkpoint::list(&out).unwrap();
+    let (newest, path) = ck.last().expect("a checkpoint was written on SIGTERM");
+    assert_eq!(*newest as usize, steps, "newest checkpoint {} after {steps} logged steps", path.display());
+}

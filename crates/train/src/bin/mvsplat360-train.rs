@@ -1,6 +1,9 @@
 //! Stand-alone trainer (`mvsplat360-train --config C [--resume]`): the same loop as `mvsplat360 train`, in a
 //! small binary for background jobs and the crate's kill-and-resume test. Prints one JSON line per step.
 
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+
 fn main() {
     let mut config = None;
     let mut opts = mvsplat360_train::RunOptions::default();
@@ -25,9 +28,19 @@ fn main() {
         std::process::exit(2);
     };
     mvsplat360_pipeline::setup::init_process();
-    let result = mvsplat360_train::TrainConfig::from_file(config.as_ref()).and_then(|cfg| mvsplat360_train::run(&cfg, &opts, &Lines));
+    let lines = Lines { stop: Arc::new(AtomicBool::new(false)) };
+    let stop = lines.stop.clone();
+    // Background jobs are stopped with SIGTERM (and a shell's `&` ignores SIGINT): finish the step, checkpoint.
+    if let Err(e) = ctrlc::set_handler(move || stop.store(true, Ordering::SeqCst)) {
+        eprintln!("warning: no stop handler ({e}); a stop signal will lose the steps since the last checkpoint");
+    }
+    let result = mvsplat360_train::TrainConfig::from_file(config.as_ref()).and_then(|cfg| mvsplat360_train::run(&cfg, &opts, &lines));
     match result {
         Ok(s) => eprintln!("done: {} steps, model in {}", s.steps, s.model_dir.display()),
+        Err(mvsplat360_train::TrainError::Interrupted) => {
+            eprintln!("stopped: checkpoint written; continue with --resume");
+            std::process::exit(130);
+        }
         Err(e) => {
             eprintln!("error: {e}");
             std::process::exit(1);
@@ -35,9 +48,14 @@ fn main() {
     }
 }
 
-struct Lines;
+struct Lines {
+    stop: Arc<AtomicBool>,
+}
 
 impl mvsplat360_train::Monitor for Lines {
+    fn should_stop(&self) -> bool {
+        self.stop.load(Ordering::SeqCst)
+    }
     fn note(&self, msg: &str) {
         eprintln!("{msg}");
     }
