@@ -24,10 +24,6 @@ const DEPTH: (f64, f64) = (1e-7, 1e-6);
 /// SH: atol for degree 0, scaled by the degree's mask 0.1·0.25^l (l ≥ 1) like the coefficients themselves.
 const SH: (f64, f64) = (2e-5, 1e-4);
 
-fn sh_mask(l: usize) -> f64 {
-    if l == 0 { 1.0 } else { 0.1 * 0.25f64.powi(l as i32) }
-}
-
 #[test]
 fn gaussian_adapter_matches_official_outputs() {
     let cfg = EncoderCostVolumeCfg::default();
@@ -90,7 +86,7 @@ fn gaussian_adapter_matches_official_outputs() {
                 &format!("{name} degree {l}"),
                 &tk::sh_degree_block(ours, l),
                 &tk::sh_degree_block(tk::get(&outputs, name), l),
-                SH.0 * sh_mask(l),
+                SH.0 * tk::sh_mask(l),
                 SH.1,
             ));
         }

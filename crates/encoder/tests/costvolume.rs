@@ -26,10 +26,6 @@ const DEPTH: (f64, f64) = (1e-6, 2e-4);
 const DISPARITY: (f64, f64) = (1e-6, 1e-4);
 const SH: (f64, f64) = (2e-5, 1e-3);
 
-fn sh_mask(l: usize) -> f64 {
-    if l == 0 { 1.0 } else { 0.1 * 0.25f64.powi(l as i32) }
-}
-
 #[test]
 fn depth_predictor_matches_official_intermediates() {
     let inputs = tk::load("encoder/inputs.safetensors");
@@ -101,7 +97,7 @@ fn depth_predictor_matches_official_intermediates() {
     for (name, ours, degrees) in [("gaussians.harmonics", &g.harmonics, 4), ("gaussians.feature_harmonics", &g.feature_harmonics, 2)] {
         for l in 0..=degrees {
             let e = tk::sh_degree_block(tk::get(&outputs, name), l);
-            check(&format!("end-to-end {name} degree {l}"), &tk::sh_degree_block(ours, l), &e, (SH.0 * sh_mask(l), SH.1));
+            check(&format!("end-to-end {name} degree {l}"), &tk::sh_degree_block(ours, l), &e, (SH.0 * tk::sh_mask(l), SH.1));
         }
     }
     tk::assert_no_failures("depth predictor vs official", &fails);

@@ -23,11 +23,6 @@ const DISPARITY: (f64, f64) = (1.5e-5, 1e-4);
 /// SH: atol for degree 0, scaled by the degree's mask (0.1·0.25^l for l ≥ 1) like the values themselves.
 const SH: (f64, f64) = (2e-5, 1e-3);
 
-/// The official SH mask of degree l (`gaussian_adapter.sh_mask`): the scale of that degree's coefficients.
-fn sh_mask(l: usize) -> f64 {
-    if l == 0 { 1.0 } else { 0.1 * 0.25f64.powi(l as i32) }
-}
-
 #[test]
 fn encoder_matches_official_outputs() {
     let inputs = tk::load("encoder/inputs.safetensors");
@@ -57,7 +52,7 @@ fn encoder_matches_official_outputs() {
     check("depths", &g.depths, DEPTH.0, DEPTH.1);
     for (name, ours, degrees) in [("gaussians.harmonics", &g.harmonics, 4), ("gaussians.feature_harmonics", &g.feature_harmonics, 2)] {
         for l in 0..=degrees {
-            let m = sh_mask(l);
+            let m = tk::sh_mask(l);
             fails.extend(tk::allclose(
                 &format!("{name} degree {l}"),
                 &tk::sh_degree_block(ours, l),
@@ -95,11 +90,8 @@ fn wrong_view_count_or_size_is_a_clear_error() {
     assert!(err.contains("num_views"), "{err}");
 }
 
-/// Tiny config, random weights: output shapes, probability ranges, and a non-zero gradient for every trainable
-/// Var (biases of the CNN's 1×1 shortcut convs excepted: InstanceNorm cancels them exactly, so their gradient
-/// must vanish instead).
-#[test]
-fn tiny_encoder_shapes_and_gradients() {
+/// The tiny config with seeded random weights held in trainable `Var`s.
+fn tiny_encoder() -> (EncoderCostVolumeCfg, candle_nn::VarMap, EncoderCostVolume) {
     use candle_nn::{VarBuilder, VarMap};
     let dev = Device::Cpu;
     let cfg = EncoderCostVolumeCfg::tiny();
@@ -109,6 +101,16 @@ fn tiny_encoder_shapes_and_gradients() {
     for (name, var) in varmap.data().lock().unwrap().iter() {
         var.set(&init[name]).unwrap();
     }
+    (cfg, varmap, enc)
+}
+
+/// Tiny config, random weights: output shapes, probability ranges, and a non-zero gradient for every trainable
+/// Var (biases of the CNN's 1×1 shortcut convs excepted: InstanceNorm cancels them exactly, so their gradient
+/// must vanish instead).
+#[test]
+fn tiny_encoder_shapes_and_gradients() {
+    let dev = Device::Cpu;
+    let (cfg, varmap, enc) = tiny_encoder();
     let (h, w) = (32, 32);
     let v = cfg.num_views;
     let [im, k, e, n, f] = mvsplat360_encoder::bench::synthetic_context(1, v, h, w, &dev).unwrap();
@@ -160,15 +162,8 @@ fn tiny_encoder_shapes_and_gradients() {
 /// move by 2–11 % between h = 3e-5 and 1e-2 (no plateau in f32), so no honest tolerance exists for them.
 #[test]
 fn tiny_encoder_gradients_match_finite_differences() {
-    use candle_nn::{VarBuilder, VarMap};
     let dev = Device::Cpu;
-    let cfg = EncoderCostVolumeCfg::tiny();
-    let varmap = VarMap::new();
-    let enc = EncoderCostVolume::new(VarBuilder::from_varmap(&varmap, DType::F32, &dev).pp("encoder"), &cfg).unwrap();
-    let init = mvsplat360_encoder::weights::random_tensors(5, &dev, |vb| EncoderCostVolume::new(vb.pp("encoder"), &cfg)).unwrap();
-    for (name, var) in varmap.data().lock().unwrap().iter() {
-        var.set(&init[name]).unwrap();
-    }
+    let (cfg, varmap, enc) = tiny_encoder();
     let (h, w) = (32, 32);
     let [im, k, e, n, f] = mvsplat360_encoder::bench::synthetic_context(1, cfg.num_views, h, w, &dev).unwrap();
     let g0 = enc.forward(&im, &k, &e, &n, &f).unwrap();

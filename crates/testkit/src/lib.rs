@@ -189,6 +189,12 @@ pub fn assert_no_failures(what: &str, failures: &[String]) {
     assert!(failures.is_empty(), "{what}: {} check(s) failed:\n{}", failures.len(), failures.join("\n"));
 }
 
+/// The official SH mask of degree l (`gaussian_adapter.sh_mask`): 1, then 0.1·0.25^l — the scale of that degree's
+/// coefficients, by which SH tolerances are scaled.
+pub fn sh_mask(l: usize) -> f64 {
+    if l == 0 { 1.0 } else { 0.1 * 0.25f64.powi(l as i32) }
+}
+
 /// The slice of coefficients of SH degree `l` along the last dimension (k = l² .. (l+1)²).
 pub fn sh_degree_block(t: &Tensor, l: usize) -> Tensor {
     let last = t.rank() - 1;
