@@ -40,6 +40,7 @@ impl DataConfig {
 
 /// The refiner's three modules (configs with official YAML names).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
 pub struct RefinerModelConfig {
     pub unet: VideoUNetConfig,
     pub vae: AutoencoderConfig,

@@ -16,7 +16,7 @@ pub struct TrainConfig {
     pub train: TrainSection,
 }
 
-/// What is trained: the encoder at a fixed input size (the refiner's losses live in [`crate::loss::diffusion`]).
+/// What is trained: the encoder at a fixed input size, and optionally the refiner's UNet ([`crate::refiner`]).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ModelSection {
@@ -33,6 +33,10 @@ pub struct ModelSection {
     /// Encoder config (official names; unspecified fields = DL3DV experiment defaults).
     #[serde(default)]
     pub encoder: EncoderCostVolumeCfg,
+    /// Refiner (UNet, VAE, CLIP configs with official names; unspecified fields = MVSplat360's). Absent: 3DGS
+    /// only. Present: its UNet is trained with the diffusion and latent-alignment losses, VAE and CLIP frozen.
+    #[serde(default)]
+    pub refiner: Option<mvsplat360_pipeline::model::RefinerModelConfig>,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -131,6 +135,13 @@ pub struct TrainSection {
     /// Initial weights: a model folder or a weights file with `encoder.*` keys (official checkpoints included).
     #[serde(default)]
     pub init: Option<PathBuf>,
+    /// Refiner weights (with `[model.refiner]`): svd.safetensors, a converted MVSplat360 checkpoint or a model
+    /// folder; absent = seeded random weights.
+    #[serde(default)]
+    pub refiner_init: Option<PathBuf>,
+    /// Weight of the refiner's losses (diffusion + 0.01·latent alignment; official 1).
+    #[serde(default = "one_f64")]
+    pub refiner_weight: f64,
     #[serde(default = "hundred_u64")]
     pub checkpoint_every: u64,
     /// Checkpoints kept on disk (older ones are deleted).
@@ -250,6 +261,15 @@ impl TrainConfig {
         if let Some([lo, hi]) = self.data.gap {
             if lo > hi || hi < self.data.num_context {
                 return bad("data.gap", format!("[{lo}, {hi}] must satisfy min ≤ max and max ≥ num_context"));
+            }
+        }
+        if self.train.refiner_init.is_some() && self.model.refiner.is_none() {
+            return bad("train.refiner_init", "add a [model.refiner] section (the refiner's configs) or remove this".into());
+        }
+        if let Some(r) = &self.model.refiner {
+            let want = 4 + self.model.encoder.gaussian_adapter.n_feature_channels;
+            if r.unet.in_channels != want {
+                return bad("model.refiner.unet.in_channels", format!("{} ≠ 4 latent + {} feature channels = {want}", r.unet.in_channels, want - 4));
             }
         }
         if self.train.steps == 0 {

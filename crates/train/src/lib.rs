@@ -9,6 +9,7 @@ pub mod init;
 pub mod log;
 pub mod loss;
 pub mod optim;
+pub mod refiner;
 pub mod sampler;
 pub mod scenes;
 pub mod trainer;

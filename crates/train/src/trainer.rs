@@ -22,6 +22,7 @@ use crate::checkpoint::{self, State};
 use crate::config::TrainConfig;
 use crate::error::{Result, TrainError};
 use crate::optim::{clip_grad_norm, Adam, OneCycle, Param};
+use crate::refiner::TrainRefiner;
 use crate::sampler::{self, SamplerSettings};
 use crate::scenes::{SceneSource, TrainScene};
 
@@ -47,6 +48,11 @@ pub struct StepRecord {
     pub mse: f64,
     #[serde(default)]
     pub lpips: Option<f64>,
+    /// Refiner losses (unweighted): v-prediction diffusion loss and 0.01·latent alignment.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub diffusion: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub alignment: Option<f64>,
     pub lr: f64,
     pub grad_norm: f64,
     /// Wall seconds of this step.
@@ -74,11 +80,14 @@ pub struct Summary {
 pub struct Model {
     pub varmap: VarMap,
     pub encoder: EncoderCostVolume,
+    /// Present with `[model.refiner]`.
+    pub refiner: Option<TrainRefiner>,
     pub cfg: TrainConfig,
 }
 
 impl Model {
-    /// The encoder with seeded initial weights, or `train.init`'s.
+    /// The encoder with seeded initial weights, or `train.init`'s; the refiner (if configured) from
+    /// `train.refiner_init` or seeded random weights written to `train.out`.
     pub fn new(cfg: &TrainConfig) -> Result<Self> {
         let dev = Device::Cpu;
         let ecfg = cfg.encoder();
@@ -91,7 +100,14 @@ impl Model {
                 var.set(&init[name])?;
             }
         }
-        let m = Self { varmap, encoder, cfg: cfg.clone() };
+        let refiner = match &cfg.model.refiner {
+            Some(r) => {
+                std::fs::create_dir_all(&cfg.train.out).map_err(|e| TrainError::Write { path: cfg.train.out.clone(), msg: e.to_string() })?;
+                Some(TrainRefiner::new(r, cfg.train.refiner_init.as_deref(), cfg.train.seed, &cfg.train.out)?)
+            }
+            None => None,
+        };
+        let m = Self { varmap, encoder, refiner, cfg: cfg.clone() };
         if let Some(p) = &cfg.train.init {
             crate::init::load_into(&m.varmap, p)?;
         }
@@ -102,6 +118,9 @@ impl Model {
     pub fn vars(&self) -> Vec<(String, Var)> {
         let data = self.varmap.data().lock().expect("varmap lock");
         let mut v: Vec<(String, Var)> = data.iter().map(|(k, v)| (k.clone(), v.clone())).collect();
+        if let Some(r) = &self.refiner {
+            v.extend(r.unet_vars.iter().cloned());
+        }
         v.sort_by(|a, b| a.0.cmp(&b.0));
         v
     }
@@ -121,14 +140,23 @@ impl Model {
         Ok(())
     }
 
-    /// The model-folder config of this model (3DGS only).
+    /// Everything a model folder holds: the trained weights and the refiner's frozen VAE and CLIP.
+    pub fn model_tensors(&self) -> Vec<(String, Tensor)> {
+        let mut t = self.state_dict();
+        if let Some(r) = &self.refiner {
+            t.extend(r.frozen().iter().cloned());
+        }
+        t
+    }
+
+    /// The model-folder config of this model.
     pub fn model_config(&self) -> ModelConfig {
         let m = &self.cfg.model;
         ModelConfig {
             format: MODEL_FORMAT.into(),
             data: DataConfig { experiment: m.experiment.clone(), image_width: m.width, image_height: m.height, near: m.near, far: m.far },
             encoder: self.cfg.encoder(),
-            refiner: None,
+            refiner: self.cfg.model.refiner.clone(),
         }
     }
 }
@@ -179,6 +207,12 @@ pub fn make_example(scene: &TrainScene, s: &SamplerSettings, near: f32, far: f32
 
 /// Encoder forward and target renders: (renders (T,3,H,W), Gaussians).
 pub fn render_example(model: &Model, ex: &Example) -> Result<(Tensor, Gaussians)> {
+    let (rgb, _, gs) = render_example_full(model, ex)?;
+    Ok((rgb, gs))
+}
+
+/// As [`render_example`], also returning the rendered features (T,C,H,W).
+pub fn render_example_full(model: &Model, ex: &Example) -> Result<(Tensor, Tensor, Gaussians)> {
     let dev = Device::Cpu;
     let v = ex.context_cameras.len();
     let k: Vec<[f64; 4]> = ex.context_cameras.iter().map(|c| c.normalized_intrinsics()).collect();
@@ -196,6 +230,7 @@ pub fn render_example(model: &Model, ex: &Example) -> Result<(Tensor, Gaussians)
         feature_harmonics: g.feature_harmonics.i(0)?,
     };
     let mut renders = Vec::with_capacity(ex.target_cameras.len());
+    let mut features = Vec::with_capacity(ex.target_cameras.len());
     for c in &ex.target_cameras {
         let grad_mode = match model.cfg.train.raster_grad {
             crate::config::RasterGrad::Official => mvsplat360_splat::GradMode::Official,
@@ -203,8 +238,9 @@ pub fn render_example(model: &Model, ex: &Example) -> Result<(Tensor, Gaussians)
         };
         let r = mvsplat360_splat::render(&gs, &raster_camera(c, near, far), &RenderOptions { grad_mode, ..RenderOptions::default() })?;
         renders.push(r.rgb);
+        features.push(r.features);
     }
-    Ok((Tensor::stack(&renders, 0)?, gs))
+    Ok((Tensor::stack(&renders, 0)?, Tensor::stack(&features, 0)?, gs))
 }
 
 /// The 3DGS losses of one example: (total, mse, lpips).
@@ -286,7 +322,7 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
     }
     if start == 0 {
         // The step-0 model, for before/after comparisons.
-        mvsplat360_pipeline::model::write_model_dir(&out.join("model-step0"), &model.model_config(), &model.state_dict())?;
+        mvsplat360_pipeline::model::write_model_dir(&out.join("model-step0"), &model.model_config(), &model.model_tensors())?;
     }
     let log_path = out.join("log.jsonl");
     let mut records = crate::log::read(&log_path)?.into_iter().filter(|r| r.step <= start).collect::<Vec<_>>();
@@ -315,7 +351,7 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
         let t0 = Instant::now();
         settings.warm_up = if cfg.data.gap_warm_up_steps == 0 { 1.0 } else { step as f64 / cfg.data.gap_warm_up_steps as f64 };
         let mut grads: Vec<Option<Tensor>> = vec![None; adam.params.len()];
-        let (mut sum_loss, mut sum_mse, mut sum_lp) = (0f64, 0f64, None::<f64>);
+        let (mut sum_loss, mut sum_mse, mut sum_lp, mut sum_ref) = (0f64, 0f64, None::<f64>, None::<(f64, f64)>);
         // Examples are drawn in micro-batch order (sources cache scenes); forward and backward may then run in
         // parallel, and gradients are summed in micro-batch order either way.
         let mut examples = Vec::with_capacity(accum as usize);
@@ -323,9 +359,17 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
             let mut rng = step_rng(cfg.train.seed, step, micro);
             examples.push(draw_example(&mut sources, &weights, wsum, &settings, cfg, &mut rng)?);
         }
-        let micro_step = |ex: &Example| -> Result<MicroResult> {
-            let (pred, _) = render_example(&model, ex)?;
-            let (total, mse, lp) = losses(cfg, lpips.as_ref(), step, &pred, &ex.target_images)?;
+        let micro_step = |micro: u32, ex: &Example| -> Result<MicroResult> {
+            let (pred, feats, _) = render_example_full(&model, ex)?;
+            let (mut total, mse, lp) = losses(cfg, lpips.as_ref(), step, &pred, &ex.target_images)?;
+            let mut refiner_terms = None;
+            if let Some(r) = model.refiner.as_ref().filter(|_| cfg.train.refiner_weight > 0.0) {
+                // A stream of its own, so adding the refiner leaves the examples' draws unchanged.
+                let mut rng = step_rng(cfg.train.seed ^ 0x5EF1_4E70_0000_0000, step, micro);
+                let rl = r.losses(&feats, &ex.target_images, &ex.context_images, &mut rng)?;
+                total = (total + ((&rl.diffusion + &rl.alignment)? * cfg.train.refiner_weight)?)?;
+                refiner_terms = Some((rl.diffusion.to_scalar::<f32>()? as f64, rl.alignment.to_scalar::<f32>()? as f64));
+            }
             let tv = total.to_scalar::<f32>()? as f64;
             if !tv.is_finite() {
                 return Err(TrainError::NonFinite { step: step + 1, what: format!("loss {tv}") });
@@ -337,19 +381,20 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
                 loss: tv,
                 mse: mse.to_scalar::<f32>()? as f64,
                 lpips: lp.map(|l| l.to_scalar::<f32>()).transpose()?.map(|l| l as f64),
+                refiner: refiner_terms,
                 grads,
             })
         };
         let results: Vec<Result<MicroResult>> = if cfg.train.parallel_micro_batches && accum > 1 {
             std::thread::scope(|sc| {
-                let handles: Vec<_> = examples.iter().map(|ex| sc.spawn(|| micro_step(ex))).collect();
+                let handles: Vec<_> = examples.iter().zip(0u32..).map(|(ex, m)| sc.spawn(move || micro_step(m, ex))).collect();
                 handles
                     .into_iter()
                     .map(|h| h.join().unwrap_or_else(|_| Err(TrainError::Data("a micro-batch thread panicked".into()))))
                     .collect()
             })
         } else {
-            examples.iter().map(micro_step).collect()
+            examples.iter().zip(0u32..).map(|(ex, m)| micro_step(m, ex)).collect()
         };
         for r in results {
             let r = r?;
@@ -357,6 +402,11 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
             sum_mse += r.mse / accum as f64;
             if let Some(l) = r.lpips {
                 *sum_lp.get_or_insert(0.0) += l / accum as f64;
+            }
+            if let Some((d, a)) = r.refiner {
+                let s = sum_ref.get_or_insert((0.0, 0.0));
+                s.0 += d / accum as f64;
+                s.1 += a / accum as f64;
             }
             for (i, gi) in r.grads.into_iter().enumerate() {
                 if let Some(gi) = gi {
@@ -376,7 +426,17 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
         step += 1;
         let secs = t0.elapsed().as_secs_f64();
         train_seconds += secs;
-        let rec = StepRecord { step, loss: sum_loss, mse: sum_mse, lpips: sum_lp, lr, grad_norm: norm, seconds: secs };
+        let rec = StepRecord {
+            step,
+            loss: sum_loss,
+            mse: sum_mse,
+            lpips: sum_lp,
+            diffusion: sum_ref.map(|r| r.0),
+            alignment: sum_ref.map(|r| r.1),
+            lr,
+            grad_norm: norm,
+            seconds: secs,
+        };
         let line = serde_json::to_string(&rec).map_err(|e| TrainError::Write { path: log_path.clone(), msg: e.to_string() })?;
         writeln!(log, "{line}").and_then(|_| log.flush()).map_err(|e| TrainError::Write { path: log_path.clone(), msg: e.to_string() })?;
         records.push(rec.clone());
@@ -391,7 +451,7 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
         }
     }
     let model_dir = out.join("model");
-    mvsplat360_pipeline::model::write_model_dir(&model_dir, &model.model_config(), &model.state_dict())?;
+    mvsplat360_pipeline::model::write_model_dir(&model_dir, &model.model_config(), &model.model_tensors())?;
     let _ = crate::log::plot(&records, &out.join("loss.png"));
     Ok(Summary { steps: step, last: records.last().cloned(), model_dir, train_seconds, lpips: lpips.is_some() })
 }
@@ -400,6 +460,7 @@ struct MicroResult {
     loss: f64,
     mse: f64,
     lpips: Option<f64>,
+    refiner: Option<(f64, f64)>,
     grads: Vec<Option<Tensor>>,
 }
 

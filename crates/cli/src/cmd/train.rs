@@ -44,7 +44,8 @@ impl Monitor for Bar {
             pb.set_length(total);
             pb.set_position(rec.step);
             let lp = rec.lpips.map(|l| format!(" lpips {l:.4}")).unwrap_or_default();
-            pb.set_message(format!("loss {:.5} mse {:.5}{lp} lr {:.2e} {:.2} steps/s", rec.loss, rec.mse, rec.lr, 1.0 / rec.seconds.max(1e-9)));
+            let rf = rec.diffusion.zip(rec.alignment).map(|(d, a)| format!(" diffusion {d:.4} align {a:.5}")).unwrap_or_default();
+            pb.set_message(format!("loss {:.5} mse {:.5}{lp}{rf} lr {:.2e} {:.2} steps/s", rec.loss, rec.mse, rec.lr, 1.0 / rec.seconds.max(1e-9)));
         }
     }
     fn should_stop(&self) -> bool {

@@ -41,6 +41,7 @@ pub enum ClipAct {
 
 /// open_clip vision-tower parameters; defaults = ViT-H-14 (SVD's image embedder).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
 pub struct ClipVisionConfig {
     pub width: usize,
     pub layers: usize,

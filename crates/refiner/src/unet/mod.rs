@@ -34,6 +34,7 @@ pub enum UNetError {
 
 /// sgm `VideoUNet` parameters (names as in the official YAML); defaults = MVSplat360 `svd_wo_mb_fps`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
 pub struct VideoUNetConfig {
     pub in_channels: usize,
     pub out_channels: usize,

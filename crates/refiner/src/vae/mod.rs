@@ -32,6 +32,7 @@ pub enum VaeError {
 
 /// sgm `Encoder`/`VideoDecoder` parameters (official YAML names); defaults = SVD / MVSplat360 `svd_wo_mb_fps`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
 pub struct AutoencoderConfig {
     pub ch: usize,
     pub ch_mult: Vec<usize>,

@@ -1,0 +1,124 @@
+//! The refiner in the training loop: a tiny UNet trained with the diffusion + latent-alignment losses next to
+//! the encoder, VAE and CLIP frozen, and a model folder the render pipeline's strict loaders accept.
+
+mod common;
+
+use std::collections::HashMap;
+
+use candle_core::{Device, Tensor};
+use mvsplat360_refiner::clip::ClipImageEmbedder;
+use mvsplat360_refiner::unet::VideoUNet;
+use mvsplat360_refiner::vae::AutoencoderKL;
+use mvsplat360_train::{log, Quiet, RunOptions, TrainConfig};
+
+/// The tiny refiner of `pipeline::model::tiny_config`, as TOML (unspecified fields = MVSplat360's).
+const TINY_REFINER: &str = r#"
+[model.refiner.unet]
+model_channels = 32
+num_res_blocks = 1
+attention_resolutions = [1, 2]
+channel_mult = [1, 2]
+num_head_channels = 16
+context_dim = 32
+adm_in_channels = 32
+[model.refiner.vae]
+ch = 32
+ch_mult = [1, 1, 2, 2]
+num_res_blocks = 1
+[model.refiner.clip]
+width = 32
+layers = 2
+heads = 2
+mlp_width = 64
+patch_size = 8
+image_size = 32
+output_dim = 32
+"#;
+
+fn with_refiner(out: &std::path::Path, steps: u64, extra_train: &str) -> TrainConfig {
+    let base = common::tiny_config(out, steps, extra_train);
+    let text = base.to_toml().replacen("[data]", &format!("{TINY_REFINER}\n[data]"), 1);
+    TrainConfig::from_toml(&text, std::path::Path::new("tiny-refiner.toml")).expect("refiner config parses")
+}
+
+fn load(path: &std::path::Path) -> HashMap<String, Tensor> {
+    candle_core::safetensors::load(path, &Device::Cpu).unwrap()
+}
+
+fn max_abs_diff(a: &Tensor, b: &Tensor) -> f32 {
+    (a - b).unwrap().abs().unwrap().flatten_all().unwrap().max(0).unwrap().to_scalar::<f32>().unwrap()
+}
+
+#[test]
+fn unet_trains_and_model_folder_loads() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = with_refiner(dir.path(), 2, "");
+    cfg.train.accumulate = 1;
+    let s = mvsplat360_train::run(&cfg, &RunOptions::default(), &Quiet).unwrap();
+    assert_eq!(s.steps, 2);
+    let recs = log::read(&dir.path().join("log.jsonl")).unwrap();
+    for r in &recs {
+        let (d, a) = (r.diffusion.expect("diffusion loss logged"), r.alignment.expect("alignment loss logged"));
+        assert!(d.is_finite() && d > 0.0 && a.is_finite() && a > 0.0, "step {}: diffusion {d}, alignment {a}", r.step);
+        // The total is MSE + diffusion + alignment (weights 1, LPIPS off).
+        assert!((r.loss - (r.mse + d + a)).abs() <= 1e-5 * r.loss.abs().max(1.0), "step {}: {} ≠ {} + {d} + {a}", r.step, r.loss, r.mse);
+    }
+
+    let before = load(&dir.path().join("model-step0/model.safetensors"));
+    let after = load(&s.model_dir.join("model.safetensors"));
+    let init = load(&dir.path().join(mvsplat360_train::refiner::RANDOM_INIT));
+    assert_eq!(before.len(), after.len());
+    let changed = |prefix: &str| {
+        let keys: Vec<&String> = after.keys().filter(|k| k.starts_with(prefix)).collect();
+        assert!(!keys.is_empty(), "no `{prefix}` weights in the model folder");
+        keys.iter().filter(|k| max_abs_diff(&before[k.as_str()], &after[k.as_str()]) > 0.0).count()
+    };
+    assert!(changed("refiner.model.diffusion_model.") > 10, "the UNet did not train");
+    assert!(changed("encoder.") > 10, "the encoder did not train");
+    assert_eq!(changed("refiner.first_stage_model."), 0, "the VAE must stay frozen");
+    assert_eq!(changed("refiner.conditioner.embedders.0."), 0, "CLIP must stay frozen");
+    // The frozen parts are the initial file's, bit for bit.
+    for (k, t) in after.iter().filter(|(k, _)| k.starts_with("refiner.first_stage_model.")) {
+        assert_eq!(max_abs_diff(t, &init[k]), 0.0, "{k}");
+    }
+
+    // The folder loads through the pipeline and the refiner's strict loaders (missing/extra keys fail).
+    let spec = mvsplat360_pipeline::model::read_model_dir(&s.model_dir).unwrap();
+    let (rcfg, _) = spec.refiner.expect("model folder declares its refiner");
+    let w = s.model_dir.join("model.safetensors");
+    VideoUNet::load(&w, None, &rcfg.unet, &Device::Cpu).unwrap();
+    AutoencoderKL::load(&w, None, &rcfg.vae, &Device::Cpu).unwrap();
+    ClipImageEmbedder::load(&w, None, &rcfg.clip, &Device::Cpu).unwrap();
+
+    // svd.safetensors names its parts without `refiner.`: the run starts from it and writes official keys.
+    let svd: HashMap<String, Tensor> = init.iter().map(|(k, t)| (k.strip_prefix("refiner.").unwrap().to_string(), t.clone())).collect();
+    let svd_path = dir.path().join("svd-like.safetensors");
+    candle_core::safetensors::save(&svd, &svd_path).unwrap();
+    let out2 = dir.path().join("from-svd");
+    let mut cfg2 = with_refiner(&out2, 1, "");
+    cfg2.train.accumulate = 1;
+    cfg2.train.refiner_init = Some(svd_path);
+    let s2 = mvsplat360_train::run(&cfg2, &RunOptions::default(), &Quiet).unwrap();
+    let got = load(&s2.model_dir.join("model.safetensors"));
+    assert!(!out2.join(mvsplat360_train::refiner::RANDOM_INIT).exists());
+    for (k, t) in init.iter().filter(|(k, _)| !k.starts_with("refiner.model.")) {
+        assert_eq!(max_abs_diff(&got[k], t), 0.0, "{k}");
+    }
+    assert_eq!(got.keys().filter(|k| k.starts_with("refiner.")).count(), init.len());
+}
+
+#[test]
+fn refiner_config_errors_name_the_field() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = with_refiner(dir.path(), 1, "").to_toml().replace("in_channels = 8", "in_channels = 4");
+    let e = TrainConfig::from_toml(&text, std::path::Path::new("r.toml")).unwrap_err().to_string();
+    assert!(e.contains("model.refiner.unet.in_channels"), "{e}");
+    let text = common::tiny_config(dir.path(), 1, "").to_toml().replacen("[train]\n", "[train]\nrefiner_init = \"svd.safetensors\"\n", 1);
+    let e = TrainConfig::from_toml(&text, std::path::Path::new("r.toml")).unwrap_err().to_string();
+    assert!(e.contains("train.refiner_init") && e.contains("[model.refiner]"), "{e}");
+    // A refiner_init that is not there names the file.
+    let mut cfg = with_refiner(dir.path(), 1, "");
+    cfg.train.refiner_init = Some(dir.path().join("absent.safetensors"));
+    let e = mvsplat360_train::run(&cfg, &RunOptions::default(), &Quiet).err().expect("missing init fails").to_string();
+    assert!(e.contains("absent.safetensors") && e.contains("refiner init"), "{e}");
+}
