@@ -98,3 +98,34 @@ fn bad_sizes_are_clear_errors() {
         assert!(err.contains(needle), "{args:?}: expected `{needle}` in {err}");
     }
 }
+
+#[test]
+fn scene_runs_the_whole_pipeline() {
+    let v = bench(&["scene", "--tiny", "--views", "3", "--height", "64", "--width", "128", "--frames", "2", "--steps", "1", "--threads", "1"]);
+    assert_eq!(v["bench"], "scene");
+    assert_eq!((v["views"].as_u64(), v["frames"].as_u64(), v["steps"].as_u64(), v["threads"].as_u64()), (Some(3), Some(2), Some(1), Some(1)), "{v}");
+    assert_eq!(v["refiner"], true, "{v}");
+    // One pixel-aligned Gaussian per context pixel.
+    assert_eq!(v["gaussians"].as_u64(), Some(3 * 64 * 128), "{v}");
+    time_field(&v, "total_seconds");
+    let stages = v["stage_seconds"].as_object().unwrap_or_else(|| panic!("no stage_seconds in {v}"));
+    assert!(stages.len() >= 3, "expected encoder, rasterizer and refiner stages: {v}");
+    for k in stages.keys() {
+        time_field(&v["stage_seconds"], k);
+    }
+    assert!(stages.keys().any(|k| k.contains("refin")), "no refiner stage in {v}");
+    assert!(v["peak_rss_mib"].as_f64().is_some_and(|m| m > 0.0), "{v}");
+    // 3DGS only: no refiner stage.
+    let v = bench(&["scene", "--tiny", "--no-refiner", "--views", "2", "--height", "64", "--width", "64", "--frames", "1", "--threads", "1"]);
+    assert!(!v["stage_seconds"].as_object().unwrap().keys().any(|k| k.contains("refin")), "{v}");
+}
+
+#[test]
+fn scene_refuses_bad_sizes_and_cuda() {
+    for args in [&["scene", "--tiny", "--height", "100"][..], &["scene", "--tiny", "--device", "cuda"][..]] {
+        let out = Command::new(env!("CARGO_BIN_EXE_mvsplat360")).arg("bench").args(args).output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success() && !err.contains("panicked"), "{args:?}: {err}");
+        assert!(err.contains("multiples of 64") || err.contains("CPU only"), "{args:?}: {err}");
+    }
+}

@@ -7,7 +7,6 @@ pub mod common;
 pub mod config;
 pub mod costvolume;
 pub mod encoder_costvolume;
-pub mod ops;
 pub mod weights;
 
 pub use config::EncoderCostVolumeCfg;

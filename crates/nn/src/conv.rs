@@ -1,9 +1,12 @@
-//! 2-D convolution as im2col + gemm on the CPU (other devices use candle's own conv2d).
-//! `Im2Col`/`Col2Im` are custom ops that are each other's backward, so gradients flow to input and weight.
+//! Convolutions. candle's CPU conv2d is several times slower than a gemm of the same size, so CPU f32 runs
+//! shifted gemms (stride 1) or im2col + gemm (custom ops that are each other's backward); other devices and
+//! dtypes take candle's own conv2d. The refiner's fused epilogues and its (kt, 1, 1) temporal conv live here too.
 
 use candle_core::{CpuStorage, CustomOp1, CustomOp2, Layout, Module, Result, Shape, Tensor};
 use candle_nn::VarBuilder;
 use rayon::prelude::*;
+
+use crate::mode::{cpu_f32, is_cpu_f32, is_differentiable, with_f32};
 
 #[derive(Debug, Clone, Copy)]
 struct Geometry {
@@ -60,11 +63,7 @@ struct Im2Col(Geometry);
 struct Col2Im(Geometry);
 
 fn f32_slice<'a>(s: &'a CpuStorage, l: &Layout) -> Result<&'a [f32]> {
-    let data = s.as_slice::<f32>()?;
-    match l.contiguous_offsets() {
-        Some((a, b)) => Ok(&data[a..b]),
-        None => candle_core::bail!("conv2d: non-contiguous input"),
-    }
+    crate::mode::f32_slice(s, l, "conv2d")
 }
 
 impl CustomOp1 for Im2Col {
@@ -447,6 +446,24 @@ fn with_f32_opt<R>(t: Option<&Tensor>, f: impl FnOnce(Option<&[f32]>) -> Result<
     }
 }
 
+/// [`conv2d_fused`] from tensor ops (records a backward); `candle_conv` forces candle's conv2d on the CPU too.
+pub(crate) fn conv2d_fused_composed(x: &Tensor, w: &Tensor, bias: Option<&Tensor>, cfg: Conv2dConfig, epi: ConvEpilogue, candle_conv: bool) -> Result<Tensor> {
+    let (n, _, h, wd) = x.dims4()?;
+    let co = w.dim(0)?;
+    let x = if epi.upsample2x { x.upsample_nearest2d(2 * h, 2 * wd)? } else { x.clone() };
+    let mut y = if candle_conv { conv2d_candle(&x, w, bias, cfg)? } else { conv2d(&x, w, bias, cfg)? };
+    if let Some(ib) = epi.item_bias {
+        y = y.broadcast_add(&ib.reshape((n, co, 1, 1))?)?;
+    }
+    if let Some(k) = epi.scale {
+        y = (y * k as f64)?;
+    }
+    if let Some(r) = epi.residual {
+        y = (y + r)?;
+    }
+    Ok(y)
+}
+
 /// Inference-only conv2d (no backward) with the epilogue fused into the output copy. Stride-1 CPU f32
 /// convolutions run on the batched shifted-gemm kernel; anything else through [`conv2d`] and tensor ops.
 pub fn conv2d_fused(x: &Tensor, w: &Tensor, bias: Option<&Tensor>, cfg: Conv2dConfig, epi: ConvEpilogue) -> Result<Tensor> {
@@ -455,20 +472,8 @@ pub fn conv2d_fused(x: &Tensor, w: &Tensor, bias: Option<&Tensor>, cfg: Conv2dCo
     if ci != c {
         candle_core::bail!("conv2d: input has {c} channels, weight expects {ci}");
     }
-    let cpu_f32 = x.device().is_cpu() && x.dtype() == candle_core::DType::F32;
-    if !cpu_f32 || cfg.stride != 1 {
-        let x = if epi.upsample2x { x.upsample_nearest2d(2 * h, 2 * wd)? } else { x.clone() };
-        let mut y = conv2d(&x, w, bias, cfg)?;
-        if let Some(ib) = epi.item_bias {
-            y = y.broadcast_add(&ib.reshape((n, co, 1, 1))?)?;
-        }
-        if let Some(k) = epi.scale {
-            y = (y * k as f64)?;
-        }
-        if let Some(r) = epi.residual {
-            y = (y + r)?;
-        }
-        return Ok(y);
+    if !cpu_f32(x) || cfg.stride != 1 {
+        return conv2d_fused_composed(x, w, bias, cfg, epi, false);
     }
     let geo = ShiftGeometry::new((n, c, h, wd), (co, kh, kw), cfg.padding, cfg.dilation, if epi.upsample2x { 2 } else { 1 })?;
     if let Some(r) = epi.residual {
@@ -498,8 +503,9 @@ pub fn conv2d_fused(x: &Tensor, w: &Tensor, bias: Option<&Tensor>, cfg: Conv2dCo
     Tensor::from_vec(out, (n, co, geo.ho, geo.wo), x.device())
 }
 
-/// [`conv2d`] for stride 1 through [`ShiftConv`] (CPU, f32).
+/// [`conv2d`] for stride 1 through [`ShiftConv`] (CPU f32 only: [`crate::NotBuilt`] elsewhere).
 pub fn conv2d_shift(x: &Tensor, w: &Tensor, bias: Option<&Tensor>, cfg: Conv2dConfig) -> Result<Tensor> {
+    crate::mode::require_cpu("conv2d_shift", x)?;
     if cfg.stride != 1 {
         candle_core::bail!("conv2d_shift: stride must be 1, got {}", cfg.stride);
     }
@@ -539,15 +545,19 @@ pub fn conv2d(x: &Tensor, w: &Tensor, bias: Option<&Tensor>, cfg: Conv2dConfig) 
     // im2col+gemm when K = C·k² ≥ 1024 (0.54× at 2880, 0.72× at 1152), candle's own below (the patch copy
     // dominates there: 0.97–1.28×).
     let pointwise = kh == 1 && kw == 1 && cfg.stride == 1 && cfg.padding == 0;
-    let cpu_f32 = x.device().is_cpu() && x.dtype() == candle_core::DType::F32;
+    let cpu_f32 = cpu_f32(x);
     if cpu_f32 && cfg.stride == 1 && !pointwise {
         conv2d_shift(x, w, bias, cfg)
     } else if cpu_f32 && (pointwise || c * kh * kw >= 1024) {
         conv2d_gemm(x, w, bias, cfg)
     } else {
-        let out = x.conv2d(w, cfg.padding, cfg.stride, cfg.dilation, 1)?;
-        add_bias(out, bias)
+        conv2d_candle(x, w, bias, cfg)
     }
+}
+
+/// candle's own conv2d plus bias: the path of every non-CPU device.
+pub(crate) fn conv2d_candle(x: &Tensor, w: &Tensor, bias: Option<&Tensor>, cfg: Conv2dConfig) -> Result<Tensor> {
+    add_bias(x.conv2d(w, cfg.padding, cfg.stride, cfg.dilation, 1)?, bias)
 }
 
 fn add_bias(out: Tensor, bias: Option<&Tensor>) -> Result<Tensor> {
@@ -557,8 +567,9 @@ fn add_bias(out: Tensor, bias: Option<&Tensor>) -> Result<Tensor> {
     }
 }
 
-/// [`conv2d`] always through im2col + gemm (CPU, f32).
+/// [`conv2d`] always through im2col + gemm (CPU f32 only: [`crate::NotBuilt`] elsewhere).
 pub fn conv2d_gemm(x: &Tensor, w: &Tensor, bias: Option<&Tensor>, cfg: Conv2dConfig) -> Result<Tensor> {
+    crate::mode::require_cpu("conv2d_gemm", x)?;
     let (n, c, h, wd) = x.dims4()?;
     let (co, ci, kh, kw) = w.dims4()?;
     if ci != c {
@@ -608,6 +619,127 @@ impl Module for Conv2d {
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
         conv2d(x, &self.weight, self.bias.as_ref(), self.cfg)
     }
+}
+
+/// Conv2d (groups 1) followed by `residual + scale·(conv + bias + item_bias)` on an optionally nearest-×2
+/// upsampled input: the fused inference kernel normally, differentiable ops in differentiable mode.
+pub fn conv2d_epilogue(x: &Tensor, w: &Tensor, bias: Option<&Tensor>, cfg: Conv2dConfig, epi: ConvEpilogue) -> Result<Tensor> {
+    if is_differentiable() {
+        return conv2d_fused_composed(x, w, bias, cfg, epi, false);
+    }
+    if cfg.stride == 1 || epi.item_bias.is_some() || epi.residual.is_some() || epi.upsample2x {
+        return conv2d_fused(x, w, bias, cfg, epi);
+    }
+    conv2d(x, w, bias, cfg)
+}
+
+
+/// Conv3d with kernel (kt, 1, 1), zero padding (kt/2, 0, 0) on frame-major x (B·T, Cin, H, W), weight
+/// (Cout, kt·Cin) (tap-major columns): each output frame is ONE gemm over its stacked valid neighbour frames,
+/// which are contiguous in memory; the destination starts as `residual + scale·(bias + item_bias)`.
+#[allow(clippy::too_many_arguments)]
+pub fn temporal_conv(
+    x: &Tensor,
+    w: &Tensor,
+    bias: &Tensor,
+    kt: usize,
+    frames: usize,
+    item_bias: Option<&Tensor>,
+    residual: Option<&Tensor>,
+    scale: f32,
+) -> Result<Tensor> {
+    let (n, c, h, wd) = x.dims4()?;
+    let (co, ktc) = w.dims2()?;
+    if ktc != kt * c || frames == 0 || n % frames != 0 {
+        candle_core::bail!("temporal conv: input {:?} with {frames} frames, weight {:?}, kt {kt}", x.dims(), w.dims());
+    }
+    let s = h * wd;
+    let pad = kt / 2;
+    if !is_cpu_f32(x) {
+        return temporal_conv_composed(x, w, bias, kt, frames, item_bias, residual, scale);
+    }
+    let bv = bias.to_vec1::<f32>()?;
+    let ib = match item_bias {
+        Some(t) => Some(t.flatten_all()?.to_vec1::<f32>()?),
+        None => None,
+    };
+    let mut dst = match residual {
+        Some(r) => with_f32(r, |d| d.to_vec())?,
+        None => vec![0f32; n * co * s],
+    };
+    if dst.len() != n * co * s {
+        candle_core::bail!("temporal conv: residual has {} elements, output {}", dst.len(), n * co * s);
+    }
+    dst.par_chunks_mut(s).enumerate().for_each(|(row, d)| {
+        let (item, o) = (row / co, row % co);
+        let add = scale * (bv[o] + ib.as_ref().map_or(0.0, |v| v[item * co + o]));
+        for v in d {
+            *v += add;
+        }
+    });
+    let threads = rayon::current_num_threads();
+    let small = s * co < 1 << 16;
+    with_f32(x, |xd| {
+        with_f32(w, |wd| {
+            let run = |item: usize, d: &mut [f32], par: gemm::Parallelism| {
+                let t = item % frames;
+                let (k0, k1) = (pad.saturating_sub(t), kt.min(frames + pad - t));
+                let first = item + k0 - pad;
+                // SAFETY: lhs = columns k0·c..k1·c of w (row stride kt·c); rhs = frames first..first+k1−k0,
+                // contiguous ((k1−k0)·c × s); dst = this item's (co × s) output.
+                unsafe {
+                    gemm::gemm(
+                        co, s, (k1 - k0) * c,
+                        d.as_mut_ptr(), 1, s as isize, true,
+                        wd.as_ptr().add(k0 * c), 1, (kt * c) as isize,
+                        xd.as_ptr().add(first * c * s), 1, s as isize,
+                        1.0, scale, false, false, false, par,
+                    );
+                }
+            };
+            if small {
+                dst.par_chunks_mut(co * s).enumerate().for_each(|(i, d)| run(i, d, gemm::Parallelism::None));
+            } else {
+                dst.chunks_mut(co * s).enumerate().for_each(|(i, d)| run(i, d, gemm::Parallelism::Rayon(threads)));
+            }
+        })
+    })??;
+    Tensor::from_vec(dst, (n, co, h, wd), x.device())
+}
+
+/// [`temporal_conv`] from tensor ops (records a backward): one matmul per output frame.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn temporal_conv_composed(
+    x: &Tensor,
+    w: &Tensor,
+    bias: &Tensor,
+    kt: usize,
+    frames: usize,
+    item_bias: Option<&Tensor>,
+    residual: Option<&Tensor>,
+    scale: f32,
+) -> Result<Tensor> {
+    let (n, c, h, wd) = x.dims4()?;
+    let co = w.dim(0)?;
+    let (s, pad) = (h * wd, kt / 2);
+    let xs = x.reshape((n, c, s))?;
+    let mut outs = Vec::with_capacity(n);
+    for item in 0..n {
+        let t = item % frames;
+        let (k0, k1) = (pad.saturating_sub(t), kt.min(frames + pad - t));
+        let wk = w.reshape((co, kt, c))?.narrow(1, k0, k1 - k0)?.reshape((co, (k1 - k0) * c))?;
+        let src = xs.narrow(0, item + k0 - pad, k1 - k0)?.reshape(((k1 - k0) * c, s))?;
+        outs.push(wk.matmul(&src)?.broadcast_add(&bias.reshape((co, 1))?)?);
+    }
+    let mut y = Tensor::stack(&outs, 0)?.reshape((n, co, h, wd))?;
+    if let Some(ib) = item_bias {
+        y = y.broadcast_add(&ib.reshape((n, co, 1, 1))?)?;
+    }
+    y = (y * scale as f64)?;
+    if let Some(r) = residual {
+        y = (y + r)?;
+    }
+    Ok(y)
 }
 
 #[cfg(test)]

@@ -5,6 +5,7 @@
 //! `video.mp4`, `compare.mp4` (gsplat | final | GT), `cameras.json`, `run.json`. Every file is written under a
 //! temporary name and renamed, so an interrupted run leaves only complete files.
 
+pub mod bench;
 pub mod error;
 pub mod eval;
 pub mod model;

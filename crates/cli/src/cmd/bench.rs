@@ -93,6 +93,40 @@ enum What {
         #[command(flatten)]
         common: Common,
     },
+    /// The whole `render` pipeline (encoder → rasterizer → refiner → histogram matching) on a synthetic scene
+    /// with random weights: per-stage times (median over --runs, no warm-up) and peak memory. Defaults are the
+    /// paper's setting (official DL3DV configs) — hours on a CPU; `--tiny` uses the tests' tiny model.
+    Scene {
+        /// Where the pipeline runs: `cpu` (`cuda` is not wired in yet and says so).
+        #[arg(long, default_value = "cpu", value_parser = ["cpu", "cuda"])]
+        device: String,
+        /// Context views.
+        #[arg(long, default_value_t = 5)]
+        views: usize,
+        /// Input height (a multiple of 64).
+        #[arg(long, default_value_t = 256)]
+        height: u32,
+        /// Input width (a multiple of 64).
+        #[arg(long, default_value_t = 448)]
+        width: u32,
+        /// Target frames (a 360° orbit), refined in windows of 14.
+        #[arg(long, default_value_t = 56)]
+        frames: usize,
+        /// Guided sampling steps of the refiner.
+        #[arg(long, default_value_t = 25)]
+        steps: usize,
+        /// Timed runs; the median of each stage is reported.
+        #[arg(long, default_value_t = 1)]
+        runs: usize,
+        /// The tests' tiny model (narrow encoder, tiny UNet/VAE/CLIP) instead of the official configs.
+        #[arg(long)]
+        tiny: bool,
+        /// 3DGS only: skip the refiner.
+        #[arg(long)]
+        no_refiner: bool,
+        #[command(flatten)]
+        threads: Threads,
+    },
     /// Image metrics at 256×448: images (pairs) per second of PSNR, SSIM, LPIPS, DISTS and FID features
     /// (the networks only when their weights are installed, see scripts/metric-weights/fetch).
     Metrics {
@@ -141,6 +175,21 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 anyhow::bail!("bench refiner: need --frames ≥ 1 and latent sizes that are positive multiples of 8 (three 2× downsamplings) (got {frames}, {latent_h}x{latent_w})");
             }
             mvsplat360_refiner::bench::run_refiner_bench(frames, latent_h, latent_w, common.threads.count(), common.runs)?
+        }
+        What::Scene { device, views, height, width, frames, steps, runs, tiny, no_refiner, threads } => {
+            let device = if device == "cuda" { mvsplat360_pipeline::bench::BenchDevice::Cuda } else { mvsplat360_pipeline::bench::BenchDevice::Cpu };
+            mvsplat360_pipeline::bench::run_scene_bench(&mvsplat360_pipeline::bench::SceneBenchOpts {
+                device,
+                views,
+                height,
+                width,
+                frames,
+                steps,
+                runs,
+                threads: threads.count(),
+                tiny,
+                no_refiner,
+            })?
         }
         What::Metrics { width, height, runs, threads } => {
             if width < 11 || height < 11 {

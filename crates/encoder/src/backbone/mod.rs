@@ -1,7 +1,6 @@
 //! Multi-view backbone (`backbone/backbone_multiview.py`): UniMatch CNN at 1/4 resolution, windowed sine
 //! position embedding, multi-view Swin transformer with nearest-view cross-attention.
 
-pub mod conv;
 pub mod multiview_transformer;
 pub mod nn;
 pub mod unimatch;

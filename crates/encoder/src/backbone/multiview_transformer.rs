@@ -5,9 +5,11 @@
 use candle_core::{Device, Module, Result, Tensor};
 use candle_nn::VarBuilder;
 
-use crate::backbone::nn::{gelu, masked_softmax, LayerNorm, LinearNoBias};
+use crate::backbone::nn::{LayerNorm, LinearNoBias};
+use mvsplat360_nn::activation::gelu;
+use mvsplat360_nn::softmax::masked_softmax;
 use crate::backbone::unimatch::utils::{shifted_window_labels, shifted_window_mask};
-use crate::ops::attention::{fused_attention, fused_attention_applies, RegionMask};
+use mvsplat360_nn::attention::{fused_attention, RegionMask};
 
 /// Shifted-window mask for `m` key views: region labels for the fused inference kernel, and the dense additive
 /// mask `[K·K, Lw, m·Lw]` (built only if the differentiable path asks for it).
@@ -120,7 +122,7 @@ impl TransformerLayer {
 pub fn window_attention(q: &Tensor, k: &Tensor, v: &Tensor, g: WindowGeom, shift: bool, mask: Option<&ShiftMask>) -> Result<Tensor> {
     let (n, l, c) = q.dims3()?;
     let m = k.dim(1)?;
-    if fused_attention_applies(&[q, k, v]) {
+    if ![q, k, v].iter().any(|t| t.track_op()) {
         return window_attention_fused(q, k, v, g, shift, mask);
     }
     let mask = match mask {

@@ -5,6 +5,7 @@
 use candle_core::{DType, Result, Tensor, D};
 
 use super::sh_rotation::{rotate_sh, sh_rotation_matrices};
+use mvsplat360_nn::layout::channels_last;
 use crate::config::EncoderCostVolumeCfg;
 use crate::costvolume::DepthPredictorOutput;
 
@@ -77,39 +78,6 @@ pub fn gaussians_from_prediction(
     image_hw: (usize, usize),
 ) -> Result<EncoderGaussians> {
     Ok(gaussians_from_prediction_at_step(cfg, pred, extrinsics, intrinsics, image_hw, 0)?.0)
-}
-
-/// `[B, V, C, H, W]` → `[B, V, H, W, C]` contiguous. Inference on CPU f32 uses a multi-threaded blocked
-/// transpose (candle's strided copy is single-threaded; this tensor is ~275 MB at the DL3DV bench size).
-fn channels_last(x: &Tensor) -> Result<Tensor> {
-    let (b, v, c, h, w) = x.dims5()?;
-    if x.track_op() || !x.device().is_cpu() || x.dtype() != DType::F32 {
-        return x.permute((0, 1, 3, 4, 2))?.contiguous();
-    }
-    use rayon::prelude::*;
-    let x = x.contiguous()?;
-    let p = h * w;
-    let mut out = vec![0f32; x.elem_count()];
-    {
-        let (st, l) = x.storage_and_layout();
-        let src = match (&*st, l.contiguous_offsets()) {
-            (candle_core::Storage::Cpu(candle_core::CpuStorage::F32(d)), Some((a, e))) => &d[a..e],
-            _ => candle_core::bail!("gaussian adapter: expected contiguous CPU f32 raw Gaussians"),
-        };
-        const TILE: usize = 256;
-        out.par_chunks_mut(c * p).zip(src.par_chunks(c * p)).for_each(|(dimg, simg)| {
-            dimg.par_chunks_mut(TILE * c).enumerate().for_each(|(t, dst)| {
-                let p0 = t * TILE;
-                let np = dst.len() / c;
-                for ci in 0..c {
-                    for (j, &val) in simg[ci * p + p0..ci * p + p0 + np].iter().enumerate() {
-                        dst[j * c + ci] = val;
-                    }
-                }
-            });
-        });
-    }
-    Tensor::from_vec(out, (b, v, h, w, c), x.device())
 }
 
 /// As [`gaussians_from_prediction`] at a given training step (opacity mapping), also returning internals.

@@ -4,11 +4,12 @@
 use candle_core::{DType, Device, Module, Result, Tensor};
 use candle_nn::VarBuilder;
 
-use super::ldm_unet::util::gelu;
+use mvsplat360_nn::activation::gelu;
 use super::ldm_unet::{Conv2d, GroupNorm, UNetCfg, UNetModel};
 use super::ldm_unet::util::Act;
 use crate::config::EncoderCostVolumeCfg;
-use crate::ops::{upsample_bilinear, upsample_nearest, warp_correlation};
+use mvsplat360_nn::upsample::{upsample_bilinear, upsample_nearest};
+use mvsplat360_nn::warp_correlation::warp_correlation;
 
 /// Inputs of the depth predictor (all `(b, v)`-major as the encoder holds them).
 #[derive(Debug, Clone, Copy)]

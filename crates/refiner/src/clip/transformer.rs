@@ -48,14 +48,14 @@ impl ResidualAttentionBlock {
         let qkv = self.in_proj.forward(&self.ln_1.layer_norm(x)?)?;
         let (q, k, v) = (qkv.narrow(D::Minus1, 0, d)?, qkv.narrow(D::Minus1, d, d)?, qkv.narrow(D::Minus1, 2 * d, d)?);
         let a = attention(&q.contiguous()?, &k.contiguous()?, &v.contiguous()?, cfg.heads, cfg.attn_max_score_elems)?;
-        let x = crate::kernels::linear_fused(&a, &self.out_proj.weight, self.out_proj.bias.as_ref(), 1.0, &[(x, 1.0)])?;
+        let x = mvsplat360_nn::linear::linear_fused(&a, &self.out_proj.weight, self.out_proj.bias.as_ref(), 1.0, &[(x, 1.0)])?;
         let _m = crate::prof::scope("clip.mlp");
         let h = self.c_fc.forward(&self.ln_2.layer_norm(&x)?)?;
         let h = match cfg.act {
-            ClipAct::Gelu => crate::kernels::gelu(&h)?,
+            ClipAct::Gelu => mvsplat360_nn::activation::gelu_inference(&h)?,
             ClipAct::QuickGelu => (&h * candle_nn::ops::sigmoid(&(&h * 1.702)?)?)?,
         };
-        crate::kernels::linear_fused(&h, &self.c_proj.weight, self.c_proj.bias.as_ref(), 1.0, &[(&x, 1.0)])
+        mvsplat360_nn::linear::linear_fused(&h, &self.c_proj.weight, self.c_proj.bias.as_ref(), 1.0, &[(&x, 1.0)])
     }
 }
 

@@ -4,7 +4,9 @@
 use candle_core::{Result, Tensor};
 
 use super::util::{attention, blend_learned, sigmoid_scalar, timestep_embedding, Linear, Norm};
-use crate::kernels::{self, AttnOperand, SeqLayout};
+use mvsplat360_nn::attention::{multi_head_attention_seqs, SeqLayout};
+use mvsplat360_nn::linear::{geglu_ff, linear_fused, linear_from_channels_first, linear_to_channels_first};
+use mvsplat360_nn::mode::is_differentiable;
 use super::weights::Weights;
 
 pub(crate) fn linear(w: &Weights, name: &str, i: usize, o: usize, bias: bool) -> Result<Linear> {
@@ -72,32 +74,12 @@ impl CrossAttention {
         let k = self.to_k.forward(xn)?;
         let v = self.to_v.forward(xn)?;
         let inner = *q.dims().last().unwrap_or(&1);
-        let rows = q.elem_count() / inner.max(1);
-        let o = if kernels::is_cpu_f32(&q) {
-            let d = inner / self.heads;
-            let mut out = vec![0f32; rows * inner];
-            kernels::with_f32(&q, |qd| {
-                kernels::with_f32(&k, |kd| {
-                    kernels::with_f32(&v, |vd| {
-                        let op = |data| AttnOperand { data, row_len: inner, col_offset: 0 };
-                        kernels::attention_raw(op(qd), layout, op(kd), op(vd), layout, &mut out, inner, self.heads, d, 1.0 / (d as f32).sqrt())
-                    })
-                })
-            })???;
-            Tensor::from_vec(out, (rows, inner), q.device())?
-        } else {
-            // Generic devices: gather the sequences, attend, scatter back.
-            let idx: Vec<u32> = (0..layout.count).flat_map(|g| (0..layout.len).map(move |p| layout_row(&layout, g, p) as u32)).collect();
-            let idx = Tensor::from_vec(idx, layout.count * layout.len, q.device())?;
-            let gather = |t: &Tensor| t.reshape((rows, inner))?.index_select(&idx, 0)?.reshape((layout.count, layout.len, inner));
-            let a = attention(&gather(&q)?, &gather(&k)?, &gather(&v)?, self.heads, max_elems)?.reshape((rows, inner))?;
-            Tensor::zeros((rows, inner), a.dtype(), a.device())?.index_add(&idx, &a, 0)?
-        };
+        let o = multi_head_attention_seqs(&q, &k, &v, layout, self.heads, max_elems)?;
         let mut od = residual.dims().to_vec();
         if let Some(l) = od.last_mut() {
             *l = inner;
         }
-        kernels::linear_fused(&o.reshape(od)?, &self.to_out.weight, self.to_out.bias.as_ref(), 1.0, &[(residual, 1.0)])
+        linear_fused(&o.reshape(od)?, &self.to_out.weight, self.to_out.bias.as_ref(), 1.0, &[(residual, 1.0)])
     }
 
     /// `residual + to_out(attention(to_q(xn), context))`; the rows of `residual` (N rows in total, any
@@ -127,12 +109,8 @@ impl CrossAttention {
         if let Some(l) = od.last_mut() {
             *l = inner;
         }
-        kernels::linear_fused(&a.reshape(od)?, &self.to_out.weight, self.to_out.bias.as_ref(), 1.0, &[(residual, 1.0)])
+        linear_fused(&a.reshape(od)?, &self.to_out.weight, self.to_out.bias.as_ref(), 1.0, &[(residual, 1.0)])
     }
-}
-
-fn layout_row(l: &SeqLayout, g: usize, p: usize) -> usize {
-    (g / l.inner_count) * l.outer + (g % l.inner_count) * l.inner + p * l.pos
 }
 
 /// GEGLU feed-forward: `net.0.proj` (dim → 2·inner), `net.2` (inner → out).
@@ -155,7 +133,7 @@ impl FeedForward {
     fn forward_fused(&self, x: &Tensor, scale: f32, adds: &[(&Tensor, f32)]) -> Result<Tensor> {
         let _p = crate::prof::scope("ff");
         let (Some(b1), Some(b2)) = (&self.proj.bias, &self.out.bias) else { candle_core::bail!("feed-forward without bias") };
-        kernels::geglu_ff(x, &self.proj.weight, b1, &self.out.weight, b2, scale, adds)
+        geglu_ff(x, &self.proj.weight, b1, &self.out.weight, b2, scale, adds)
     }
 }
 
@@ -304,14 +282,14 @@ impl SpatialVideoTransformer {
         let time_context = context.reshape((b, frames, lc, dc))?.narrow(1, 0, 1)?.reshape((b, lc, dc))?;
         let h = self.norm.group_norm(x, 32, 1, false)?;
         let (Some(bin), Some(bout)) = (&self.proj_in.bias, &self.proj_out.bias) else { candle_core::bail!("proj_in/proj_out without bias") };
-        let mut h = kernels::linear_from_channels_first(&h.reshape((n, c, hh * ww))?, &self.proj_in.weight, bin)?;
+        let mut h = linear_from_channels_first(&h.reshape((n, c, hh * ww))?, &self.proj_in.weight, bin)?;
         let idx: Vec<f32> = (0..n).map(|i| (i % frames) as f32).collect();
         let t_emb = timestep_embedding(&idx, self.channels, self.max_period, x.device())?.to_dtype(x.dtype())?;
         let emb = self.time_pos_embed.1.forward(&self.time_pos_embed.0.forward(&t_emb)?.silu()?)?.unsqueeze(1)?;
         for (block, mix) in self.blocks.iter().zip(&self.time_stack) {
             h = block.forward(&h, context, max_elems)?;
             let hm = h.broadcast_add(&emb)?;
-            if kernels::is_differentiable() {
+            if is_differentiable() {
                 let t = mix.forward(&hm, &time_context, frames, splits, max_elems, (&h, 0.0))?;
                 h = blend_learned(&h, &t, &self.mix)?;
                 continue;
@@ -319,7 +297,7 @@ impl SpatialVideoTransformer {
             // AlphaBlender: alpha·spatial + (1 − alpha)·temporal, folded into the temporal block's last gemm.
             h = mix.forward(&hm, &time_context, frames, splits, max_elems, (&h, self.alpha as f32))?;
         }
-        let out = kernels::linear_to_channels_first(&h, &self.proj_out.weight, bout, &x.reshape((n, c, hh * ww))?)?;
+        let out = linear_to_channels_first(&h, &self.proj_out.weight, bout, &x.reshape((n, c, hh * ww))?)?;
         out.reshape((n, c, hh, ww))
     }
 }

@@ -3,7 +3,8 @@
 use candle_core::{Result, Tensor};
 use mvsplat360_nn::conv::{Conv2dConfig, ConvEpilogue};
 
-use crate::kernels;
+use mvsplat360_nn::conv::{conv2d_epilogue, temporal_conv};
+use mvsplat360_nn::mode::is_differentiable;
 
 use super::util::{blend_learned, sigmoid_scalar, timestep_embedding, Linear, Norm};
 use super::video_attention::{linear, norm, SpatialVideoTransformer};
@@ -32,11 +33,11 @@ impl Conv {
 
     fn forward_fused(&self, x: &Tensor, epi: ConvEpilogue) -> Result<Tensor> {
         let _p = crate::prof::scope(if self.cfg.stride == 1 { "unet.conv" } else { "unet.conv_stride2" });
-        kernels::conv2d_epilogue(x, &self.w, Some(&self.b), self.cfg, epi)
+        conv2d_epilogue(x, &self.w, Some(&self.b), self.cfg, epi)
     }
 }
 
-/// Conv3d with kernel (kt, 1, 1), padding (kt/2, 0, 0) on (B·T, C, H, W), see [`kernels::temporal_conv`].
+/// Conv3d with kernel (kt, 1, 1), padding (kt/2, 0, 0) on (B·T, C, H, W), see `mvsplat360_nn::conv::temporal_conv`.
 #[derive(Debug)]
 struct TemporalConv {
     /// (Cout, kt·Cin), tap-major columns; for trainable weights the stored (Cout, Cin, kt, 1, 1) `Var`
@@ -67,7 +68,7 @@ impl TemporalConv {
         } else {
             self.w.clone()
         };
-        kernels::temporal_conv(x, &w, &self.b, self.kt, frames, epi.item_bias, epi.residual, epi.scale.unwrap_or(1.0))
+        temporal_conv(x, &w, &self.b, self.kt, frames, epi.item_bias, epi.residual, epi.scale.unwrap_or(1.0))
     }
 }
 
@@ -158,7 +159,7 @@ impl VideoResBlock {
     /// alpha·xs + (1−alpha)·(xs + h_t) = xs + (1−alpha)·h_t, folded into the temporal block's last conv.
     fn forward(&self, x: &Tensor, emb_act: &Tensor, frames: usize) -> Result<Tensor> {
         let xs = self.spatial.forward(x, emb_act, frames, None)?;
-        if kernels::is_differentiable() {
+        if is_differentiable() {
             // time_stack returns xs + h_t (identity skip): alpha·xs + (1 − alpha)·(xs + h_t), alpha a tensor.
             let xt = self.time_stack.forward(&xs, emb_act, frames, None)?;
             return blend_learned(&xs, &xt, &self.mix);

@@ -33,7 +33,7 @@ impl Conv {
 
     pub fn forward_fused(&self, x: &Tensor, epi: ConvEpilogue) -> Result<Tensor> {
         let _p = crate::prof::scope(if self.cfg.stride == 1 { "vae.conv" } else { "vae.conv_stride2" });
-        crate::kernels::conv2d_epilogue(x, &self.w, Some(&self.b), self.cfg, epi)
+        mvsplat360_nn::conv::conv2d_epilogue(x, &self.w, Some(&self.b), self.cfg, epi)
     }
 }
 

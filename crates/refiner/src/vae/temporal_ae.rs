@@ -43,7 +43,7 @@ impl TemporalConv {
             candle_core::bail!("temporal conv: input {:?}, expected {} channels", x.dims(), self.cin);
         }
         let w = self.w.reshape((self.cout, self.kt * self.cin))?;
-        crate::kernels::temporal_conv(x, &w, &self.b, self.kt, frames, None, residual, scale)
+        mvsplat360_nn::conv::temporal_conv(x, &w, &self.b, self.kt, frames, None, residual, scale)
     }
 }
 

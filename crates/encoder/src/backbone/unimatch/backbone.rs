@@ -4,7 +4,8 @@
 use candle_core::{Module, Result, Tensor};
 use candle_nn::VarBuilder;
 
-use crate::backbone::nn::{instance_norm, Conv2d};
+use crate::backbone::nn::Conv2d;
+use mvsplat360_nn::norm::instance_norm;
 
 /// `ResidualBlock` with InstanceNorm (no affine) and a strided 1×1 conv + IN shortcut when the shape changes.
 #[derive(Debug, Clone)]

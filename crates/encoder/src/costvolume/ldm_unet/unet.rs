@@ -4,12 +4,13 @@
 //!
 //! The batch dimension is `(v b)` (view-major), as the depth predictor feeds it.
 
-use candle_core::{Module, Result, Tensor, D};
+use candle_core::{Module, Result, Tensor};
 use candle_nn::VarBuilder;
 
 use super::util::{Act, Conv1x1, Conv2d, GroupNorm};
-use crate::ops::attention::{fused_attention, fused_attention_applies};
-use crate::ops::upsample_nearest;
+use mvsplat360_nn::attention::fused_attention;
+use mvsplat360_nn::softmax::softmax_last;
+use mvsplat360_nn::upsample::upsample_nearest;
 
 /// Post-norm residual block: `skip(x) + SiLU(GN(conv(SiLU(GN(conv(x))))))`.
 #[derive(Debug, Clone)]
@@ -86,7 +87,7 @@ impl AttentionBlock {
         let q = (qkv.narrow(1, 0, ch)? * scale)?;
         let k = (qkv.narrow(1, ch, ch)? * scale)?;
         let vv = qkv.narrow(1, 2 * ch, ch)?;
-        let a = if fused_attention_applies(&[&q, &k, &vv]) {
+        let a = if ![&q, &k, &vv].iter().any(|t| t.track_op()) {
             // Inference: token-major operands, scores never materialised.
             let tok = |x: &Tensor| x.transpose(1, 2)?.contiguous();
             fused_attention(&tok(&q)?, &tok(&k)?, &tok(&vv)?, None)?.transpose(1, 2)?.contiguous()?
@@ -100,15 +101,6 @@ impl AttentionBlock {
         let a = a.reshape((b, self.num_heads * ch, l))?;
         // "b n (v t) -> (v b) n t"
         a.reshape((b, self.num_heads * ch, v, t))?.permute((2, 0, 1, 3))?.reshape((vb, self.num_heads * ch, t))
-    }
-}
-
-/// Softmax over the last dimension; the fused kernel where no gradient is needed.
-pub fn softmax_last(x: &Tensor) -> Result<Tensor> {
-    if x.track_op() {
-        candle_nn::ops::softmax(x, D::Minus1)
-    } else {
-        candle_nn::ops::softmax_last_dim(x)
     }
 }
 

@@ -1,8 +1,7 @@
-//! Layers shared by the UNet and the depth predictor (`ldm_unet/util.py`). GroupNorm is composed from
-//! differentiable ops (candle's fused norms record no backward); statistics are taken in f32 as the official
-//! `GroupNorm8`/`GroupNorm4` do.
+//! Layers shared by the UNet and the depth predictor (`ldm_unet/util.py`); their ops live in
+//! `mvsplat360_nn` (GroupNorm + activation in `norm::group_norm_act`).
 
-use candle_core::{DType, Module, Result, Tensor, D};
+use candle_core::{Module, Result, Tensor};
 use candle_nn::VarBuilder;
 
 /// `nn.Conv2d(c_in, c_out, k, stride, padding)` with bias, PyTorch weight layout `[out, in, k, k]`.
@@ -45,7 +44,7 @@ impl Conv2d {
         }
         let ho = (h + 2 * pd - k) / s + 1;
         let wo = (w + 2 * pd - k) / s + 1;
-        if s == 1 && x.device().is_cpu() && x.dtype() == DType::F32 {
+        if s == 1 {
             // The shifted-gemm kernel bands large inputs itself (no im2col buffer): no splitting here, and
             // for inference the bias is fused into its output copy.
             let cfg = mvsplat360_nn::Conv2dConfig { padding: pd, stride: 1, dilation: 1 };
@@ -57,10 +56,10 @@ impl Conv2d {
         }
         let per_row = wo * cin * k * k;
         let y = if n * ho * per_row <= budget || k == 1 {
-            crate::backbone::conv::conv2d(x, &self.weight, s, pd)?
+            conv2d(x, &self.weight, s, pd)?
         } else if ho * per_row <= budget {
             let per = (budget / (ho * per_row)).max(1);
-            let parts = (0..n).step_by(per).map(|i| crate::backbone::conv::conv2d(&x.narrow(0, i, per.min(n - i))?, &self.weight, s, pd)).collect::<Result<Vec<_>>>()?;
+            let parts = (0..n).step_by(per).map(|i| conv2d(&x.narrow(0, i, per.min(n - i))?, &self.weight, s, pd)).collect::<Result<Vec<_>>>()?;
             Tensor::cat(&parts, 0)?
         } else {
             // Bands of output rows over the zero-padded input (differentiable: pad/narrow/cat).
@@ -74,7 +73,7 @@ impl Conv2d {
                 while r0 < ho {
                     let r1 = (r0 + rows).min(ho);
                     let band = xi.narrow(2, r0 * s, (r1 - 1) * s + k - r0 * s)?;
-                    bands.push(crate::backbone::conv::conv2d(&band, &self.weight, s, 0)?);
+                    bands.push(conv2d(&band, &self.weight, s, 0)?);
                     r0 = r1;
                 }
                 per_image.push(Tensor::cat(&bands, 2)?);
@@ -106,6 +105,8 @@ impl Module for Conv1x1 {
     }
 }
 
+pub use mvsplat360_nn::norm::Act;
+
 /// `nn.GroupNorm(groups, channels)` (eps 1e-5) on `[N, C, ...]`.
 #[derive(Debug, Clone)]
 pub struct GroupNorm {
@@ -127,143 +128,22 @@ impl GroupNorm {
     pub fn unet(vb: VarBuilder, channels: usize) -> Result<Self> {
         Self::new(vb, if channels % 8 == 0 { 8 } else { 4 }, channels)
     }
-}
 
-/// Activation fused after a [`GroupNorm`].
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Act {
-    None,
-    Silu,
-    Gelu,
-}
-
-/// `d = act(a·s + b)`.
-#[inline(always)]
-fn affine_act_impl(d: &mut [f32], s: &[f32], a: f32, b: f32, act: Act) {
-    match act {
-        Act::None => d.iter_mut().zip(s).for_each(|(o, &v)| *o = a * v + b),
-        Act::Silu => d.iter_mut().zip(s).for_each(|(o, &v)| {
-            let y = a * v + b;
-            *o = y / (1.0 + crate::backbone::nn::exp_fast(-y));
-        }),
-        Act::Gelu => d.iter_mut().zip(s).for_each(|(o, &v)| *o = crate::backbone::nn::gelu_scalar(a * v + b)),
-    }
-}
-
-/// AVX2 build of [`affine_act_impl`] (no FMA: bit-identical to the portable path).
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-unsafe fn affine_act_avx2(d: &mut [f32], s: &[f32], a: f32, b: f32, act: Act) {
-    affine_act_impl(d, s, a, b, act)
-}
-
-fn affine_act(d: &mut [f32], s: &[f32], a: f32, b: f32, act: Act) {
-    #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
-        // SAFETY: AVX2 is available on this CPU.
-        return unsafe { affine_act_avx2(d, s, a, b, act) };
-    }
-    affine_act_impl(d, s, a, b, act)
-}
-
-impl GroupNorm {
-    /// `act(GN(x))`. Inference (CPU f32, nothing tracks gradients) runs one fused multi-threaded pass per
-    /// (image, group); otherwise the composed, differentiable ops.
+    /// `act(GN(x))`.
     pub fn forward_act(&self, x: &Tensor, act: Act) -> Result<Tensor> {
-        let fused = x.device().is_cpu()
-            && x.dtype() == DType::F32
-            && self.weight.dtype() == DType::F32
-            && !(x.track_op() || self.weight.track_op() || self.bias.track_op());
-        if !fused {
-            let y = self.forward(x)?;
-            return match act {
-                Act::None => Ok(y),
-                Act::Silu => y.silu(),
-                Act::Gelu => gelu(&y),
-            };
-        }
-        let dims = x.dims().to_vec();
-        let (n, c) = (dims[0], dims[1]);
-        let g = self.groups;
-        let x = x.contiguous()?;
-        let hw = x.elem_count() / (n * c).max(1);
-        let (wv, bv) = (self.weight.to_vec1::<f32>()?, self.bias.to_vec1::<f32>()?);
-        let xs = x.flatten_all()?;
-        let (st, l) = xs.storage_and_layout();
-        let src = match (&*st, l.contiguous_offsets()) {
-            (candle_core::Storage::Cpu(candle_core::CpuStorage::F32(v)), Some((a, b))) => &v[a..b],
-            _ => candle_core::bail!("group norm: expected a contiguous CPU f32 tensor"),
-        };
-        let cg = c / g;
-        let len = cg * hw;
-        let mut out = vec![0f32; src.len()];
-        use rayon::prelude::*;
-        out.par_chunks_mut(len).zip(src.par_chunks(len)).enumerate().for_each(|(task, (dst, xs))| {
-            let gi = task % g;
-            // Two-pass statistics with f64 partial sums (the official code takes them in f32).
-            let sum: f64 = xs.chunks(4096).map(|ch| ch.iter().map(|&v| v as f64).sum::<f64>()).sum();
-            let mean = sum / len as f64;
-            let var: f64 = xs.chunks(4096).map(|ch| ch.iter().map(|&v| (v as f64 - mean).powi(2)).sum::<f64>()).sum::<f64>() / len as f64;
-            let rstd = 1.0 / (var + self.eps).sqrt();
-            for ci in 0..cg {
-                let ch = gi * cg + ci;
-                let a = (wv[ch] as f64 * rstd) as f32;
-                let b = (bv[ch] as f64 - mean * wv[ch] as f64 * rstd) as f32;
-                affine_act(&mut dst[ci * hw..(ci + 1) * hw], &xs[ci * hw..(ci + 1) * hw], a, b, act);
-            }
-        });
-        drop(st);
-        Tensor::from_vec(out, dims, x.device())
+        mvsplat360_nn::norm::group_norm_act(x, &self.weight, &self.bias, self.groups, self.eps, act)
     }
 }
 
-impl Module for GroupNorm {
-    fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        let dims = x.dims().to_vec();
-        let (n, c) = (dims[0], dims[1]);
-        let in_dtype = x.dtype();
-        let xg = x.to_dtype(DType::F32)?.reshape((n, self.groups, ()))?;
-        let mean = xg.mean_keepdim(D::Minus1)?;
-        let xc = xg.broadcast_sub(&mean)?;
-        let var = xc.sqr()?.mean_keepdim(D::Minus1)?;
-        let xn = xc.broadcast_div(&(var + self.eps)?.sqrt()?)?.reshape(dims.as_slice())?;
-        let mut pshape = vec![1usize; dims.len()];
-        pshape[1] = c;
-        let w = self.weight.to_dtype(DType::F32)?.reshape(pshape.as_slice())?;
-        let b = self.bias.to_dtype(DType::F32)?.reshape(pshape.as_slice())?;
-        xn.broadcast_mul(&w)?.broadcast_add(&b)?.to_dtype(in_dtype)
-    }
-}
-
-/// Exact (erf) GELU, as `nn.GELU()` (the backbone's multi-threaded kernel, with backward, ≤ 1e-6 from
-/// candle's `gelu_erf`).
-pub fn gelu(x: &Tensor) -> Result<Tensor> {
-    crate::backbone::nn::gelu(x)
+/// `F.conv2d(x, w, stride=stride, padding=padding)` without bias.
+fn conv2d(x: &Tensor, w: &Tensor, stride: usize, padding: usize) -> Result<Tensor> {
+    mvsplat360_nn::conv2d(x, w, None, mvsplat360_nn::Conv2dConfig { padding, stride, dilation: 1 })
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use candle_core::Device;
-
-    /// The fused inference GroupNorm(+SiLU/GELU) equals the composed ops (≤ 2e-5).
-    #[test]
-    fn fused_group_norm_matches_composed() {
-        let dev = Device::Cpu;
-        let gn = GroupNorm {
-            weight: Tensor::randn(1f32, 0.3, 8, &dev).unwrap(),
-            bias: Tensor::randn(0f32, 0.3, 8, &dev).unwrap(),
-            groups: 4,
-            eps: 1e-5,
-        };
-        let x = (Tensor::randn(0f32, 2.0, (3, 8, 5, 7), &dev).unwrap() + 0.7).unwrap();
-        let base = gn.forward(&x).unwrap();
-        for (act, want) in [(Act::None, base.clone()), (Act::Silu, base.silu().unwrap()), (Act::Gelu, base.gelu_erf().unwrap())] {
-            let got = gn.forward_act(&x, act).unwrap();
-            let e = (&got - &want).unwrap().abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap();
-            assert!(e < 2e-5, "{act:?}: max diff {e}");
-        }
-    }
 
     #[test]
     fn banded_convolution_equals_direct() {

@@ -1,5 +1,6 @@
-//! Upsampling with PyTorch semantics: bilinear with `align_corners=True` (custom op with backward; candle's
-//! `upsample_bilinear2d` has none) and nearest (candle's op, which has a backward for integer factors).
+//! Upsampling with PyTorch semantics: bilinear with `align_corners=True` (CPU custom op with backward; candle's
+//! `upsample_bilinear2d` has none, so other devices gather rows and columns with `index_select`) and nearest
+//! (candle's op, which has a backward for integer factors).
 
 use candle_core::{CpuStorage, CustomOp1, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
@@ -31,14 +32,7 @@ impl CustomOp1 for UpsampleBilinear {
 
     fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> Result<(CpuStorage, Shape)> {
         let (n, c, hi, wi) = l.shape().dims4()?;
-        let data = match s {
-            CpuStorage::F32(v) => v.as_slice(),
-            _ => candle_core::bail!("upsample_bilinear: input must be f32"),
-        };
-        let x = match l.contiguous_offsets() {
-            Some((a, b)) => &data[a..b],
-            None => candle_core::bail!("upsample_bilinear: input must be contiguous"),
-        };
+        let x = crate::mode::f32_slice(s, l, "upsample_bilinear")?;
         let (ho, wo) = (self.ho, self.wo);
         let ty = axis_taps(hi, ho);
         let tx = axis_taps(wi, wo);
@@ -65,7 +59,7 @@ impl CustomOp1 for UpsampleBilinear {
 }
 
 /// Adjoint of [`upsample_bilinear`]: `grad_out [N,C,Ho,Wo]` → gradient w.r.t. the input of shape `in_dims`.
-pub fn upsample_bilinear_backward(in_dims: (usize, usize, usize, usize), grad_out: &Tensor) -> Result<Tensor> {
+fn upsample_bilinear_backward(in_dims: (usize, usize, usize, usize), grad_out: &Tensor) -> Result<Tensor> {
     let (n, c, hi, wi) = in_dims;
     let (_, _, ho, wo) = grad_out.dims4()?;
     let g = grad_out.flatten_all()?.to_dtype(candle_core::DType::F32)?.to_vec1::<f32>()?;
@@ -95,10 +89,26 @@ pub fn upsample_bilinear(x: &Tensor, out_hw: (usize, usize)) -> Result<Tensor> {
     if h == 0 || w == 0 || out_hw.0 == 0 || out_hw.1 == 0 {
         candle_core::bail!("upsample_bilinear: empty input {:?} or output {out_hw:?}", x.dims());
     }
-    if !x.device().is_cpu() {
-        candle_core::bail!("upsample_bilinear: only the CPU kernel exists; move the tensor to the CPU");
+    if !crate::mode::cpu_f32(x) {
+        return upsample_bilinear_composed(x, out_hw);
     }
     x.contiguous()?.apply_op1(UpsampleBilinear { ho: out_hw.0, wo: out_hw.1 })
+}
+
+/// [`upsample_bilinear`] from `index_select` and lerps (columns first, like the kernel); differentiable.
+pub(crate) fn upsample_bilinear_composed(x: &Tensor, (ho, wo): (usize, usize)) -> Result<Tensor> {
+    let (_, _, h, w) = x.dims4()?;
+    let lerp = |x: &Tensor, dim: usize, taps: Vec<(usize, usize, f32)>| -> Result<Tensor> {
+        let len = taps.len();
+        let dev = x.device();
+        let i0 = Tensor::from_vec(taps.iter().map(|t| t.0 as u32).collect::<Vec<_>>(), len, dev)?;
+        let i1 = Tensor::from_vec(taps.iter().map(|t| t.1 as u32).collect::<Vec<_>>(), len, dev)?;
+        let mut shape = [1usize; 4];
+        shape[dim] = len;
+        let f = Tensor::from_vec(taps.iter().map(|t| t.2).collect::<Vec<_>>(), &shape[..], dev)?.to_dtype(x.dtype())?;
+        x.index_select(&i0, dim)?.broadcast_mul(&f.affine(-1.0, 1.0)?)? + x.index_select(&i1, dim)?.broadcast_mul(&f)?
+    };
+    lerp(&lerp(x, 3, axis_taps(w, wo))?, 2, axis_taps(h, ho))
 }
 
 /// `F.interpolate(x, scale_factor=s, mode="nearest")` for an integer factor `s` (`out_hw` = s·(H, W)).

@@ -1,14 +1,15 @@
 //! Fused plane-sweep correlation: `out[n,d,p] = Σ_c ref[n,c,p] · grid_sample(src, grid)[n,c,d·h+y,x]` for a
 //! fixed (gradient-free) sampling grid `[N, D·h, w, 2]`. Equals `(ref.unsqueeze(2) * warped).sum(1)` of the
 //! official cost volume without materialising the `[N, C, D, h, w]` warped features (gigabytes at DL3DV size).
-//! Backward w.r.t. both feature maps; the grid is a constant, as under the official `torch.no_grad()`.
+//! Backward w.r.t. both feature maps; the grid is a constant, as under the official `torch.no_grad()`. Other
+//! devices run that composition itself (grid_sample, product, channel sum).
 
 use std::sync::Arc;
 
 use candle_core::{CpuStorage, CustomOp2, DType, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
 
-use super::grid_sample::{taps_at, unnormalize, Taps};
+use crate::grid_sample::{taps_at, unnormalize, Taps};
 
 #[derive(Clone)]
 struct WarpCorrelation {
@@ -54,14 +55,7 @@ fn sample_into(buf: &mut [f32], src: &[f32], t: &Taps, c: usize) {
 }
 
 fn slice<'a>(s: &'a CpuStorage, l: &Layout, what: &str) -> Result<&'a [f32]> {
-    let data = match s {
-        CpuStorage::F32(v) => v.as_slice(),
-        _ => candle_core::bail!("warp_correlation: {what} must be f32"),
-    };
-    match l.contiguous_offsets() {
-        Some((a, b)) => Ok(&data[a..b]),
-        None => candle_core::bail!("warp_correlation: {what} must be contiguous"),
-    }
+    crate::mode::f32_slice(s, l, &format!("warp_correlation {what}"))
 }
 
 impl CustomOp2 for WarpCorrelation {
@@ -149,7 +143,7 @@ impl CustomOp2 for WarpCorrelation {
 
 /// `Σ_c reference[n,c,y,x] · grid_sample(source, grid)[n,c,d·h+y,x]` → `[N, D, h, w]`, with `grid` given flat as
 /// `[N, D·h, w, 2]` (bilinear, zeros, align_corners=True; constant, no gradient). Differentiable w.r.t. both
-/// feature maps `[N, C, h, w]`. CPU only.
+/// feature maps `[N, C, h, w]`.
 pub fn warp_correlation(reference: &Tensor, source: &Tensor, grid: &[f32], num_candidates: usize) -> Result<Tensor> {
     let (n, _, h, w) = reference.dims4()?;
     if source.dims() != reference.dims() {
@@ -160,8 +154,8 @@ pub fn warp_correlation(reference: &Tensor, source: &Tensor, grid: &[f32], num_c
     if grid.len() != n * d * p * 2 {
         candle_core::bail!("warp_correlation: grid has {} values, expected N·D·h·w·2 = {}", grid.len(), n * d * p * 2);
     }
-    if !reference.device().is_cpu() {
-        candle_core::bail!("warp_correlation: only the CPU kernel exists; move the tensors to the CPU");
+    if !(crate::mode::cpu_f32(reference) && crate::mode::cpu_f32(source)) {
+        return warp_correlation_composed(reference, source, grid, d);
     }
     let mut taps = vec![Taps::default(); n * d * p];
     taps.par_chunks_mut(p.max(1)).enumerate().for_each(|(nd, row)| {
@@ -171,4 +165,13 @@ pub fn warp_correlation(reference: &Tensor, source: &Tensor, grid: &[f32], num_c
         }
     });
     reference.contiguous()?.apply_op2(&source.contiguous()?, WarpCorrelation { taps: Arc::new(taps), d })
+}
+
+/// [`warp_correlation`] as the official composition: warp all `D` candidates, multiply, sum over channels
+/// (materialises `[N, C, D, h, w]`).
+pub(crate) fn warp_correlation_composed(reference: &Tensor, source: &Tensor, grid: &[f32], d: usize) -> Result<Tensor> {
+    let (n, c, h, w) = reference.dims4()?;
+    let g = Tensor::from_slice(grid, (n, d * h, w, 2), reference.device())?.to_dtype(source.dtype())?;
+    let warped = crate::grid_sample::grid_sample_composed(source, &g)?.reshape((n, c, d, h, w))?;
+    warped.broadcast_mul(&reference.unsqueeze(2)?)?.sum(1)
 }

@@ -1,10 +1,11 @@
-//! `F.grid_sample(input, grid, mode="bilinear", padding_mode="zeros", align_corners=True)` as a candle custom op
-//! with backward for both the input and the grid (CPU, f32).
+//! `F.grid_sample(input, grid, mode="bilinear", padding_mode="zeros", align_corners=True)` (candle has none), a
+//! custom op with backward for the input and the grid on CPU f32; other devices gather the 4 taps with
+//! candle ops (differentiable the same way).
 //!
 //! The 4 taps of every output point are computed once per image and shared by all channels; each (image,
 //! channel) plane is then a cache-resident gather, run in parallel with rayon.
 
-use candle_core::{CpuStorage, CustomOp2, Layout, Result, Shape, Tensor};
+use candle_core::{CpuStorage, CustomOp2, DType, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
 
 /// Bilinear taps of one sample point: flat indices into an `Hi×Wi` plane and their weights (0 outside).
@@ -62,14 +63,7 @@ fn check(input: &Tensor, grid: &Tensor) -> Result<Dims> {
 }
 
 fn contiguous_f32<'a>(s: &'a CpuStorage, l: &Layout, what: &str) -> Result<&'a [f32]> {
-    let data = match s {
-        CpuStorage::F32(v) => v.as_slice(),
-        _ => candle_core::bail!("grid_sample: {what} must be f32"),
-    };
-    match l.contiguous_offsets() {
-        Some((a, b)) => Ok(&data[a..b]),
-        None => candle_core::bail!("grid_sample: {what} must be contiguous"),
-    }
+    crate::mode::f32_slice(s, l, &format!("grid_sample {what}"))
 }
 
 fn all_taps(grid: &[f32], d: Dims) -> Vec<Taps> {
@@ -122,7 +116,7 @@ impl CustomOp2 for GridSample {
 }
 
 /// Gradients of [`grid_sample`] w.r.t. input `[N,C,Hi,Wi]` and grid `[N,Ho,Wo,2]` (not differentiable itself).
-pub fn grid_sample_backward(input: &Tensor, grid: &Tensor, grad_out: &Tensor) -> Result<(Tensor, Tensor)> {
+fn grid_sample_backward(input: &Tensor, grid: &Tensor, grad_out: &Tensor) -> Result<(Tensor, Tensor)> {
     let d = check(input, grid)?;
     let dev = input.device();
     let inp = input.flatten_all()?.to_dtype(candle_core::DType::F32)?.to_vec1::<f32>()?;
@@ -188,11 +182,41 @@ pub fn grid_sample_backward(input: &Tensor, grid: &Tensor, grad_out: &Tensor) ->
 }
 
 /// Bilinear sampling of `input [N,C,Hi,Wi]` at `grid [N,Ho,Wo,2]` (x, y in [-1,1], align_corners=True; points
-/// outside read zeros) → `[N,C,Ho,Wo]`. Differentiable w.r.t. both arguments. CPU only.
+/// outside read zeros) → `[N,C,Ho,Wo]`. Differentiable w.r.t. both arguments.
 pub fn grid_sample(input: &Tensor, grid: &Tensor) -> Result<Tensor> {
     check(input, grid)?;
-    if !input.device().is_cpu() {
-        candle_core::bail!("grid_sample: only the CPU kernel exists; move the tensors to the CPU");
+    if !(crate::mode::cpu_f32(input) && crate::mode::cpu_f32(grid)) {
+        return grid_sample_composed(input, grid);
     }
     input.contiguous()?.apply_op2(&grid.contiguous()?, GridSample)
+}
+
+/// [`grid_sample`] from candle ops: per corner, a `gather` of the flattened planes times its bilinear weight
+/// (zero outside the image). The floor is taken on a detached copy, so gradients reach the grid through the
+/// fractional parts, as in the kernel's backward.
+pub(crate) fn grid_sample_composed(input: &Tensor, grid: &Tensor) -> Result<Tensor> {
+    let Dims { n, c, hi, wi, ho, wo } = check(input, grid)?;
+    let p = ho * wo;
+    let g = grid.reshape((n, p, 2))?;
+    let ix = g.narrow(2, 0, 1)?.reshape((n, p))?.affine(0.5, 0.5)?.affine(wi as f64 - 1.0, 0.0)?;
+    let iy = g.narrow(2, 1, 1)?.reshape((n, p))?.affine(0.5, 0.5)?.affine(hi as f64 - 1.0, 0.0)?;
+    let (x0, y0) = (ix.detach().floor()?, iy.detach().floor()?);
+    let (fx, fy) = ((&ix - &x0)?, (&iy - &y0)?);
+    let (gx, gy) = (fx.affine(-1.0, 1.0)?, fy.affine(-1.0, 1.0)?);
+    let planes = input.reshape((n, c, hi * wi))?;
+    let zero = fx.zeros_like()?;
+    let mut out: Option<Tensor> = None;
+    for (dx, dy, wx, wy) in [(0.0, 0.0, &gx, &gy), (1.0, 0.0, &fx, &gy), (0.0, 1.0, &gx, &fy), (1.0, 1.0, &fx, &fy)] {
+        let (xc, yc) = ((&x0 + dx)?, (&y0 + dy)?);
+        let inside = xc.ge(0.0)?.mul(&xc.lt(wi as f64)?)?.mul(&yc.ge(0.0)?)?.mul(&yc.lt(hi as f64)?)?;
+        let idx = (yc.clamp(0.0, hi as f64 - 1.0)?.affine(wi as f64, 0.0)? + xc.clamp(0.0, wi as f64 - 1.0)?)?;
+        let idx = idx.to_dtype(DType::U32)?.unsqueeze(1)?.broadcast_as((n, c, p))?.contiguous()?;
+        let w = inside.where_cond(&wx.mul(wy)?, &zero)?.unsqueeze(1)?;
+        let term = planes.gather(&idx, 2)?.broadcast_mul(&w)?;
+        out = Some(match out {
+            None => term,
+            Some(o) => (o + term)?,
+        });
+    }
+    out.expect("four corners").reshape((n, c, ho, wo))
 }

@@ -2,7 +2,8 @@
 //! against central finite differences of that reference.
 
 use candle_core::{Device, Tensor, Var};
-use mvsplat360_encoder::ops::{grid_sample, upsample_bilinear, upsample_nearest};
+use mvsplat360_nn::grid_sample::grid_sample;
+use mvsplat360_nn::upsample::{upsample_bilinear, upsample_nearest};
 
 struct Lcg(u64);
 impl Lcg {
@@ -206,7 +207,7 @@ fn upsample_nearest_repeats_and_has_backward() {
 /// The fused warp+correlation equals grid_sample followed by the channel dot product, values and gradients.
 #[test]
 fn warp_correlation_matches_grid_sample_composition() {
-    use mvsplat360_encoder::ops::warp_correlation;
+    use mvsplat360_nn::warp_correlation::warp_correlation;
     let (n, c, h, w, d) = (2, 4, 3, 5, 3);
     let mut r = Lcg(11);
     let dev = Device::Cpu;

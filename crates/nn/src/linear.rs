@@ -1,0 +1,344 @@
+//! Linear layers with their bias, residual and blend folded into the gemm's destination, the GEGLU
+//! feed-forward in row chunks, and projections that read a channels-first layout through gemm strides.
+//! CPU f32 outside differentiable mode; composed matmuls otherwise.
+
+use candle_core::{CpuStorage, Result, Storage, Tensor};
+use rayon::prelude::*;
+
+use crate::math::{gelu_f32, simd_dispatch};
+use crate::mode::{is_cpu_f32, with_f32};
+
+/// dst (rows × o) = beta·(x (rows × k) @ wᵀ (w: o × k)) [+ dst when `accumulate`].
+pub(crate) fn gemm_xwt(x: &[f32], rows: usize, k: usize, w: &[f32], o: usize, dst: &mut [f32], accumulate: bool, beta: f32) {
+    debug_assert!(x.len() >= rows * k && w.len() >= o * k && dst.len() >= rows * o);
+    if rows == 0 || o == 0 {
+        return;
+    }
+    let threads = rayon::current_num_threads();
+    let par = if threads > 1 && rows * o * k > 1 << 16 { gemm::Parallelism::Rayon(threads) } else { gemm::Parallelism::None };
+    // SAFETY: the asserted lengths cover every index gemm touches.
+    unsafe {
+        gemm::gemm(
+            rows, o, k,
+            dst.as_mut_ptr(), 1, o as isize, accumulate,
+            x.as_ptr(), 1, k as isize,
+            w.as_ptr(), k as isize, 1,
+            1.0, beta, false, false, false, par,
+        );
+    }
+}
+
+/// `scale·(x @ wᵀ + bias) + Σ cᵢ·addᵢ` over the last dim of x, in one gemm whose destination starts as
+/// the bias/addend sum (no separate bias, residual or blend passes). Adds have the output's shape.
+pub fn linear_fused(x: &Tensor, w: &Tensor, bias: Option<&Tensor>, scale: f32, adds: &[(&Tensor, f32)]) -> Result<Tensor> {
+    let dims = x.dims().to_vec();
+    let k = *dims.last().unwrap_or(&1);
+    let (o, wk) = w.dims2()?;
+    if wk != k {
+        candle_core::bail!("linear: input width {k}, weight {:?}", w.dims());
+    }
+    let rows = x.elem_count() / k.max(1);
+    let mut od = dims;
+    if let Some(l) = od.last_mut() {
+        *l = o;
+    }
+    if !is_cpu_f32(x) {
+        return linear_fused_composed(x, w, bias, scale, adds);
+    }
+    for (a, _) in adds {
+        if a.elem_count() != rows * o {
+            candle_core::bail!("linear: addend {:?} does not match output {od:?}", a.dims());
+        }
+    }
+    let mut dst = vec![0f32; rows * o];
+    let bias_v = match bias {
+        Some(b) => Some(b.to_vec1::<f32>()?),
+        None => None,
+    };
+    let accumulate = bias_v.is_some() || !adds.is_empty();
+    if accumulate {
+        init_rows(&mut dst, o, bias_v.as_deref(), scale, adds)?;
+    }
+    with_f32(x, |xd| with_f32(w, |wd| gemm_xwt(xd, rows, k, wd, o, &mut dst, accumulate, scale)))??;
+    Tensor::from_vec(dst, od, x.device())
+}
+
+/// [`linear_fused`] from tensor ops (differentiable, any device).
+pub(crate) fn linear_fused_composed(x: &Tensor, w: &Tensor, bias: Option<&Tensor>, scale: f32, adds: &[(&Tensor, f32)]) -> Result<Tensor> {
+    let mut od = x.dims().to_vec();
+    let k = *od.last().unwrap_or(&1);
+    let rows = x.elem_count() / k.max(1);
+    if let Some(l) = od.last_mut() {
+        *l = w.dim(0)?;
+    }
+    let mut y = x.reshape((rows, k))?.matmul(&w.t()?)?;
+    if let Some(b) = bias {
+        y = y.broadcast_add(b)?;
+    }
+    let mut y = (y.reshape(od)? * scale as f64)?;
+    for (a, c) in adds {
+        y = (y + (*a * *c as f64)?)?;
+    }
+    Ok(y)
+}
+
+/// dst[r, j] = scale·bias[j] + Σ cᵢ·addᵢ[r, j] (one parallel pass).
+fn init_rows(dst: &mut [f32], o: usize, bias: Option<&[f32]>, scale: f32, adds: &[(&Tensor, f32)]) -> Result<()> {
+    let datas: Vec<Tensor> = adds.iter().map(|(a, _)| if a.is_contiguous() { Ok((*a).clone()) } else { a.contiguous() }).collect::<Result<_>>()?;
+    let guards: Vec<_> = datas.iter().map(|t| t.storage_and_layout()).collect();
+    let mut slices: Vec<(&[f32], f32)> = Vec::with_capacity(adds.len());
+    for ((st, l), (_, c)) in guards.iter().zip(adds) {
+        match (&**st, l.contiguous_offsets()) {
+            (Storage::Cpu(CpuStorage::F32(v)), Some((a, b))) => slices.push((&v[a..b], *c)),
+            _ => candle_core::bail!("linear: addend must be a CPU f32 tensor"),
+        }
+    }
+    const CH: usize = 1 << 14;
+    let chunk = (CH / o.max(1)).max(1) * o;
+    dst.par_chunks_mut(chunk).enumerate().for_each(|(ci, d)| {
+        let start = ci * chunk;
+        init_chunk(d, start, o, bias, scale, &slices);
+    });
+    Ok(())
+}
+
+simd_dispatch! {
+    fn init_chunk(d: &mut [f32], start: usize, o: usize, bias: Option<&[f32]>, scale: f32, adds: &[(&[f32], f32)]) {
+        match bias {
+            Some(b) => {
+                for row in d.chunks_mut(o) {
+                    for (x, &bv) in row.iter_mut().zip(b) {
+                        *x = scale * bv;
+                    }
+                }
+            }
+            None => d.fill(0.0),
+        }
+        for (a, c) in adds {
+            let a = &a[start..start + d.len()];
+            if *c == 1.0 {
+                for (x, &y) in d.iter_mut().zip(a) {
+                    *x += y;
+                }
+            } else {
+                for (x, &y) in d.iter_mut().zip(a) {
+                    *x = c.mul_add(y, *x);
+                }
+            }
+        }
+    }
+}
+
+simd_dispatch! {
+    /// out[r, j] = (h[r, j] + b[j]) · gelu(h[r, inner + j] + b[inner + j]).
+    fn geglu_rows(h: &[f32], b: &[f32], out: &mut [f32], inner: usize) {
+        for (hr, orow) in h.chunks_exact(2 * inner).zip(out.chunks_exact_mut(inner)) {
+            let (a, g) = hr.split_at(inner);
+            let (ba, bg) = b.split_at(inner);
+            for j in 0..inner {
+                orow[j] = (a[j] + ba[j]) * gelu_f32(g[j] + bg[j]);
+            }
+        }
+    }
+}
+
+/// GEGLU feed-forward `w2·geglu(w1·x + b1) + b2`, times `scale`, plus addends; rows processed in
+/// chunks so the 2·inner-wide hidden activation stays ≈ 64 MiB, results written in place.
+#[allow(clippy::too_many_arguments)]
+pub fn geglu_ff(x: &Tensor, w1: &Tensor, b1: &Tensor, w2: &Tensor, b2: &Tensor, scale: f32, adds: &[(&Tensor, f32)]) -> Result<Tensor> {
+    let dims = x.dims().to_vec();
+    let c = *dims.last().unwrap_or(&1);
+    let rows = x.elem_count() / c.max(1);
+    let (hidden2, _) = w1.dims2()?;
+    let inner = hidden2 / 2;
+    let (o, _) = w2.dims2()?;
+    let mut od = dims;
+    if let Some(l) = od.last_mut() {
+        *l = o;
+    }
+    if !is_cpu_f32(x) {
+        return geglu_ff_composed(x, w1, b1, w2, b2, scale, adds);
+    }
+    let b1v = b1.to_vec1::<f32>()?;
+    let b2v = b2.to_vec1::<f32>()?;
+    let mut dst = vec![0f32; rows * o];
+    init_rows(&mut dst, o, Some(&b2v), scale, adds)?;
+    let chunk = ((16usize << 20) / hidden2.max(1)).max(64).min(rows.max(1));
+    let mut hbuf = vec![0f32; chunk * hidden2];
+    let mut gbuf = vec![0f32; chunk * inner];
+    with_f32(x, |xd| {
+        with_f32(w1, |w1d| {
+            with_f32(w2, |w2d| {
+                let mut r0 = 0;
+                while r0 < rows {
+                    let m = chunk.min(rows - r0);
+                    gemm_xwt(&xd[r0 * c..(r0 + m) * c], m, c, w1d, hidden2, &mut hbuf[..m * hidden2], false, 1.0);
+                    let per = (m / rayon::current_num_threads().max(1) / 4).max(1);
+                    hbuf[..m * hidden2]
+                        .par_chunks(per * hidden2)
+                        .zip(gbuf[..m * inner].par_chunks_mut(per * inner))
+                        .for_each(|(h, g)| geglu_rows(h, &b1v, g, inner));
+                    gemm_xwt(&gbuf[..m * inner], m, inner, w2d, o, &mut dst[r0 * o..(r0 + m) * o], true, scale);
+                    r0 += m;
+                }
+            })
+        })
+    })???;
+    Tensor::from_vec(dst, od, x.device())
+}
+
+/// [`geglu_ff`] from tensor ops (differentiable, any device).
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn geglu_ff_composed(x: &Tensor, w1: &Tensor, b1: &Tensor, w2: &Tensor, b2: &Tensor, scale: f32, adds: &[(&Tensor, f32)]) -> Result<Tensor> {
+    let mut od = x.dims().to_vec();
+    let c = *od.last().unwrap_or(&1);
+    let rows = x.elem_count() / c.max(1);
+    let inner = w1.dim(0)? / 2;
+    if let Some(l) = od.last_mut() {
+        *l = w2.dim(0)?;
+    }
+    let h = x.reshape((rows, c))?.matmul(&w1.t()?)?.broadcast_add(b1)?;
+    let a = h.narrow(1, 0, inner)?;
+    let g = h.narrow(1, inner, inner)?.gelu_erf()?;
+    let y = (a * g)?.matmul(&w2.t()?)?.broadcast_add(b2)?.reshape(od)?;
+    let mut y = (y * scale as f64)?;
+    for (a, cf) in adds {
+        y = (y + (*a * *cf as f64)?)?;
+    }
+    Ok(y)
+}
+
+/// Per item of x (N, C, S) (channels-first): tokens (N, S, O) = xᵢᵀ·Wᵀ + b, reading the channels-first
+/// layout through gemm strides (no permute copy).
+pub fn linear_from_channels_first(x: &Tensor, w: &Tensor, b: &Tensor) -> Result<Tensor> {
+    let (n, c, s) = x.dims3()?;
+    let (o, wc) = w.dims2()?;
+    if wc != c {
+        candle_core::bail!("linear: {c} channels, weight {:?}", w.dims());
+    }
+    if !is_cpu_f32(x) {
+        return linear_from_channels_first_composed(x, w, b);
+    }
+    let bv = b.to_vec1::<f32>()?;
+    let mut dst = vec![0f32; n * s * o];
+    dst.par_chunks_mut(1 << 14).for_each(|d| init_chunk(d, 0, o, Some(&bv), 1.0, &[]));
+    let threads = rayon::current_num_threads();
+    with_f32(x, |xd| {
+        with_f32(w, |wd| {
+            for (i, d) in dst.chunks_mut(s * o).enumerate() {
+                // SAFETY: lhs (s × c) element (j, k) = x[i, k, j]; all indices inside item i.
+                unsafe {
+                    gemm::gemm(
+                        s, o, c,
+                        d.as_mut_ptr(), 1, o as isize, true,
+                        xd.as_ptr().add(i * c * s), s as isize, 1,
+                        wd.as_ptr(), c as isize, 1,
+                        1.0, 1.0, false, false, false, gemm::Parallelism::Rayon(threads),
+                    );
+                }
+            }
+        })
+    })??;
+    Tensor::from_vec(dst, (n, s, o), x.device())
+}
+
+/// Per item of tokens h (N, S, K): channels-first (N, O, S) = W·hᵢᵀ + b + residual (N, O, S).
+pub fn linear_to_channels_first(h: &Tensor, w: &Tensor, b: &Tensor, residual: &Tensor) -> Result<Tensor> {
+    let (n, s, k) = h.dims3()?;
+    let (o, wk) = w.dims2()?;
+    if wk != k || residual.elem_count() != n * o * s {
+        candle_core::bail!("linear: tokens {:?}, weight {:?}, residual {:?}", h.dims(), w.dims(), residual.dims());
+    }
+    if !is_cpu_f32(h) {
+        return linear_to_channels_first_composed(h, w, b, residual);
+    }
+    let bv = b.to_vec1::<f32>()?;
+    let mut dst = with_f32(residual, |r| r.to_vec())?;
+    dst.par_chunks_mut(s).enumerate().for_each(|(row, d)| {
+        let bb = bv[row % o];
+        for v in d {
+            *v += bb;
+        }
+    });
+    let threads = rayon::current_num_threads();
+    with_f32(h, |hd| {
+        with_f32(w, |wd| {
+            for (i, d) in dst.chunks_mut(o * s).enumerate() {
+                // SAFETY: rhs (k × s) element (kk, j) = h[i, j, kk]; all indices inside item i.
+                unsafe {
+                    gemm::gemm(
+                        o, s, k,
+                        d.as_mut_ptr(), 1, s as isize, true,
+                        wd.as_ptr(), 1, k as isize,
+                        hd.as_ptr().add(i * s * k), k as isize, 1,
+                        1.0, 1.0, false, false, false, gemm::Parallelism::Rayon(threads),
+                    );
+                }
+            }
+        })
+    })??;
+    Tensor::from_vec(dst, (n, o, s), h.device())
+}
+
+/// [`linear_from_channels_first`] from tensor ops (differentiable, any device).
+pub(crate) fn linear_from_channels_first_composed(x: &Tensor, w: &Tensor, b: &Tensor) -> Result<Tensor> {
+    let (n, c, s) = x.dims3()?;
+    let o = w.dim(0)?;
+    x.transpose(1, 2)?.contiguous()?.reshape((n * s, c))?.matmul(&w.t()?)?.broadcast_add(b)?.reshape((n, s, o))
+}
+
+/// [`linear_to_channels_first`] from tensor ops (differentiable, any device).
+pub(crate) fn linear_to_channels_first_composed(h: &Tensor, w: &Tensor, b: &Tensor, residual: &Tensor) -> Result<Tensor> {
+    let (n, s, k) = h.dims3()?;
+    let o = w.dim(0)?;
+    let y = h.reshape((n * s, k))?.matmul(&w.t()?)?.broadcast_add(b)?.reshape((n, s, o))?.transpose(1, 2)?;
+    y + residual.reshape((n, o, s))?
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use candle_core::Device;
+
+    #[test]
+    fn fused_linear_and_geglu_match_composed_ops() {
+        let dev = Device::Cpu;
+        let x = Tensor::randn(0f32, 1.0, (2, 37, 24), &dev).unwrap();
+        let w = Tensor::randn(0f32, 0.2, (10, 24), &dev).unwrap();
+        let b = Tensor::randn(0f32, 0.2, 10, &dev).unwrap();
+        let r = Tensor::randn(0f32, 1.0, (2, 37, 10), &dev).unwrap();
+        let got = linear_fused(&x, &w, Some(&b), 0.3, &[(&r, 0.7)]).unwrap();
+        let lin = x.reshape((74, 24)).unwrap().matmul(&w.t().unwrap()).unwrap().broadcast_add(&b).unwrap().reshape((2, 37, 10)).unwrap();
+        let want = ((lin * 0.3).unwrap() + (&r * 0.7).unwrap()).unwrap();
+        let diff = (got - want).unwrap().abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap();
+        assert!(diff < 1e-5, "linear: {diff}");
+        let w1 = Tensor::randn(0f32, 0.2, (32, 24), &dev).unwrap();
+        let b1 = Tensor::randn(0f32, 0.2, 32, &dev).unwrap();
+        let w2 = Tensor::randn(0f32, 0.2, (24, 16), &dev).unwrap();
+        let b2 = Tensor::randn(0f32, 0.2, 24, &dev).unwrap();
+        let got = geglu_ff(&x, &w1, &b1, &w2, &b2, 1.0, &[(&x, 1.0)]).unwrap();
+        let h = x.reshape((74, 24)).unwrap().matmul(&w1.t().unwrap()).unwrap().broadcast_add(&b1).unwrap();
+        let g = (h.narrow(1, 0, 16).unwrap() * h.narrow(1, 16, 16).unwrap().gelu_erf().unwrap()).unwrap();
+        let want = (g.matmul(&w2.t().unwrap()).unwrap().broadcast_add(&b2).unwrap().reshape((2, 37, 24)).unwrap() + &x).unwrap();
+        let diff = (got - want).unwrap().abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap();
+        assert!(diff < 1e-5, "geglu: {diff}");
+    }
+
+    #[test]
+    fn channels_first_linears_match_permuted_matmuls() {
+        let dev = Device::Cpu;
+        let x = Tensor::randn(0f32, 1.0, (3, 6, 35), &dev).unwrap();
+        let w = Tensor::randn(0f32, 0.3, (10, 6), &dev).unwrap();
+        let b = Tensor::randn(0f32, 0.3, 10, &dev).unwrap();
+        let tok = linear_from_channels_first(&x, &w, &b).unwrap();
+        let want = x.transpose(1, 2).unwrap().contiguous().unwrap().reshape((105, 6)).unwrap().matmul(&w.t().unwrap()).unwrap().broadcast_add(&b).unwrap().reshape((3, 35, 10)).unwrap();
+        let d = (&tok - &want).unwrap().abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap();
+        assert!(d < 1e-5, "to tokens: {d}");
+        let w2 = Tensor::randn(0f32, 0.3, (6, 10), &dev).unwrap();
+        let b2 = Tensor::randn(0f32, 0.3, 6, &dev).unwrap();
+        let back = linear_to_channels_first(&tok, &w2, &b2, &x).unwrap();
+        let want = (tok.reshape((105, 10)).unwrap().matmul(&w2.t().unwrap()).unwrap().broadcast_add(&b2).unwrap().reshape((3, 35, 6)).unwrap().transpose(1, 2).unwrap() + &x).unwrap();
+        let d = (back - want).unwrap().abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap();
+        assert!(d < 1e-5, "to channels-first: {d}");
+    }
+}

@@ -1,0 +1,299 @@
+//! Normalisations. LayerNorm / GroupNorm(+SiLU) for the refiner take f64 statistics on the CPU (candle's
+//! fused op uses E[x²]−E[x]² in f32, which loses ~1e-4 on rows with a large mean); the encoder's GroupNorm
+//! fuses its activation into one pass. Tracked inputs, differentiable mode and other devices use composed ops.
+
+use candle_core::{DType, Result, Tensor, D};
+use rayon::prelude::*;
+
+use crate::math::{exp_f32, exp_fast, gelu_scalar, simd_dispatch};
+use crate::mode::{cpu_f32, is_cpu_f32, with_f32};
+
+/// LayerNorm over the last dim. CPU f32 path: per-row two-pass statistics in f64 (candle's fused op
+/// uses E[x²]−E[x]² in f32, which loses ~1e-4 on rows with a large mean).
+pub fn layer_norm(x: &Tensor, weight: &Tensor, bias: &Tensor, eps: f64) -> Result<Tensor> {
+    let dims = x.dims().to_vec();
+    let c = *dims.last().unwrap_or(&1);
+    if is_cpu_f32(x) {
+        let w = weight.to_vec1::<f32>()?;
+        let b = bias.to_vec1::<f32>()?;
+        let mut out = vec![0f32; x.elem_count()];
+        with_f32(x, |data| {
+            let rows = (1usize << 14) / c.max(1) + 1;
+            out.par_chunks_mut(c * rows).zip(data.par_chunks(c * rows)).for_each(|(dst, src)| layer_norm_rows(src, dst, c, &w, &b, eps));
+        })?;
+        return Tensor::from_vec(out, dims, x.device());
+    }
+    layer_norm_composed(x, weight, bias, eps)
+}
+
+/// [`layer_norm`] from tensor ops (differentiable, any device).
+pub(crate) fn layer_norm_composed(x: &Tensor, weight: &Tensor, bias: &Tensor, eps: f64) -> Result<Tensor> {
+    let mean = x.mean_keepdim(D::Minus1)?;
+    let xc = x.broadcast_sub(&mean)?;
+    let var = xc.sqr()?.mean_keepdim(D::Minus1)?;
+    xc.broadcast_div(&(var + eps)?.sqrt()?)?.broadcast_mul(weight)?.broadcast_add(bias)
+}
+
+/// GroupNorm on (N, C, ...) with statistics pooled over `frames` consecutive items (frames > 1: a GroupNorm
+/// of the (B, C, T, H, W) tensor of a temporal ResBlock), optionally followed by SiLU. CPU f32 fast path (one stats pass, one write pass), composed ops elsewhere.
+pub fn group_norm(
+    x: &Tensor,
+    groups: usize,
+    frames: usize,
+    weight: &Tensor,
+    bias: &Tensor,
+    eps: f64,
+    silu: bool,
+) -> Result<Tensor> {
+    let dims = x.dims().to_vec();
+    let (n, c) = (dims[0], dims[1]);
+    let s: usize = dims[2..].iter().product();
+    if c % groups != 0 || n % frames != 0 {
+        candle_core::bail!("group_norm: {c} channels / {groups} groups or {n} items / {frames} frames not divisible");
+    }
+    let cg = c / groups;
+    let bn = n / frames;
+    if is_cpu_f32(x) {
+        let w = weight.to_vec1::<f32>()?;
+        let b = bias.to_vec1::<f32>()?;
+        let mut out = vec![0f32; x.elem_count()];
+        with_f32(x, |data| group_norm_cpu(data, &mut out, (bn, frames, groups, cg, c, s), &w, &b, eps, silu))?;
+        return Tensor::from_vec(out, dims, x.device());
+    }
+    group_norm_composed(x, groups, frames, weight, bias, eps, silu)
+}
+
+/// [`group_norm`] from tensor ops (differentiable, any device).
+pub(crate) fn group_norm_composed(x: &Tensor, groups: usize, frames: usize, weight: &Tensor, bias: &Tensor, eps: f64, silu: bool) -> Result<Tensor> {
+    let dims = x.dims().to_vec();
+    let (n, c) = (dims[0], dims[1]);
+    let s: usize = dims[2..].iter().product();
+    let (cg, bn) = (c / groups, n / frames);
+    let xr = x.reshape((bn, frames, groups, cg * s))?;
+    let mean = xr.mean_keepdim(3)?.mean_keepdim(1)?;
+    let xc = xr.broadcast_sub(&mean)?;
+    let var = xc.sqr()?.mean_keepdim(3)?.mean_keepdim(1)?;
+    let xn = xc.broadcast_div(&(var + eps)?.sqrt()?)?.reshape((n, c, s))?;
+    let y = xn.broadcast_mul(&weight.reshape((1, c, 1))?)?.broadcast_add(&bias.reshape((1, c, 1))?)?;
+    let y = if silu { y.silu()? } else { y };
+    y.reshape(dims)
+}
+
+/// CPU GroupNorm(+SiLU): statistics per (item, group, pooled over frames) in f64, then one fused
+/// scale/shift(/SiLU) pass.
+#[allow(clippy::too_many_arguments)]
+fn group_norm_cpu(data: &[f32], out: &mut [f32], (bn, frames, groups, cg, c, s): (usize, usize, usize, usize, usize, usize), w: &[f32], b: &[f32], eps: f64, silu: bool) {
+    let stats: Vec<(f32, f32)> = (0..bn * groups)
+        .into_par_iter()
+        .map(|idx| {
+            let (bi, g) = (idx / groups, idx % groups);
+            let mut sum = 0f64;
+            let mut sq = 0f64;
+            for t in 0..frames {
+                let base = ((bi * frames + t) * c + g * cg) * s;
+                let (s1, s2) = sum_sq(&data[base..base + cg * s]);
+                sum += s1;
+                sq += s2;
+            }
+            let cnt = (frames * cg * s) as f64;
+            let mean = sum / cnt;
+            let var = (sq / cnt - mean * mean).max(0.0);
+            (mean as f32, (1.0 / (var + eps).sqrt()) as f32)
+        })
+        .collect();
+    out.par_chunks_mut(s).enumerate().for_each(|(row, dst)| {
+        let item = row / c;
+        let ch = row % c;
+        let bi = item / frames;
+        let (mean, rstd) = stats[bi * groups + ch / cg];
+        let a = rstd * w[ch];
+        let o = b[ch] - mean * a;
+        scale_shift_silu(&data[row * s..(row + 1) * s], dst, a, o, silu);
+    });
+}
+
+simd_dispatch! {
+    /// (Σx, Σx²) in f64, accumulated per block of 64 values in f32 lanes.
+    fn sum_sq(x: &[f32]) -> (f64, f64) {
+        let (mut s1, mut s2) = (0f64, 0f64);
+        for blk in x.chunks(64) {
+            let mut a = [0f32; 16];
+            let mut q = [0f32; 16];
+            let mut it = blk.chunks_exact(16);
+            for c in &mut it {
+                for i in 0..16 {
+                    a[i] += c[i];
+                    q[i] = c[i].mul_add(c[i], q[i]);
+                }
+            }
+            for &v in it.remainder() {
+                a[0] += v;
+                q[0] = v.mul_add(v, q[0]);
+            }
+            s1 += a.iter().map(|&v| v as f64).sum::<f64>();
+            s2 += q.iter().map(|&v| v as f64).sum::<f64>();
+        }
+        (s1, s2)
+    }
+}
+
+simd_dispatch! {
+    fn scale_shift_silu(src: &[f32], dst: &mut [f32], a: f32, o: f32, silu: bool) {
+        if silu {
+            for (d, &v) in dst.iter_mut().zip(src) {
+                let y = v.mul_add(a, o);
+                *d = y / (1.0 + exp_f32(-y));
+            }
+        } else {
+            for (d, &v) in dst.iter_mut().zip(src) {
+                *d = v.mul_add(a, o);
+            }
+        }
+    }
+}
+
+simd_dispatch! {
+    fn layer_norm_rows(src: &[f32], dst: &mut [f32], c: usize, w: &[f32], b: &[f32], eps: f64) {
+        for (s, d) in src.chunks_exact(c).zip(dst.chunks_exact_mut(c)) {
+            let mean = s.iter().map(|&v| v as f64).sum::<f64>() / c as f64;
+            let var = s.iter().map(|&v| (v as f64 - mean) * (v as f64 - mean)).sum::<f64>() / c as f64;
+            let rstd = (1.0 / (var + eps).sqrt()) as f32;
+            let m = mean as f32;
+            for i in 0..c {
+                d[i] = ((s[i] - m) * rstd).mul_add(w[i], b[i]);
+            }
+        }
+    }
+}
+
+/// Activation fused after [`group_norm_act`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Act {
+    None,
+    Silu,
+    Gelu,
+}
+
+/// `d = act(a·s + b)`.
+#[inline(always)]
+fn affine_act_impl(d: &mut [f32], s: &[f32], a: f32, b: f32, act: Act) {
+    match act {
+        Act::None => d.iter_mut().zip(s).for_each(|(o, &v)| *o = a * v + b),
+        Act::Silu => d.iter_mut().zip(s).for_each(|(o, &v)| {
+            let y = a * v + b;
+            *o = y / (1.0 + exp_fast(-y));
+        }),
+        Act::Gelu => d.iter_mut().zip(s).for_each(|(o, &v)| *o = gelu_scalar(a * v + b)),
+    }
+}
+
+/// AVX2 build of [`affine_act_impl`] (no FMA: bit-identical to the portable path).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn affine_act_avx2(d: &mut [f32], s: &[f32], a: f32, b: f32, act: Act) {
+    affine_act_impl(d, s, a, b, act)
+}
+
+fn affine_act(d: &mut [f32], s: &[f32], a: f32, b: f32, act: Act) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: AVX2 is available on this CPU.
+        return unsafe { affine_act_avx2(d, s, a, b, act) };
+    }
+    affine_act_impl(d, s, a, b, act)
+}
+
+/// `act(GroupNorm(groups)(x))` on `[N, C, ...]` (the encoder's UNets; statistics as the official f32 ones, in
+/// f64 here). Inference (CPU f32, nothing tracks gradients) runs one fused pass per (image, group).
+pub fn group_norm_act(x: &Tensor, weight: &Tensor, bias: &Tensor, groups: usize, eps: f64, act: Act) -> Result<Tensor> {
+    let fused = cpu_f32(x) && weight.dtype() == DType::F32 && !(x.track_op() || weight.track_op() || bias.track_op());
+    if !fused {
+        return group_norm_act_composed(x, weight, bias, groups, eps, act);
+    }
+    let dims = x.dims().to_vec();
+    let (n, c) = (dims[0], dims[1]);
+    let g = groups;
+    let x = x.contiguous()?;
+    let hw = x.elem_count() / (n * c).max(1);
+    let (wv, bv) = (weight.to_vec1::<f32>()?, bias.to_vec1::<f32>()?);
+    let xs = x.flatten_all()?;
+    let (st, l) = xs.storage_and_layout();
+    let src = match (&*st, l.contiguous_offsets()) {
+        (candle_core::Storage::Cpu(candle_core::CpuStorage::F32(v)), Some((a, b))) => &v[a..b],
+        _ => candle_core::bail!("group norm: expected a contiguous CPU f32 tensor"),
+    };
+    let cg = c / g;
+    let len = cg * hw;
+    let mut out = vec![0f32; src.len()];
+    out.par_chunks_mut(len).zip(src.par_chunks(len)).enumerate().for_each(|(task, (dst, xs))| {
+        let gi = task % g;
+        // Two-pass statistics with f64 partial sums (the official code takes them in f32).
+        let sum: f64 = xs.chunks(4096).map(|ch| ch.iter().map(|&v| v as f64).sum::<f64>()).sum();
+        let mean = sum / len as f64;
+        let var: f64 = xs.chunks(4096).map(|ch| ch.iter().map(|&v| (v as f64 - mean).powi(2)).sum::<f64>()).sum::<f64>() / len as f64;
+        let rstd = 1.0 / (var + eps).sqrt();
+        for ci in 0..cg {
+            let ch = gi * cg + ci;
+            let a = (wv[ch] as f64 * rstd) as f32;
+            let b = (bv[ch] as f64 - mean * wv[ch] as f64 * rstd) as f32;
+            affine_act(&mut dst[ci * hw..(ci + 1) * hw], &xs[ci * hw..(ci + 1) * hw], a, b, act);
+        }
+    });
+    drop(st);
+    Tensor::from_vec(out, dims, x.device())
+}
+
+/// [`group_norm_act`] from tensor ops in f32 (differentiable, any device).
+pub(crate) fn group_norm_act_composed(x: &Tensor, weight: &Tensor, bias: &Tensor, groups: usize, eps: f64, act: Act) -> Result<Tensor> {
+    let dims = x.dims().to_vec();
+    let (n, c) = (dims[0], dims[1]);
+    let in_dtype = x.dtype();
+    let xg = x.to_dtype(DType::F32)?.reshape((n, groups, ()))?;
+    let mean = xg.mean_keepdim(D::Minus1)?;
+    let xc = xg.broadcast_sub(&mean)?;
+    let var = xc.sqr()?.mean_keepdim(D::Minus1)?;
+    let xn = xc.broadcast_div(&(var + eps)?.sqrt()?)?.reshape(dims.as_slice())?;
+    let mut pshape = vec![1usize; dims.len()];
+    pshape[1] = c;
+    let w = weight.to_dtype(DType::F32)?.reshape(pshape.as_slice())?;
+    let b = bias.to_dtype(DType::F32)?.reshape(pshape.as_slice())?;
+    let y = xn.broadcast_mul(&w)?.broadcast_add(&b)?.to_dtype(in_dtype)?;
+    match act {
+        Act::None => Ok(y),
+        Act::Silu => y.silu(),
+        Act::Gelu => crate::activation::gelu(&y),
+    }
+}
+
+/// `nn.InstanceNorm2d(c)` as used by the UniMatch CNN: no affine parameters, no running stats, eps 1e-5.
+pub fn instance_norm(x: &Tensor) -> Result<Tensor> {
+    let (n, c, h, w) = x.dims4()?;
+    let xf = x.reshape((n, c, h * w))?;
+    let mean = xf.mean_keepdim(D::Minus1)?;
+    let xc = xf.broadcast_sub(&mean)?;
+    let var = xc.sqr()?.mean_keepdim(D::Minus1)?;
+    xc.broadcast_div(&(var + 1e-5)?.sqrt()?)?.reshape((n, c, h, w))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use candle_core::Device;
+
+    #[test]
+    fn group_norm_fast_path_matches_composed_ops() {
+        let dev = Device::Cpu;
+        let x = Tensor::randn(0f32, 1.0, (6, 64, 3, 5), &dev).unwrap();
+        let w = Tensor::randn(1f32, 0.2, 64, &dev).unwrap();
+        let b = Tensor::randn(0f32, 0.1, 64, &dev).unwrap();
+        for frames in [1, 3] {
+            let fast = group_norm(&x, 32, frames, &w, &b, 1e-5, true).unwrap();
+            let slow = group_norm(&x.to_dtype(DType::F64).unwrap(), 32, frames, &w.to_dtype(DType::F64).unwrap(), &b.to_dtype(DType::F64).unwrap(), 1e-5, true)
+                .unwrap()
+                .to_dtype(DType::F32)
+                .unwrap();
+            let d = (fast - slow).unwrap().abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap();
+            assert!(d < 1e-5, "frames {frames}: {d}");
+        }
+    }
+}
