@@ -300,7 +300,9 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
     let mut train_seconds = 0.0;
     if opts.resume {
         if let Some(ck) = checkpoint::load_latest(&out)? {
-            if ck.state.config != config_text {
+            // Compared as parsed configs, so a field added later with its default does not block a resume.
+            let same = ck.state.config == config_text || TrainConfig::from_toml(&ck.state.config, &ck.path).is_ok_and(|c| c == *cfg);
+            if !same {
                 return Err(TrainError::Checkpoint(format!(
                     "{} was written with a different config; resume with the same config or choose another `train.out`",
                     ck.path.display()

@@ -97,6 +97,20 @@ fn resume_refuses_a_changed_config_and_fresh_runs_refuse_old_checkpoints() {
     other.train.lr = 5e-4;
     let e = mvsplat360_train::run(&other, &RunOptions { resume: true, ..Default::default() }, &Quiet).unwrap_err().to_string();
     assert!(e.contains("different config"), "{e}");
+    // A checkpoint written before a field existed (its config text lacks the field) resumes when the field has
+    // its default value.
+    let state = dir.path().join("checkpoints/step-0000002/state.json");
+    let mut v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&state).unwrap()).unwrap();
+    let text = v["config"].as_str().unwrap().to_string();
+    assert!(text.contains("refiner_weight = 1.0\n"), "{text}");
+    v["config"] = serde_json::Value::String(text.replace("refiner_weight = 1.0\n", ""));
+    std::fs::write(&state, v.to_string()).unwrap();
+    let mut longer = cfg.clone();
+    longer.train.steps = 3;
+    let e = mvsplat360_train::run(&longer, &RunOptions { resume: true, ..Default::default() }, &Quiet).unwrap_err().to_string();
+    assert!(e.contains("different config"), "steps differ, so the configs differ: {e}");
+    let s = mvsplat360_train::run(&cfg, &RunOptions { resume: true, ..Default::default() }, &Quiet).unwrap();
+    assert_eq!(s.steps, 2);
 }
 
 /// A `.torch` chunk source (the committed two-scene test chunk) streams scenes into training.
