@@ -105,6 +105,7 @@ fn scene_runs_the_whole_pipeline() {
     assert_eq!(v["bench"], "scene");
     assert_eq!((v["views"].as_u64(), v["frames"].as_u64(), v["steps"].as_u64(), v["threads"].as_u64()), (Some(3), Some(2), Some(1), Some(1)), "{v}");
     assert_eq!(v["refiner"], true, "{v}");
+    assert_eq!((v["device"].as_str(), v["refiner_dtype"].as_str()), (Some("cpu"), Some("f32")), "{v}");
     // One pixel-aligned Gaussian per context pixel.
     assert_eq!(v["gaussians"].as_u64(), Some(3 * 64 * 128), "{v}");
     time_field(&v, "total_seconds");
@@ -115,17 +116,35 @@ fn scene_runs_the_whole_pipeline() {
     }
     assert!(stages.keys().any(|k| k.contains("refin")), "no refiner stage in {v}");
     assert!(v["peak_rss_mib"].as_f64().is_some_and(|m| m > 0.0), "{v}");
+    assert!(v["gpu_peak_mib"].is_null(), "no GPU memory on the CPU: {v}");
     // 3DGS only: no refiner stage.
     let v = bench(&["scene", "--tiny", "--no-refiner", "--views", "2", "--height", "64", "--width", "64", "--frames", "1", "--threads", "1"]);
     assert!(!v["stage_seconds"].as_object().unwrap().keys().any(|k| k.contains("refin")), "{v}");
 }
 
 #[test]
-fn scene_refuses_bad_sizes_and_cuda() {
-    for args in [&["scene", "--tiny", "--height", "100"][..], &["scene", "--tiny", "--device", "cuda"][..]] {
+fn scene_refuses_bad_sizes_devices_and_dtypes() {
+    let mut cases = vec![
+        (&["scene", "--tiny", "--height", "100"][..], "multiples of 64"),
+        (&["scene", "--tiny", "--device", "gpu"][..], "cpu, cuda or cuda:N"),
+        (&["scene", "--tiny", "--dtype", "f64"][..], "f32, f16 or bf16"),
+        (&["scene", "--tiny", "--dtype", "bf16"][..], "bf16 runs on a GPU only"),
+    ];
+    if !cfg!(feature = "cuda") {
+        cases.push((&["scene", "--tiny", "--device", "cuda"][..], "--features cuda"));
+    }
+    for (args, needle) in cases {
         let out = Command::new(env!("CARGO_BIN_EXE_mvsplat360")).arg("bench").args(args).output().unwrap();
         let err = String::from_utf8_lossy(&out.stderr);
         assert!(!out.status.success() && !err.contains("panicked"), "{args:?}: {err}");
-        assert!(err.contains("multiples of 64") || err.contains("CPU only"), "{args:?}: {err}");
+        assert!(err.contains(needle), "{args:?}: expected `{needle}` in {err}");
     }
+}
+
+/// `--dtype f16` runs the refiner in half precision end to end and the JSON says so (bf16 is GPU only).
+#[test]
+fn scene_runs_the_refiner_in_f16() {
+    let v = bench(&["scene", "--tiny", "--dtype", "f16", "--views", "2", "--height", "64", "--width", "64", "--frames", "2", "--steps", "1", "--threads", "1"]);
+    assert_eq!((v["device"].as_str(), v["refiner_dtype"].as_str()), (Some("cpu"), Some("f16")), "{v}");
+    assert!(v["stage_seconds"].as_object().unwrap().keys().any(|k| k.contains("refin")), "{v}");
 }

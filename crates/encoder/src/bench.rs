@@ -9,6 +9,7 @@ use serde_json::json;
 use crate::backbone::{camera_distances, BackboneMultiview};
 use crate::config::EncoderCostVolumeCfg;
 use crate::weights::random_tensors;
+use mvsplat360_nn::bench::median;
 
 #[derive(Debug, thiserror::Error)]
 pub enum BenchError {
@@ -88,10 +89,6 @@ pub fn synthetic_context(b: usize, v: usize, h: usize, w: usize, device: &Device
     Ok([images, intrinsics, extrinsics, near, far])
 }
 
-fn median(mut xs: Vec<f64>) -> f64 {
-    xs.sort_by(f64::total_cmp);
-    xs[xs.len() / 2]
-}
 
 /// Backbone only (CNN + transformer), for a breakdown of the encoder time.
 pub fn run_backbone_bench(views: usize, height: usize, width: usize, threads: usize, runs: usize) -> Result<serde_json::Value, BenchError> {

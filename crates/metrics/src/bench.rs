@@ -17,6 +17,7 @@ use serde_json::{json, Value};
 use crate::dists::Dists;
 use crate::inception::FidInception;
 use crate::lpips::{Lpips, Net};
+use mvsplat360_nn::bench::median;
 
 /// Image pairs per timed run.
 pub const BATCH: usize = 4;
@@ -36,10 +37,6 @@ pub struct MetricsBenchOpts {
     pub weights_dir: Option<PathBuf>,
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(|a, b| a.total_cmp(b));
-    v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
-}
 
 /// Deterministic values in [0, 1) (xorshift), so runs are comparable without a random-number crate.
 fn pseudo_random(n: usize, seed: u64) -> Vec<f32> {

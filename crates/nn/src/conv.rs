@@ -190,7 +190,6 @@ impl CustomOp2 for ShiftConv {
     }
 }
 
-
 /// Backward of the stride-1 convolution with shifted gemms (candle's `conv_transpose2d` and its conv2d with a
 /// whole feature map as kernel take ~10× the forward's time on CPU):
 /// grad_x = the same convolution of `grad` with the flipped, transposed kernel and padding `dil·(k−1) − pad`;
@@ -632,7 +631,6 @@ pub fn conv2d_epilogue(x: &Tensor, w: &Tensor, bias: Option<&Tensor>, cfg: Conv2
     }
     conv2d(x, w, bias, cfg)
 }
-
 
 /// Conv3d with kernel (kt, 1, 1), zero padding (kt/2, 0, 0) on frame-major x (B·T, Cin, H, W), weight
 /// (Cout, kt·Cin) (tap-major columns): each output frame is ONE gemm over its stacked valid neighbour frames,

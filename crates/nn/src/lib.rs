@@ -22,6 +22,7 @@
 
 pub mod activation;
 pub mod attention;
+pub mod bench;
 pub mod conv;
 pub mod grid_sample;
 pub mod layout;

@@ -6,20 +6,18 @@ use std::path::{Path, PathBuf};
 
 use serde_json::json;
 
+use crate::compute::{Compute, DeviceSpec};
 use crate::error::{PipelineError, Result};
 use crate::model::{self, DataConfig, ModelArgs, ModelConfig, RefinerModelConfig, MODEL_FORMAT};
 use crate::render::{self, RefineSettings, RenderRequest, Silent};
 use crate::views::{ContextSpec, TargetSpec};
-
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum BenchDevice {
-    Cpu,
-    Cuda,
-}
+use mvsplat360_nn::bench::median;
 
 #[derive(Debug, Clone)]
 pub struct SceneBenchOpts {
-    pub device: BenchDevice,
+    pub device: DeviceSpec,
+    /// The refiner's precision.
+    pub dtype: candle_core::DType,
     pub views: usize,
     pub height: u32,
     pub width: u32,
@@ -43,9 +41,8 @@ impl Drop for Scratch {
 
 pub fn run_scene_bench(o: &SceneBenchOpts) -> Result<serde_json::Value> {
     let bad = |msg: String| PipelineError::Flag { flag: "bench scene", msg };
-    if o.device == BenchDevice::Cuda {
-        return Err(bad("--device cuda: the pipeline runs on the CPU only in this version (its CUDA path is not wired in yet)".into()));
-    }
+    // Refuse an unusable device before writing the synthetic model; the handle also reads the GPU's peak.
+    let device = Compute { device: o.device, refiner_dtype: o.dtype }.open()?;
     if o.views < 2 || o.frames == 0 || o.runs == 0 || o.height % 64 != 0 || o.width % 64 != 0 || o.height == 0 || o.width == 0 {
         return Err(bad(format!(
             "need --views ≥ 2, --frames ≥ 1, --runs ≥ 1 and --height/--width positive multiples of 64 (got {}, {}, {}, {}x{})",
@@ -70,13 +67,14 @@ pub fn run_scene_bench(o: &SceneBenchOpts) -> Result<serde_json::Value> {
     let mut per_stage: Vec<(String, Vec<f64>)> = Vec::new();
     let mut totals = Vec::new();
     let mut gaussians = 0;
+    gpu_peak_mib(&device, true);
     for r in 0..o.runs {
         let req = RenderRequest {
             scene: scene.clone(),
             scene_key: None,
             context: ContextSpec::Count(o.views),
             targets: TargetSpec::Orbit(o.frames),
-            model: ModelArgs { ckpt: Some(model_dir.clone()), ..Default::default() },
+            model: ModelArgs { ckpt: Some(model_dir.clone()), compute: Compute { device: o.device, refiner_dtype: o.dtype }, ..Default::default() },
             size: None,
             scene_scale: crate::scale::SceneScale::Auto,
             refine: RefineSettings { steps: o.steps, ..RefineSettings::default() },
@@ -102,7 +100,8 @@ pub fn run_scene_bench(o: &SceneBenchOpts) -> Result<serde_json::Value> {
     let stages: serde_json::Map<String, serde_json::Value> = per_stage.into_iter().map(|(n, v)| (n, json!(median(v)))).collect();
     Ok(json!({
         "bench": "scene",
-        "device": "cpu",
+        "device": o.device.to_string(),
+        "refiner_dtype": o.dtype.as_str(),
         "model": if o.tiny { "tiny" } else { "official DL3DV configs" },
         "refiner": !o.no_refiner,
         "views": o.views,
@@ -116,13 +115,43 @@ pub fn run_scene_bench(o: &SceneBenchOpts) -> Result<serde_json::Value> {
         "total_seconds": median(totals),
         "stage_seconds": stages,
         "peak_rss_mib": crate::setup::peak_rss_mib(),
+        "gpu_peak_mib": gpu_peak_mib(&device, false),
     }))
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(|a, b| a.total_cmp(b));
-    v[v.len() / 2]
+/// High-water mark (MiB) of GPU memory in use since the last reset: the device's default memory pool, which
+/// candle's buffers come from (stream-ordered allocation). None on the CPU or without memory pools.
+#[cfg(feature = "cuda")]
+fn gpu_peak_mib(device: &candle_core::Device, reset: bool) -> Option<f64> {
+    use candle_core::cuda::cudarc::driver::sys;
+    let candle_core::Device::Cuda(d) = device else { return None };
+    let ctx = d.cuda_stream().context().clone();
+    if !ctx.has_async_alloc() || ctx.bind_to_thread().is_err() {
+        return None;
+    }
+    let attr = sys::CUmemPool_attribute::CU_MEMPOOL_ATTR_USED_MEM_HIGH;
+    let mut pool: sys::CUmemoryPool = std::ptr::null_mut();
+    let mut v: u64 = 0;
+    // SAFETY: plain driver queries on a live context; `v` outlives the calls and is the u64 the attribute holds.
+    unsafe {
+        if sys::cuDeviceGetDefaultMemPool(&mut pool, ctx.cu_device()) != sys::CUresult::CUDA_SUCCESS {
+            return None;
+        }
+        if reset {
+            sys::cuMemPoolSetAttribute(pool, attr, (&mut v as *mut u64).cast());
+        }
+        if sys::cuMemPoolGetAttribute(pool, attr, (&mut v as *mut u64).cast()) != sys::CUresult::CUDA_SUCCESS {
+            return None;
+        }
+    }
+    Some(v as f64 / (1024.0 * 1024.0))
 }
+
+#[cfg(not(feature = "cuda"))]
+fn gpu_peak_mib(_: &candle_core::Device, _: bool) -> Option<f64> {
+    None
+}
+
 
 fn bench_model_config(o: &SceneBenchOpts) -> ModelConfig {
     let mut cfg = if o.tiny {

@@ -379,7 +379,7 @@ fn settings_json(req: &EvalRequest, spec: &crate::model::ModelSpec, size: InputS
     let refiner_file = spec.refiner.as_ref().map(|(_, w)| match w {
         crate::model::RefinerWeights::File(p) | crate::model::RefinerWeights::Ckpt(p) => file(p),
     });
-    let v = json!({
+    let mut v = json!({
         "format": SETTINGS_FORMAT,
         "experiment": spec.data.experiment,
         "encoder": file(&spec.encoder_file),
@@ -388,6 +388,11 @@ fn settings_json(req: &EvalRequest, spec: &crate::model::ModelSpec, size: InputS
         "scene_scale": req.scene_scale,
         "refine": spec.refiner.as_ref().map(|_| &req.refine),
     });
+    // Half precision changes the refined frames; f32 adds nothing, so folders of earlier runs still resume.
+    let dtype = req.model.compute.refiner_dtype;
+    if spec.refiner.is_some() && dtype != candle_core::DType::F32 {
+        v["refiner_dtype"] = json!(dtype.as_str());
+    }
     // As read back from eval.json (f32 settings print shortest-f32 and parse back as a different f64).
     serde_json::to_string(&v).ok().and_then(|t| serde_json::from_str(&t).ok()).unwrap_or(v)
 }
@@ -551,6 +556,8 @@ struct Ctx<'a> {
     spec: crate::model::ModelSpec,
     pre: Preprocess,
     refine_file: Option<PathBuf>,
+    /// Opened once for every scene.
+    device: candle_core::Device,
     methods: Vec<Method>,
     nets: Nets,
     progress: &'a dyn Progress,
@@ -621,7 +628,19 @@ fn render_scene(cx: &Ctx, scene: Scene, plan: &ScenePlan, warnings: &mut Vec<Str
         targets: plan.targets.iter().map(|&i| Target { camera: scene.cameras[i].clone(), view: Some(i) }).collect(),
         quantify: Some(plan.scored.clone()),
     };
-    let p = Prepared { scene, spec: spec.clone(), choice, pre: cx.pre, transform, context_images, context_cameras, target_cameras, target_photos };
+    let p = Prepared {
+        scene,
+        spec: spec.clone(),
+        choice,
+        pre: cx.pre,
+        transform,
+        context_images,
+        context_cameras,
+        target_cameras,
+        target_photos,
+        device: cx.device.clone(),
+        refiner_dtype: cx.req.model.compute.refiner_dtype,
+    };
 
     let g = render::encode(&p, cx.progress)?;
     record.gaussians = g.means.dim(0).map_err(compute("encoder"))?;
@@ -833,7 +852,8 @@ pub fn run(req: &EvalRequest, progress: &dyn Progress) -> Result<EvalSummary> {
     let pre = Preprocess { size, multiple: spec.encoder.image_multiple() as u32 };
     let description = spec.description.clone();
     let experiment = spec.data.experiment.clone();
-    let cx = Ctx { req, spec, pre, refine_file, methods: methods.clone(), nets, progress };
+    let device = req.model.compute.open()?;
+    let cx = Ctx { req, spec, pre, refine_file, device, methods: methods.clone(), nets, progress };
 
     // Resume: complete scenes are kept, scenes with images but incomplete scores are re-scored from disk.
     let used = cx.nets.used();

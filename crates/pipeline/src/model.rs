@@ -80,6 +80,8 @@ pub struct ModelArgs {
     pub refiner: Option<RefinerArg>,
     /// `--experiment`: overrides the data conventions (`dl3dv`, `re10k`) of a checkpoint without a config.
     pub experiment: Option<String>,
+    /// `--device` and `--dtype`: where the model runs and the refiner's precision.
+    pub compute: crate::compute::Compute,
 }
 
 #[derive(Debug, Clone, PartialEq)]
@@ -305,16 +307,7 @@ pub fn tiny_config(with_refiner: bool) -> ModelConfig {
     let data = DataConfig { experiment: "tiny".into(), image_width: 128, image_height: 64, near: 1.0, far: 100.0 };
     let encoder = EncoderCostVolumeCfg { near: data.near, far: data.far, ..EncoderCostVolumeCfg::tiny() };
     let refiner = with_refiner.then(|| RefinerModelConfig {
-        unet: VideoUNetConfig {
-            model_channels: 32,
-            num_res_blocks: 1,
-            attention_resolutions: vec![1, 2],
-            channel_mult: vec![1, 2, 2],
-            num_head_channels: 16,
-            context_dim: 32,
-            adm_in_channels: Some(32),
-            ..VideoUNetConfig::default()
-        },
+        unet: VideoUNetConfig { channel_mult: vec![1, 2, 2], ..VideoUNetConfig::tiny() },
         vae: AutoencoderConfig { ch: 32, ch_mult: vec![1, 1, 2, 2], num_res_blocks: 1, ..AutoencoderConfig::default() },
         clip: ClipVisionConfig { width: 32, layers: 2, heads: 2, mlp_width: 64, patch_size: 8, image_size: 32, output_dim: 32, ..ClipVisionConfig::default() },
     });

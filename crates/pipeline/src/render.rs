@@ -114,6 +114,10 @@ pub struct Prepared {
     /// Target cameras (model space, preprocessed size) and their preprocessed photos where they are views.
     pub target_cameras: Vec<Camera>,
     pub target_photos: Vec<Option<ImageF32>>,
+    /// Where the model runs (opened once per run: tensors of two opened GPUs never mix).
+    pub device: Device,
+    /// The refiner's precision (`--dtype`).
+    pub refiner_dtype: DType,
 }
 
 /// Open every image of the scene and check it against its camera (size, decodability), in parallel.
@@ -172,7 +176,9 @@ pub fn prepare(req: &RenderRequest, progress: &dyn Progress) -> Result<Prepared>
             }
         }
     }
-    Ok(Prepared { scene, spec, choice, pre, transform, context_images, context_cameras, target_cameras, target_photos })
+    let device = req.model.compute.open()?;
+    let refiner_dtype = req.model.compute.refiner_dtype;
+    Ok(Prepared { scene, spec, choice, pre, transform, context_images, context_cameras, target_cameras, target_photos, device, refiner_dtype })
 }
 
 /// The rasterizer's camera for a project camera.
@@ -199,7 +205,7 @@ pub fn raster_camera(c: &Camera, near: f32, far: f32) -> RasterCamera {
 
 /// Run the encoder on the preprocessed context → one scene's Gaussians (model space).
 pub fn encode(p: &Prepared, progress: &dyn Progress) -> Result<Gaussians> {
-    let dev = Device::Cpu;
+    let dev = p.device.clone();
     let v = p.context_images.len();
     let mut cfg = p.spec.encoder.clone();
     cfg.num_views = v;
@@ -261,12 +267,12 @@ struct RefinerModules {
 fn clip_context(p: &Prepared, weights: &Path, progress: &dyn Progress) -> Result<Tensor> {
     let (cfg, _) = p.spec.refiner.as_ref().ok_or_else(|| flag("--refiner", "no refiner configured"))?;
     progress.note(&format!("loading CLIP image embedder from {}", weights.display()));
-    let clip = ClipImageEmbedder::load(weights, None, &cfg.clip, &Device::Cpu)
+    let clip = ClipImageEmbedder::load_as(weights, None, &cfg.clip, &p.device, p.refiner_dtype)
         .map_err(|e| PipelineError::Model { path: weights.to_path_buf(), msg: e.to_string() })?;
     let v = p.context_images.len();
     let (w, h) = (p.context_images[0].width as usize, p.context_images[0].height as usize);
     let data: Vec<f32> = p.context_images.iter().flat_map(|im| im.data.iter().copied()).collect();
-    let views = Tensor::from_vec(data, (1, v, 3, h, w), &Device::Cpu).map_err(compute("CLIP"))?;
+    let views = Tensor::from_vec(data, (1, v, 3, h, w), &p.device).map_err(compute("CLIP"))?;
     let ctx = clip.embed_mean(&views).map_err(compute("CLIP"))?;
     check_finite("CLIP", &ctx)?;
     Ok(ctx)
@@ -276,8 +282,8 @@ fn load_refiner(p: &Prepared, weights: &Path, s: &RefineSettings, num_splits: Op
     let (cfg, _) = p.spec.refiner.as_ref().ok_or_else(|| flag("--refiner", "no refiner configured"))?;
     progress.note(&format!("loading the video UNet and VAE from {}", weights.display()));
     let merr = |e: &dyn std::fmt::Display| PipelineError::Model { path: weights.to_path_buf(), msg: e.to_string() };
-    let unet = VideoUNet::load(weights, None, &cfg.unet, &Device::Cpu).map_err(|e| merr(&e))?;
-    let vae = AutoencoderKL::load(weights, None, &cfg.vae, &Device::Cpu).map_err(|e| merr(&e))?;
+    let unet = VideoUNet::load_as(weights, None, &cfg.unet, &p.device, p.refiner_dtype).map_err(|e| merr(&e))?;
+    let vae = AutoencoderKL::load_as(weights, None, &cfg.vae, &p.device, p.refiner_dtype).map_err(|e| merr(&e))?;
     let sampler = SamplerConfig { num_steps: s.steps, min_scale: s.guidance_min, max_scale: s.guidance_max, num_splits, ..SamplerConfig::default() };
     let rc = RefinerConfig { sampler, scale_factor: cfg.vae.scale_factor as f32, decode_chunk: Some(s.vae_chunk), ..RefinerConfig::default() };
     Ok(RefinerModules { refiner: Refiner::new(unet, rc), vae })
@@ -321,7 +327,7 @@ pub fn refine_frames_timed(
     let (c, h, w) = feats[0].dims3().map_err(compute("refiner"))?;
     let shape = m.refiner.noise_shape(&[1, window, c, h, w]);
     // One noise for every window (the official sampler draws it once per video).
-    let noise = seeded_noise(s.seed, &shape, &Device::Cpu).map_err(compute("refiner"))?;
+    let noise = seeded_noise(s.seed, &shape, &p.device).map_err(compute("refiner"))?;
     let mut out = Vec::with_capacity(n);
     for (start, len) in wins {
         let mut fr: Vec<&Tensor> = feats[start..start + len].iter().collect();
@@ -571,6 +577,8 @@ pub fn run(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSummary
             "far": far,
             "refiner": refine_file.is_some(),
             "refine": req.refine,
+            "device": req.model.compute.device.to_string(),
+            "refiner_dtype": p.refiner_dtype.as_str(),
             "fps": req.fps,
         },
         "frames": final_frames.len(),

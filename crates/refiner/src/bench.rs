@@ -9,6 +9,7 @@ use crate::sampling::{guided_unet_input, v_scaling_edm};
 use crate::unet::util::timestep_embedding;
 use crate::unet::{UNetError, UNetInputs, VideoUNet, VideoUNetConfig};
 use crate::vae::{AutoencoderConfig, AutoencoderKL};
+use mvsplat360_nn::bench::median;
 
 /// Peak resident set size of this process in MiB (Linux `VmHWM`), None elsewhere.
 pub fn peak_rss_mib() -> Option<f64> {
@@ -18,10 +19,6 @@ pub fn peak_rss_mib() -> Option<f64> {
     Some(kb / 1024.0)
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(|a, b| a.total_cmp(b));
-    v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
-}
 
 /// Time `runs` guided UNet steps (batch 2·frames: [uncond; cond]) of the MVSplat360 config with random
 /// weights on `threads` threads (0 = all cores; the JSON's `threads` is the pool size that ran); `vae_decode_ms` is measured only when a decoder is given.
@@ -114,16 +111,7 @@ mod tests {
     use super::*;
 
     fn tiny() -> VideoUNetConfig {
-        VideoUNetConfig {
-            model_channels: 32,
-            channel_mult: vec![1, 2],
-            attention_resolutions: vec![1, 2],
-            num_res_blocks: 1,
-            num_head_channels: 16,
-            context_dim: 32,
-            adm_in_channels: Some(32),
-            ..VideoUNetConfig::default()
-        }
+        VideoUNetConfig::tiny()
     }
 
     /// `threads` 0 means all cores (it used to run on one), any other value that many; the JSON says which.

@@ -17,16 +17,7 @@ fn rel_diff(a: &Tensor, b: &Tensor) -> f32 {
 }
 
 fn tiny_unet_cfg() -> VideoUNetConfig {
-    VideoUNetConfig {
-        model_channels: 32,
-        channel_mult: vec![1, 2],
-        attention_resolutions: vec![1, 2],
-        num_res_blocks: 1,
-        num_head_channels: 16,
-        context_dim: 32,
-        adm_in_channels: Some(32),
-        ..VideoUNetConfig::default()
-    }
+    VideoUNetConfig::tiny()
 }
 
 /// Every `Var` gets a gradient with a non-zero entry; returns how many were checked.

@@ -16,6 +16,7 @@
 //   rast_render_bwd            grid = tiles, block = 16x16; atomically accumulates per-Gaussian gradients
 //                              (output buffers zeroed before)
 //   rast_preprocess_bwd        per Gaussian chain rule: 2D -> 3D covariance, scales/quats, means, SH
+//   rast_unpack_cols/pack_cols the candle op's packed per-Gaussian matrix <-> per-field buffers (src/cuda.rs)
 //
 // Camera / settings travel as one float array `params` (layout P_*); images are planar (C,H,W).
 //
@@ -282,6 +283,24 @@ extern "C" __global__ void rast_preprocess(int n, const float* __restrict__ mean
 
 // Exclusive scan inside each block of BLOCK_SIZE (= blockDim.x) values; block totals go to block_sums
 // (to be scanned themselves, then added back by rast_scan_add).
+// The candle op's packed per-Gaussian matrix (row-major n x d): columns [c0, c0 + cw) to a contiguous n x cw
+// buffer and back (1-D over n * cw threads).
+extern "C" __global__ void rast_unpack_cols(int n, int d, int c0, int cw, const float* __restrict__ packed,
+                                            float* __restrict__ out) {
+    const int i = blockIdx.x * blockDim.x + threadIdx.x;
+    if (i >= n * cw) return;
+    const int r = i / cw;
+    out[i] = packed[r * d + c0 + (i - r * cw)];
+}
+
+extern "C" __global__ void rast_pack_cols(int n, int d, int c0, int cw, const float* __restrict__ in,
+                                          float* __restrict__ packed) {
+    const int i = blockIdx.x * blockDim.x + threadIdx.x;
+    if (i >= n * cw) return;
+    const int r = i / cw;
+    packed[r * d + c0 + (i - r * cw)] = in[i];
+}
+
 extern "C" __global__ void rast_scan_block(const unsigned* __restrict__ in, unsigned* __restrict__ out,
                                            unsigned* __restrict__ block_sums, int n) {
     __shared__ unsigned buf[2 * BLOCK_SIZE];

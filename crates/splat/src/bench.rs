@@ -9,6 +9,7 @@ use rayon::prelude::*;
 use crate::camera::RasterCamera;
 use crate::cpu::{self, CovInput, GradMode, PixelGrads, RasterInputs, RasterSettings};
 use crate::error::{input_err, Result};
+use mvsplat360_nn::bench::median;
 
 /// Workload of [`run_raster_bench`].
 #[derive(Debug, Clone)]
@@ -192,10 +193,6 @@ pub fn synthetic_scene(n: usize, w: usize, h: usize, nf: usize) -> SyntheticScen
     s
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(|a, b| a.total_cmp(b));
-    v[v.len() / 2]
-}
 
 /// Run the benchmark; returns `{"bench":"raster","gaussians":N,"width":W,"height":H,"features":C,
 /// "forward_ms":…,"forward_backward_ms":…}` (plus `pairs`, the tile-Gaussian pair count, and `threads`).

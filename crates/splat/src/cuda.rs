@@ -8,7 +8,7 @@
 use std::sync::Arc;
 
 use cudarc::driver::{
-    CudaContext, CudaFunction, CudaModule, CudaSlice, CudaStream, DeviceRepr, LaunchConfig,
+    CudaContext, CudaFunction, CudaModule, CudaSlice, CudaStream, CudaView, DeviceRepr, LaunchConfig,
     PushKernelArg, ValidAsZeroBits,
 };
 use cudarc::nvrtc::Ptx;
@@ -79,6 +79,8 @@ struct Kernels {
     render_fwd: CudaFunction,
     render_bwd: CudaFunction,
     preprocess_bwd: CudaFunction,
+    unpack_cols: CudaFunction,
+    pack_cols: CudaFunction,
 }
 
 /// The loaded kernels and the stream they run on.
@@ -89,11 +91,13 @@ pub struct CudaRasterizer {
 }
 
 /// Device copies of the inputs and the forward state the backward reuses.
-struct DeviceState {
+pub struct DeviceState {
     n: usize,
     k: usize,
     deg: i32,
     nf: usize,
+    width: usize,
+    height: usize,
     params: CudaSlice<f32>,
     means: CudaSlice<f32>,
     /// cov3d (6 per Gaussian) or scales (3) + quats (4).
@@ -151,7 +155,13 @@ impl CudaRasterizer {
     pub fn new(ordinal: usize) -> Result<Self> {
         let ctx = CudaContext::new(ordinal).map_err(cuda_err)?;
         let stream = ctx.new_stream().map_err(cuda_err)?;
-        let module = ctx.load_module(Ptx::from_src(PTX)).map_err(|e| {
+        Self::on_stream(stream)
+    }
+
+    /// Load the kernels into the context of `stream` and launch them on it (candle's stream, so that the
+    /// rasterizer is ordered with candle's ops without synchronising).
+    pub fn on_stream(stream: Arc<CudaStream>) -> Result<Self> {
+        let module = stream.context().load_module(Ptx::from_src(PTX)).map_err(|e| {
             cuda_err(format!(
                 "loading the kernels' PTX ({}) failed: {e} (a driver older than the nvcc that built it cannot \
                  JIT it; MVSPLAT360_CUDA_ARCH picks the target)",
@@ -170,6 +180,8 @@ impl CudaRasterizer {
             render_fwd: f("rast_render_fwd")?,
             render_bwd: f("rast_render_bwd")?,
             preprocess_bwd: f("rast_preprocess_bwd")?,
+            unpack_cols: f("rast_unpack_cols")?,
+            pack_cols: f("rast_pack_cols")?,
         };
         Ok(Self {
             stream,
@@ -237,42 +249,61 @@ impl CudaRasterizer {
         inp.validate()?;
         s.camera.validate()?;
         let (n, nf, kc) = (inp.len(), inp.num_features, inp.sh_coeffs);
-        if nf > MAX_FEATURES {
-            return Err(input_err(
-                "features",
-                format!("the CUDA kernels take at most {MAX_FEATURES} channels"),
-            ));
-        }
-        let (w, h) = (s.camera.width, s.camera.height);
-        let (gx, gy) = (w.div_ceil(TILE), h.div_ceil(TILE));
-        let hw = w * h;
-        // The kernels index with 32-bit `int`: 6 * n (d_cov3d), 3 * W * H (planar rgb).
-        if n > i32::MAX as usize / 6 {
-            return Err(input_err(
-                "means",
-                format!("the CUDA kernels take at most {} Gaussians", i32::MAX / 6),
-            ));
-        }
-        if hw > i32::MAX as usize / 3 {
-            return Err(input_err(
-                "camera",
-                format!("the CUDA kernels take at most {} pixels", i32::MAX / 3),
-            ));
-        }
-        let deg = inp.eval_degree() as i32;
-        let (n_i, k_i, nf_i, w_i, h_i) = (n as i32, kc as i32, nf as i32, w as i32, h as i32);
-
-        // Kept alive until the downloads below synchronize the stream (the upload reads it).
-        let params_host = params_of(s);
-        let params = self.up(&params_host)?;
-        let means = self.up(inp.means)?;
+        check_limits(n, nf, s)?;
         let (cov, rot) = match inp.cov {
             CovInput::Cov3d(c) => (self.up(c)?, None),
             CovInput::ScaleRot { scales, quats } => (self.up(scales)?, Some(self.up(quats)?)),
         };
-        let opac = self.up(inp.opacities)?;
-        let sh = self.up(inp.sh)?;
-        let features = self.up(inp.features)?;
+        let di = DeviceInputs {
+            n,
+            k: kc,
+            deg: inp.eval_degree() as i32,
+            nf,
+            means: self.up(inp.means)?,
+            cov,
+            rot,
+            opacities: self.up(inp.opacities)?,
+            sh: self.up(inp.sh)?,
+            features: self.up(inp.features)?,
+        };
+        let f = self.run_forward(di, s)?;
+        let hw = s.camera.width * s.camera.height;
+        let d = &f.state;
+        let conic4 = self.down(&d.conic_opacity, 4 * n)?;
+        Ok(CudaForward {
+            width: s.camera.width,
+            height: s.camera.height,
+            num_features: nf,
+            rgb: self.down(&f.rgb, 3 * hw)?,
+            features: self.down(&f.feat, nf * hw)?,
+            alpha: self.down(&f.alpha, hw)?,
+            depth: self.down(&f.depth, hw)?,
+            final_t: self.down(&d.final_t, hw)?,
+            n_contrib: self.down(&d.n_contrib, hw)?,
+            radii: self.down(&d.radii, n)?,
+            tiles_touched: f.tiles_touched,
+            means2d: self.down(&d.means2d, 2 * n)?,
+            depths: self.down(&d.depths, n)?,
+            cov2d: self.down(&f.cov2d, 3 * n)?,
+            conic: conic4.chunks(4).flat_map(|c| [c[0], c[1], c[2]]).collect(),
+            colors: self.down(&d.colors, 3 * n)?,
+            num_pairs: f.pairs,
+            dev: f.state,
+        })
+    }
+
+    /// The launch sequence of the forward on inputs already on the device. Synchronises once, to read the
+    /// pair count.
+    fn run_forward(&self, inp: DeviceInputs, s: &RasterSettings) -> Result<DeviceForward> {
+        let DeviceInputs { n, k: kc, deg, nf, means, cov, rot, opacities: opac, sh, features } = inp;
+        let (w, h) = (s.camera.width, s.camera.height);
+        let (gx, gy) = (w.div_ceil(TILE), h.div_ceil(TILE));
+        let hw = w * h;
+        let (n_i, k_i, nf_i, w_i, h_i) = (n as i32, kc as i32, nf as i32, w as i32, h as i32);
+
+        // Kept alive until the download of `tiles` below synchronizes the stream (the upload reads it).
+        let params_host = params_of(s);
+        let params = self.up(&params_host)?;
 
         let mut radii = self.zeros::<i32>(n)?;
         let mut means2d = self.zeros::<f32>(2 * n)?;
@@ -309,9 +340,10 @@ impl CudaRasterizer {
         }
 
         // Binning. The pair count (emulate_main.cpp: offsets[n-1] + tiles[n-1] after the scan) is the sum of
-        // tiles_touched, summed here in u64 from the download the output needs anyway, so a total past the
-        // kernels' u32 range is an error instead of a wrapped scan.
+        // tiles_touched, summed here in u64, so a total past the kernels' u32 range is an error instead of a
+        // wrapped scan.
         let tiles_touched = self.down(&tiles, n)?;
+        drop(params_host);
         let pairs64: u64 = tiles_touched.iter().map(|&t| u64::from(t)).sum();
         if pairs64 > MAX_PAIRS {
             return Err(input_err(
@@ -377,11 +409,6 @@ impl CudaRasterizer {
         let mut depth = self.zeros::<f32>(hw)?;
         let mut final_t = self.zeros::<f32>(hw)?;
         let mut n_contrib = self.zeros::<u32>(hw)?;
-        let tiles_cfg = LaunchConfig {
-            grid_dim: (gx as u32, gy as u32, 1),
-            block_dim: (TILE as u32, TILE as u32, 1),
-            shared_mem_bytes: 0,
-        };
         {
             let mut b = self.stream.launch_builder(&self.k.render_fwd);
             b.arg(&ranges)
@@ -399,33 +426,23 @@ impl CudaRasterizer {
                 .arg(&mut final_t)
                 .arg(&mut n_contrib);
             // SAFETY: argument types and lengths match rast_render_fwd.
-            unsafe { b.launch(tiles_cfg) }.map_err(cuda_err)?;
+            unsafe { b.launch(tiles_grid(w, h)) }.map_err(cuda_err)?;
         }
-
-        let conic4 = self.down(&conic_opacity, 4 * n)?;
-        Ok(CudaForward {
-            width: w,
-            height: h,
-            num_features: nf,
-            rgb: self.down(&rgb, 3 * hw)?,
-            features: self.down(&feat, nf * hw)?,
-            alpha: self.down(&alpha, hw)?,
-            depth: self.down(&depth, hw)?,
-            final_t: self.down(&final_t, hw)?,
-            n_contrib: self.down(&n_contrib, hw)?,
-            radii: self.down(&radii, n)?,
+        Ok(DeviceForward {
+            rgb,
+            feat,
+            alpha,
+            depth,
+            cov2d,
             tiles_touched,
-            means2d: self.down(&means2d, 2 * n)?,
-            depths: self.down(&depths, n)?,
-            cov2d: self.down(&cov2d, 3 * n)?,
-            conic: conic4.chunks(4).flat_map(|c| [c[0], c[1], c[2]]).collect(),
-            colors: self.down(&colors, 3 * n)?,
-            num_pairs: pairs,
-            dev: DeviceState {
+            pairs,
+            state: DeviceState {
                 n,
                 k: kc,
                 deg,
                 nf,
+                width: w,
+                height: h,
                 params,
                 means,
                 cov,
@@ -456,21 +473,17 @@ impl CudaRasterizer {
     ) -> Result<Gradients> {
         let d = &fwd.dev;
         let (n, nf, kc) = (d.n, d.nf, d.k);
-        let (w, h) = (fwd.width, fwd.height);
-        let hw = w * h;
+        let hw = fwd.width * fwd.height;
         if grads.rgb.len() != 3 * hw || grads.features.len() != nf * hw {
             return Err(input_err(
                 "pixel gradients",
                 format!("expected 3x{hw} rgb and {nf}x{hw} feature values"),
             ));
         }
-        let (w_i, h_i, nf_i, n_i, k_i) = (w as i32, h as i32, nf as i32, n as i32, kc as i32);
-        let dl_rgb = self.up(grads.rgb)?;
-        let dl_feat = self.up(grads.features)?;
-        let exact = i32::from(mode == GradMode::Exact);
+        let exact = mode == GradMode::Exact;
         let extra = |g: Option<&[f32]>| -> Result<Option<CudaSlice<f32>>> {
             match g {
-                Some(v) if exact == 1 => {
+                Some(v) if exact => {
                     if v.len() != hw {
                         return Err(input_err(
                             "pixel gradients",
@@ -482,20 +495,58 @@ impl CudaRasterizer {
                 _ => Ok(None),
             }
         };
+        let dl_rgb = self.up(grads.rgb)?;
+        let dl_feat = self.up(grads.features)?;
         let dl_alpha = extra(grads.alpha)?;
         let dl_depth = extra(grads.depth)?;
+        let g = self.run_backward(
+            d,
+            &dl_rgb.slice(..),
+            &dl_feat.slice(..),
+            dl_alpha.as_ref().map(|a| a.slice(..)).as_ref(),
+            dl_depth.as_ref().map(|a| a.slice(..)).as_ref(),
+            exact,
+        )?;
+        let scale_rot = d.rot.is_some();
+        Ok(Gradients {
+            means: self.down(&g.means, 3 * n)?,
+            cov3d: self.down(&g.cov, 6 * n)?,
+            scales: if scale_rot {
+                Some(self.down(&g.scales, 3 * n)?)
+            } else {
+                None
+            },
+            quats: if scale_rot {
+                Some(self.down(&g.quats, 4 * n)?)
+            } else {
+                None
+            },
+            opacities: self.down(&g.opacities, n)?,
+            sh: self.down(&g.sh, n * kc * 3)?,
+            features: self.down(&g.features, n * nf)?,
+            means2d_ndc: self.down(&g.means2d, 2 * n)?,
+        })
+    }
+
+    /// The launch sequence of the backward, pixel gradients on the device (planar, as the forward's images).
+    fn run_backward(
+        &self,
+        d: &DeviceState,
+        dl_rgb: &CudaView<f32>,
+        dl_feat: &CudaView<f32>,
+        dl_alpha: Option<&CudaView<f32>>,
+        dl_depth: Option<&CudaView<f32>>,
+        exact: bool,
+    ) -> Result<DeviceGrads> {
+        let (n, nf, kc) = (d.n, d.nf, d.k);
+        let (w_i, h_i, nf_i, n_i, k_i) = (d.width as i32, d.height as i32, nf as i32, n as i32, kc as i32);
+        let exact = i32::from(exact);
         let mut g_depth = self.zeros::<f32>(n)?;
         let mut g_m2 = self.zeros::<f32>(2 * n)?;
         let mut g_conic = self.zeros::<f32>(3 * n)?;
         let mut g_op = self.zeros::<f32>(n)?;
         let mut g_col = self.zeros::<f32>(3 * n)?;
         let mut g_feat = self.zeros::<f32>(n * nf)?;
-        let (gx, gy) = (w.div_ceil(TILE), h.div_ceil(TILE));
-        let tiles_cfg = LaunchConfig {
-            grid_dim: (gx as u32, gy as u32, 1),
-            block_dim: (TILE as u32, TILE as u32, 1),
-            shared_mem_bytes: 0,
-        };
         let null = 0u64;
         {
             let mut b = self.stream.launch_builder(&self.k.render_bwd);
@@ -512,16 +563,16 @@ impl CudaRasterizer {
                 .arg(&d.params)
                 .arg(&d.final_t)
                 .arg(&d.n_contrib)
-                .arg(&dl_rgb)
-                .arg(&dl_feat);
-            // dl_alpha, dl_depth: null when absent.
-            match &dl_alpha {
-                Some(a) => b.arg(a),
-                None => b.arg(&null),
+                .arg(dl_rgb)
+                .arg(dl_feat);
+            // dl_alpha, dl_depth: null when absent (the official mode never reads them).
+            match (dl_alpha, exact) {
+                (Some(a), 1) => b.arg(a),
+                _ => b.arg(&null),
             };
-            match &dl_depth {
-                Some(a) => b.arg(a),
-                None => b.arg(&null),
+            match (dl_depth, exact) {
+                (Some(a), 1) => b.arg(a),
+                _ => b.arg(&null),
             };
             b.arg(&exact)
                 .arg(&mut g_m2)
@@ -531,7 +582,7 @@ impl CudaRasterizer {
                 .arg(&mut g_feat)
                 .arg(&mut g_depth);
             // SAFETY: argument types and lengths match rast_render_bwd.
-            unsafe { b.launch(tiles_cfg) }.map_err(cuda_err)?;
+            unsafe { b.launch(tiles_grid(d.width, d.height)) }.map_err(cuda_err)?;
         }
         let mut d_means = self.zeros::<f32>(3 * n)?;
         let mut d_cov = self.zeros::<f32>(6 * n)?;
@@ -564,24 +615,179 @@ impl CudaRasterizer {
             // SAFETY: argument types and lengths match rast_preprocess_bwd.
             unsafe { b.launch(lin(n)) }.map_err(cuda_err)?;
         }
-        let scale_rot = d.rot.is_some();
-        Ok(Gradients {
-            means: self.down(&d_means, 3 * n)?,
-            cov3d: self.down(&d_cov, 6 * n)?,
-            scales: if scale_rot {
-                Some(self.down(&d_scales, 3 * n)?)
-            } else {
-                None
-            },
-            quats: if scale_rot {
-                Some(self.down(&d_quats, 4 * n)?)
-            } else {
-                None
-            },
-            opacities: self.down(&g_op, n)?,
-            sh: self.down(&d_sh, n * kc * 3)?,
-            features: self.down(&g_feat, n * nf)?,
-            means2d_ndc: self.down(&g_m2, 2 * n)?,
+        Ok(DeviceGrads {
+            means: d_means,
+            cov: d_cov,
+            scales: d_scales,
+            quats: d_quats,
+            opacities: g_op,
+            sh: d_sh,
+            features: g_feat,
+            means2d: g_m2,
         })
     }
+
+    /// Columns `[c0, c0 + cw)` of the row-major `n × d` matrix `packed` as a contiguous `n × cw` buffer.
+    fn unpack_cols(&self, packed: &CudaView<f32>, n: usize, d: usize, c0: usize, cw: usize) -> Result<CudaSlice<f32>> {
+        let mut out = self.zeros::<f32>(n * cw)?;
+        if n * cw > 0 {
+            let (n_i, d_i, c0_i, cw_i) = (n as i32, d as i32, c0 as i32, cw as i32);
+            let mut b = self.stream.launch_builder(&self.k.unpack_cols);
+            b.arg(&n_i).arg(&d_i).arg(&c0_i).arg(&cw_i).arg(packed).arg(&mut out);
+            // SAFETY: packed holds n·d values, out n·cw; argument types match rast_unpack_cols.
+            unsafe { b.launch(lin(n * cw)) }.map_err(cuda_err)?;
+        }
+        Ok(out)
+    }
+
+    /// Write the contiguous `n × cw` buffer `src` into columns `[c0, c0 + cw)` of the `n × d` matrix `packed`.
+    fn pack_cols(&self, src: &CudaSlice<f32>, packed: &mut CudaSlice<f32>, n: usize, d: usize, c0: usize, cw: usize) -> Result<()> {
+        if n * cw == 0 {
+            return Ok(());
+        }
+        let (n_i, d_i, c0_i, cw_i) = (n as i32, d as i32, c0 as i32, cw as i32);
+        let mut b = self.stream.launch_builder(&self.k.pack_cols);
+        b.arg(&n_i).arg(&d_i).arg(&c0_i).arg(&cw_i).arg(src).arg(packed);
+        // SAFETY: src holds n·cw values, packed n·d; argument types match rast_pack_cols.
+        unsafe { b.launch(lin(n * cw)) }.map_err(cuda_err)
+    }
+
+    /// Forward on the candle op's packed per-Gaussian matrix (`n` rows of means 3 | cov 6 | opacity 1 |
+    /// SH `k`·3 | features `nf`, already on this stream): the planar output rgb 3 | features `nf` | alpha 1 |
+    /// depth 1 (`(5 + nf)·H·W`, on the device), the radii (host) and the state for [`Self::backward_packed`].
+    pub fn forward_packed(
+        &self,
+        packed: &CudaView<f32>,
+        n: usize,
+        k: usize,
+        nf: usize,
+        sh_degree: usize,
+        s: &RasterSettings,
+    ) -> Result<(CudaSlice<f32>, Vec<i32>, DeviceState)> {
+        s.camera.validate()?;
+        check_limits(n, nf, s)?;
+        let d = 10 + 3 * k + nf;
+        if packed.len() != n * d || n.saturating_mul(d) > i32::MAX as usize {
+            return Err(input_err("packed Gaussians", format!("{} values for {n} rows of {d} (at most {} in all)", packed.len(), i32::MAX)));
+        }
+        if k == 0 {
+            return Err(input_err("harmonics", "need at least the DC coefficient"));
+        }
+        let mut deg = sh_degree.min(3);
+        while (deg + 1) * (deg + 1) > k && deg > 0 {
+            deg -= 1;
+        }
+        let di = DeviceInputs {
+            n,
+            k,
+            deg: deg as i32,
+            nf,
+            means: self.unpack_cols(packed, n, d, 0, 3)?,
+            cov: self.unpack_cols(packed, n, d, 3, 6)?,
+            rot: None,
+            opacities: self.unpack_cols(packed, n, d, 9, 1)?,
+            sh: self.unpack_cols(packed, n, d, 10, 3 * k)?,
+            features: self.unpack_cols(packed, n, d, 10 + 3 * k, nf)?,
+        };
+        let f = self.run_forward(di, s)?;
+        let hw = s.camera.width * s.camera.height;
+        let mut out = self.zeros::<f32>((5 + nf) * hw)?;
+        let mut at = 0;
+        for (part, len) in [(&f.rgb, 3 * hw), (&f.feat, nf * hw), (&f.alpha, hw), (&f.depth, hw)] {
+            if len > 0 {
+                self.stream.memcpy_dtod(&part.slice(..len), &mut out.slice_mut(at..at + len)).map_err(cuda_err)?;
+            }
+            at += len;
+        }
+        let radii = self.down(&f.state.radii, n)?;
+        Ok((out, radii, f.state))
+    }
+
+    /// Backward of [`Self::forward_packed`]: `grad_out` is the gradient of its output (same layout) →
+    /// the gradient of the packed matrix (`n × (10 + 3k + nf)`, on the device).
+    pub fn backward_packed(&self, d: &DeviceState, grad_out: &CudaView<f32>, mode: GradMode) -> Result<CudaSlice<f32>> {
+        let (n, k, nf) = (d.n, d.k, d.nf);
+        let hw = d.width * d.height;
+        if grad_out.len() != (5 + nf) * hw {
+            return Err(input_err("pixel gradients", format!("expected {} values, got {}", (5 + nf) * hw, grad_out.len())));
+        }
+        let g = self.run_backward(
+            d,
+            &grad_out.slice(..3 * hw),
+            &grad_out.slice(3 * hw..(3 + nf) * hw),
+            Some(&grad_out.slice((3 + nf) * hw..(4 + nf) * hw)),
+            Some(&grad_out.slice((4 + nf) * hw..(5 + nf) * hw)),
+            mode == GradMode::Exact,
+        )?;
+        let width = 10 + 3 * k + nf;
+        let mut packed = self.zeros::<f32>(n * width)?;
+        for (src, c0, cw) in [(&g.means, 0, 3), (&g.cov, 3, 6), (&g.opacities, 9, 1), (&g.sh, 10, 3 * k), (&g.features, 10 + 3 * k, nf)] {
+            self.pack_cols(src, &mut packed, n, width, c0, cw)?;
+        }
+        Ok(packed)
+    }
+}
+
+/// The kernels' size limits (32-bit indices, feature channels per thread).
+fn check_limits(n: usize, nf: usize, s: &RasterSettings) -> Result<()> {
+    if nf > MAX_FEATURES {
+        return Err(input_err("features", format!("the CUDA kernels take at most {MAX_FEATURES} channels")));
+    }
+    // The kernels index with 32-bit `int`: 6 * n (d_cov3d), 3 * W * H (planar rgb).
+    if n > i32::MAX as usize / 6 {
+        return Err(input_err("means", format!("the CUDA kernels take at most {} Gaussians", i32::MAX / 6)));
+    }
+    if s.camera.width * s.camera.height > i32::MAX as usize / 3 {
+        return Err(input_err("camera", format!("the CUDA kernels take at most {} pixels", i32::MAX / 3)));
+    }
+    Ok(())
+}
+
+/// Grid of 16×16 tiles, one thread per pixel.
+fn tiles_grid(w: usize, h: usize) -> LaunchConfig {
+    LaunchConfig {
+        grid_dim: (w.div_ceil(TILE) as u32, h.div_ceil(TILE) as u32, 1),
+        block_dim: (TILE as u32, TILE as u32, 1),
+        shared_mem_bytes: 0,
+    }
+}
+
+/// Per-Gaussian inputs on the device.
+struct DeviceInputs {
+    n: usize,
+    k: usize,
+    deg: i32,
+    nf: usize,
+    means: CudaSlice<f32>,
+    /// cov3d (6 per Gaussian) or scales (3) with `rot` quats (4).
+    cov: CudaSlice<f32>,
+    rot: Option<CudaSlice<f32>>,
+    opacities: CudaSlice<f32>,
+    sh: CudaSlice<f32>,
+    features: CudaSlice<f32>,
+}
+
+/// A forward's images and buffers, on the device.
+struct DeviceForward {
+    rgb: CudaSlice<f32>,
+    feat: CudaSlice<f32>,
+    alpha: CudaSlice<f32>,
+    depth: CudaSlice<f32>,
+    cov2d: CudaSlice<f32>,
+    /// Host copy (read for the pair count).
+    tiles_touched: Vec<u32>,
+    pairs: usize,
+    state: DeviceState,
+}
+
+/// Per-Gaussian gradients on the device (`scales`/`quats` are placeholders on the cov3d path).
+struct DeviceGrads {
+    means: CudaSlice<f32>,
+    cov: CudaSlice<f32>,
+    scales: CudaSlice<f32>,
+    quats: CudaSlice<f32>,
+    opacities: CudaSlice<f32>,
+    sh: CudaSlice<f32>,
+    features: CudaSlice<f32>,
+    means2d: CudaSlice<f32>,
 }

@@ -79,6 +79,9 @@ struct RasterOp {
     packing: Packing,
     /// Forward buffers kept for the backward pass (and to read radii).
     state: Arc<Mutex<Option<ForwardOutput>>>,
+    /// The same for a forward on the GPU: device buffers and the radii (host).
+    #[cfg(feature = "cuda")]
+    cuda_state: Arc<Mutex<Option<gpu::GpuForward>>>,
 }
 
 fn inputs<'a>(p: &Packing, sh_degree: usize, u: &'a [Vec<f32>; 5]) -> RasterInputs<'a> {
@@ -125,7 +128,17 @@ impl CustomOp1 for RasterOp {
         Ok((CpuStorage::F32(out), Shape::from((5 + nf, h, w))))
     }
 
+    #[cfg(feature = "cuda")]
+    fn cuda_fwd(&self, storage: &candle_core::CudaStorage, layout: &Layout) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
+        gpu::forward(self, storage, layout)
+    }
+
     fn bwd(&self, arg: &Tensor, _res: &Tensor, grad_res: &Tensor) -> candle_core::Result<Option<Tensor>> {
+        #[cfg(feature = "cuda")]
+        if arg.device().is_cuda() {
+            let op = gpu::RasterGradOp { mode: self.mode, rows: self.packing.n, width: self.packing.width(), state: self.cuda_state.clone() };
+            return Ok(Some(arg.apply_op2_no_bwd(&grad_res.to_dtype(DType::F32)?.contiguous()?, &op)?));
+        }
         let dev = arg.device().clone();
         let data = arg.to_device(&Device::Cpu)?.flatten_all()?.to_vec1::<f32>()?;
         let u = self.packing.unpack(&data);
@@ -210,23 +223,28 @@ pub fn render(g: &Gaussians, camera: &RasterCamera, opts: &RenderOptions) -> Res
     // The official wrapper passes the upper triangle of the covariance (cov3D_precomp).
     let cov6 = f32t(&g.covariances)?.reshape((n, 9))?.index_select(&idx, 1)?;
     let shc = f32t(&g.harmonics)?.transpose(1, 2)?.reshape((n, 3 * k))?;
-    let packed = Tensor::cat(&[&means, &cov6, &f32t(&g.opacities)?.reshape((n, 1))?, &shc, &feats], 1)?
-        .to_device(&Device::Cpu)?
-        .contiguous()?;
+    let packed = Tensor::cat(&[&means, &cov6, &f32t(&g.opacities)?.reshape((n, 1))?, &shc, &feats], 1)?;
+    // With the CUDA kernels built, a GPU tensor stays on its device; anything else runs on the CPU kernels.
+    let on_gpu = cfg!(feature = "cuda") && dev.is_cuda();
+    let packed = if on_gpu { packed } else { packed.to_device(&Device::Cpu)? }.contiguous()?;
     let state = Arc::new(Mutex::new(None));
+    #[cfg(feature = "cuda")]
+    let cuda_state = Arc::new(Mutex::new(None));
     let op = RasterOp {
         settings: RasterSettings { camera: *camera, background: opts.background },
         mode: opts.grad_mode,
         sh_degree: opts.sh_degree,
         packing: Packing { n, k, nf },
         state: state.clone(),
+        #[cfg(feature = "cuda")]
+        cuda_state: cuda_state.clone(),
     };
     let out = packed.apply_op1_arc(Arc::new(Box::new(op)))?.to_device(&dev)?;
-    let radii: Vec<u32> = state
-        .lock()
-        .ok()
-        .and_then(|s| s.as_ref().map(|f| f.radii.iter().map(|&r| r.max(0) as u32).collect()))
-        .unwrap_or_else(|| vec![0; n]);
+    let visible = |r: &[i32]| r.iter().map(|&r| r.max(0) as u32).collect::<Vec<u32>>();
+    let radii = state.lock().ok().and_then(|s| s.as_ref().map(|f| visible(&f.radii)));
+    #[cfg(feature = "cuda")]
+    let radii = radii.or_else(|| cuda_state.lock().ok().and_then(|s| s.as_ref().map(|f| visible(&f.radii))));
+    let radii = radii.unwrap_or_else(|| vec![0; n]);
     Ok(RenderOutput {
         rgb: out.narrow(0, 0, 3)?,
         features: out.narrow(0, 3, nf)?,
@@ -239,4 +257,82 @@ pub fn render(g: &Gaussians, camera: &RasterCamera, opts: &RenderOptions) -> Res
 /// Render several views of one scene (each render is itself tile-parallel).
 pub fn render_views(g: &Gaussians, cameras: &[RasterCamera], opts: &RenderOptions) -> Result<Vec<RenderOutput>> {
     cameras.iter().map(|c| render(g, c, opts)).collect()
+}
+
+/// The GPU path of the op: the kernels of `cuda/rasterize.cu` on candle's own stream, so encoder → rasterizer
+/// → refiner stay on the device (only the radii and the pair count are read back).
+#[cfg(feature = "cuda")]
+mod gpu {
+    use std::sync::{Arc, Mutex, OnceLock};
+
+    use candle_core::cuda::{CudaDevice, CudaStorage, DeviceId};
+    use candle_core::{CpuStorage, CustomOp2, Layout, Shape};
+
+    use super::{to_candle, RasterOp};
+    use crate::cpu::GradMode;
+    use crate::cuda::{CudaRasterizer, DeviceState};
+
+    pub(super) struct GpuForward {
+        pub radii: Vec<i32>,
+        pub state: DeviceState,
+    }
+
+    /// One loaded rasterizer per GPU (loading the PTX costs a JIT compile).
+    fn rasterizer(dev: &CudaDevice) -> candle_core::Result<Arc<CudaRasterizer>> {
+        static LOADED: OnceLock<Mutex<Vec<(DeviceId, Arc<CudaRasterizer>)>>> = OnceLock::new();
+        let mut loaded = LOADED.get_or_init(|| Mutex::new(Vec::new())).lock().map_err(|_| candle_core::Error::msg("rasterizer cache poisoned"))?;
+        if let Some((_, r)) = loaded.iter().find(|(id, _)| *id == dev.id()) {
+            return Ok(r.clone());
+        }
+        let r = Arc::new(CudaRasterizer::on_stream(dev.cuda_stream()).map_err(to_candle)?);
+        loaded.push((dev.id(), r.clone()));
+        Ok(r)
+    }
+
+    pub(super) fn forward(op: &RasterOp, storage: &CudaStorage, layout: &Layout) -> candle_core::Result<(CudaStorage, Shape)> {
+        let Some((a, b)) = layout.contiguous_offsets() else {
+            candle_core::bail!("gaussian-rasterizer: packed input must be contiguous")
+        };
+        let packed = storage.as_cuda_slice::<f32>()?.slice(a..b);
+        let r = rasterizer(&storage.device)?;
+        let p = &op.packing;
+        let (out, radii, state) = r.forward_packed(&packed, p.n, p.k, p.nf, op.sh_degree, &op.settings).map_err(to_candle)?;
+        if let Ok(mut st) = op.cuda_state.lock() {
+            *st = Some(GpuForward { radii, state });
+        }
+        let (w, h) = (op.settings.camera.width, op.settings.camera.height);
+        Ok((CudaStorage::wrap_cuda_slice(out, storage.device.clone()), Shape::from((5 + p.nf, h, w))))
+    }
+
+    /// Gradient of the packed input from the output's gradient (second argument), with the forward's state.
+    pub(super) struct RasterGradOp {
+        pub mode: GradMode,
+        pub rows: usize,
+        pub width: usize,
+        pub state: Arc<Mutex<Option<GpuForward>>>,
+    }
+
+    impl CustomOp2 for RasterGradOp {
+        fn name(&self) -> &'static str {
+            "gaussian-rasterizer-backward"
+        }
+
+        fn cpu_fwd(&self, _: &CpuStorage, _: &Layout, _: &CpuStorage, _: &Layout) -> candle_core::Result<(CpuStorage, Shape)> {
+            candle_core::bail!("gaussian-rasterizer-backward: GPU tensors only (the CPU backward runs in the op's bwd)")
+        }
+
+        fn cuda_fwd(&self, _: &CudaStorage, _: &Layout, g: &CudaStorage, lg: &Layout) -> candle_core::Result<(CudaStorage, Shape)> {
+            let Some((a, b)) = lg.contiguous_offsets() else {
+                candle_core::bail!("gaussian-rasterizer-backward: gradient must be contiguous")
+            };
+            let grad = g.as_cuda_slice::<f32>()?.slice(a..b);
+            let st = self.state.lock().map_err(|_| candle_core::Error::msg("rasterizer state poisoned"))?;
+            let Some(fwd) = st.as_ref() else {
+                candle_core::bail!("gaussian-rasterizer-backward: no forward state (the forward did not run on this GPU)")
+            };
+            let r = rasterizer(&g.device)?;
+            let packed = r.backward_packed(&fwd.state, &grad, self.mode).map_err(to_candle)?;
+            Ok((CudaStorage::wrap_cuda_slice(packed, g.device.clone()), Shape::from((self.rows, self.width))))
+        }
+    }
 }

@@ -7,22 +7,14 @@
 use candle_core::{Device, Tensor, Var};
 use mvsplat360_refiner::kernels;
 use mvsplat360_refiner::refiner::resize_bilinear_align_corners as resize_reference;
+use mvsplat360_refiner::refiner::seeded_noise;
 use mvsplat360_refiner::unet::{VideoUNet, VideoUNetConfig};
 use mvsplat360_refiner::vae::{AutoencoderConfig, AutoencoderKL};
 use mvsplat360_train::loss::diffusion::*;
 use rand::SeedableRng;
 
 fn tiny_unet_cfg() -> VideoUNetConfig {
-    VideoUNetConfig {
-        model_channels: 32,
-        channel_mult: vec![1, 2],
-        attention_resolutions: vec![1, 2],
-        num_res_blocks: 1,
-        num_head_channels: 16,
-        context_dim: 32,
-        adm_in_channels: Some(32),
-        ..VideoUNetConfig::default()
-    }
+    VideoUNetConfig::tiny()
 }
 
 fn tiny_vae() -> AutoencoderKL {
@@ -91,11 +83,13 @@ fn case() -> Case {
     Case {
         unet,
         vars,
-        latents: Tensor::randn(0f32, 1.0, (n, 4, 4, 4), &dev).unwrap(),
-        features: Var::from_tensor(&Tensor::randn(0f32, 1.0, (n, 4, 4, 4), &dev).unwrap()).unwrap(),
-        ctx: Tensor::randn(0f32, 1.0, (1, 1, 32), &dev).unwrap(),
+        // Seeded: with unseeded draws about one in ten put a checked weight where the loss curves enough for
+        // the central difference's O(h²) error to exceed the tolerance.
+        latents: seeded_noise(21, &[n, 4, 4, 4], &dev).unwrap(),
+        features: Var::from_tensor(&seeded_noise(22, &[n, 4, 4, 4], &dev).unwrap()).unwrap(),
+        ctx: seeded_noise(23, &[1, 1, 32], &dev).unwrap(),
         sigmas: vec![0.6, 1.3, 3.1],
-        noise: Tensor::randn(0f32, 1.0, (n, 4, 4, 4), &dev).unwrap(),
+        noise: seeded_noise(24, &[n, 4, 4, 4], &dev).unwrap(),
         frames,
     }
 }

@@ -97,9 +97,12 @@ enum What {
     /// with random weights: per-stage times (median over --runs, no warm-up) and peak memory. Defaults are the
     /// paper's setting (official DL3DV configs) — hours on a CPU; `--tiny` uses the tests' tiny model.
     Scene {
-        /// Where the pipeline runs: `cpu` (`cuda` is not wired in yet and says so).
-        #[arg(long, default_value = "cpu", value_parser = ["cpu", "cuda"])]
-        device: String,
+        /// Where the pipeline runs: `cpu`, `cuda` or `cuda:N` (CUDA needs a `--features cuda` build).
+        #[arg(long, default_value = "cpu")]
+        device: mvsplat360_pipeline::compute::DeviceSpec,
+        /// Precision of the refiner: `f32`, `f16` or `bf16` (GPU only).
+        #[arg(long, default_value = "f32", value_parser = mvsplat360_pipeline::compute::parse_dtype)]
+        dtype: candle_core::DType,
         /// Context views.
         #[arg(long, default_value_t = 5)]
         views: usize,
@@ -176,10 +179,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             }
             mvsplat360_refiner::bench::run_refiner_bench(frames, latent_h, latent_w, common.threads.count(), common.runs)?
         }
-        What::Scene { device, views, height, width, frames, steps, runs, tiny, no_refiner, threads } => {
-            let device = if device == "cuda" { mvsplat360_pipeline::bench::BenchDevice::Cuda } else { mvsplat360_pipeline::bench::BenchDevice::Cpu };
+        What::Scene { device, dtype, views, height, width, frames, steps, runs, tiny, no_refiner, threads } => {
             mvsplat360_pipeline::bench::run_scene_bench(&mvsplat360_pipeline::bench::SceneBenchOpts {
                 device,
+                dtype,
                 views,
                 height,
                 width,

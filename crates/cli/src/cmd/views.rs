@@ -3,6 +3,7 @@
 
 use std::path::PathBuf;
 
+use mvsplat360_pipeline::compute::{parse_dtype, Compute, DeviceSpec};
 use mvsplat360_pipeline::model::{ModelArgs, RefinerArg};
 use mvsplat360_pipeline::preprocess::InputSize;
 use mvsplat360_pipeline::render::RefineSettings;
@@ -72,11 +73,25 @@ pub struct ModelFlags {
     /// `auto` (median camera distance to the looked-at point becomes 10) or a factor. See docs/cameras.md.
     #[arg(long, default_value = "none")]
     pub scene_scale: SceneScale,
+    /// Where the model runs: `cpu`, `cuda` (GPU 0) or `cuda:N`. CUDA needs a binary built with
+    /// `--features cuda` (see README, GPU).
+    #[arg(long, default_value = "cpu")]
+    pub device: DeviceSpec,
+    /// Precision of the refiner (UNet, VAE, CLIP): `f32`, `f16` or `bf16` (GPU only). Half precision halves the
+    /// refiner's memory and on a GPU is faster. The encoder and rasterizer always run in f32.
+    #[arg(long, default_value = "f32", value_parser = parse_dtype)]
+    pub dtype: candle_core::DType,
 }
 
 impl ModelFlags {
     pub fn model_args(&self) -> ModelArgs {
-        ModelArgs { ckpt: self.ckpt.clone(), encoder: self.encoder.clone(), refiner: self.refiner.clone(), experiment: self.experiment.clone() }
+        ModelArgs {
+            ckpt: self.ckpt.clone(),
+            encoder: self.encoder.clone(),
+            refiner: self.refiner.clone(),
+            experiment: self.experiment.clone(),
+            compute: Compute { device: self.device, refiner_dtype: self.dtype },
+        }
     }
 }
 

@@ -154,6 +154,8 @@ impl ClipLayout {
 pub struct ClipImageEmbedder {
     pub cfg: ClipVisionConfig,
     visual: VisionTransformer,
+    /// Weights' dtype: pixels are cast to it, embeddings come back as f32.
+    dtype: DType,
 }
 
 impl ClipImageEmbedder {
@@ -161,6 +163,11 @@ impl ClipImageEmbedder {
     /// missing / unexpected / wrongly shaped keys are one error listing them; other components of a full
     /// checkpoint (UNet, VAE, text tower) are ignored. f16/bf16 are upcast to f32.
     pub fn load(path: &Path, layout: Option<ClipLayout>, cfg: &ClipVisionConfig, device: &Device) -> Result<Self, ClipError> {
+        Self::load_as(path, layout, cfg, device, DType::F32)
+    }
+
+    /// [`Self::load`] computing in `dtype` (f16/bf16); embeddings come back as f32.
+    pub fn load_as(path: &Path, layout: Option<ClipLayout>, cfg: &ClipVisionConfig, device: &Device, dtype: DType) -> Result<Self, ClipError> {
         cfg.validate().map_err(|msg| ClipError::Config { path: path.to_path_buf(), msg })?;
         let st = weights::open_safetensors(path)?;
         let layout = match layout {
@@ -185,22 +192,28 @@ impl ClipImageEmbedder {
         if w.is_empty() {
             return Err(WeightsError::UnknownLayout { path: path.to_path_buf(), what: "CLIP vision".into(), expected: format!("layout {layout:?}") }.into());
         }
+        let w = w.with_dtype(dtype);
         let visual = VisionTransformer::load(&w, cfg)?;
         w.finish()?;
-        Ok(Self { cfg: cfg.clone(), visual })
+        Ok(Self { cfg: cfg.clone(), visual, dtype })
     }
 
     /// Seeded random weights with the given config (benchmarks).
     pub fn random(cfg: &ClipVisionConfig, seed: u64, device: &Device) -> Result<Self, ClipError> {
+        Self::random_as(cfg, seed, device, DType::F32)
+    }
+
+    /// [`Self::random`] computing in `dtype` (the same values, rounded).
+    pub fn random_as(cfg: &ClipVisionConfig, seed: u64, device: &Device, dtype: DType) -> Result<Self, ClipError> {
         cfg.validate().map_err(|msg| ClipError::Config { path: PathBuf::from("<ClipVisionConfig>"), msg })?;
-        let visual = VisionTransformer::load(&StrictWeights::random(seed, "CLIP vision", device), cfg)?;
-        Ok(Self { cfg: cfg.clone(), visual })
+        let visual = VisionTransformer::load(&StrictWeights::random(seed, "CLIP vision", device).with_dtype(dtype), cfg)?;
+        Ok(Self { cfg: cfg.clone(), visual, dtype })
     }
 
     /// Build from any weight source (crate-internal: random state dicts).
     pub(crate) fn build_with(w: &StrictWeights, cfg: &ClipVisionConfig) -> Result<Self, ClipError> {
         let visual = VisionTransformer::load(w, cfg)?;
-        Ok(Self { cfg: cfg.clone(), visual })
+        Ok(Self { cfg: cfg.clone(), visual, dtype: w.dtype() })
     }
 
     /// Already preprocessed pixels (N, 3, image_size, image_size) → (N, output_dim).
@@ -210,7 +223,7 @@ impl ClipImageEmbedder {
         if c != 3 || h != s || w != s {
             return Err(ClipError::Input(format!("expected (N, 3, {s}, {s}) pixels, got {:?}", pixels.dims())));
         }
-        Ok(self.visual.forward(&pixels.to_dtype(DType::F32)?.contiguous()?, &self.cfg)?)
+        Ok(self.visual.forward(&pixels.to_dtype(self.dtype)?.contiguous()?, &self.cfg)?.to_dtype(DType::F32)?)
     }
 
     /// Views (N, 3, H, W) in [0, 1] → CLIP image embeddings (N, output_dim), preprocessing included.

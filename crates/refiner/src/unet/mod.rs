@@ -12,7 +12,7 @@ pub mod weights;
 
 use std::path::{Path, PathBuf};
 
-use candle_core::Device;
+use candle_core::{DType, Device};
 use serde::{Deserialize, Serialize};
 
 pub use video_model::{UNetInputs, VideoResBlock, VideoUNet};
@@ -110,6 +110,21 @@ fn usize_list(v: &serde_json::Value, key: &str, n: usize, path: &Path) -> Result
 }
 
 impl VideoUNetConfig {
+    /// A 2-level, 32-channel UNet with every block kind (tests, smoke benches); 8 input channels, 32-wide
+    /// context and vector condition.
+    pub fn tiny() -> Self {
+        Self {
+            model_channels: 32,
+            channel_mult: vec![1, 2],
+            attention_resolutions: vec![1, 2],
+            num_res_blocks: 1,
+            num_head_channels: 16,
+            context_dim: 32,
+            adm_in_channels: Some(32),
+            ..Self::default()
+        }
+    }
+
     /// From a diffusers `UNetSpatioTemporalConditionModel` `config.json`.
     pub fn from_diffusers_json(path: &Path) -> Result<Self, UNetError> {
         let text = std::fs::read_to_string(path).map_err(|e| UNetError::Config { path: path.to_path_buf(), msg: e.to_string() })?;
@@ -190,8 +205,14 @@ impl VideoUNet {
     /// Load from a safetensors file (layout auto-detected unless given), strict: any missing, unexpected or
     /// wrongly shaped key is an error that lists them. f16/bf16 are upcast to f32; one copy of the weights.
     pub fn load(path: &Path, layout: Option<UNetLayout>, cfg: &VideoUNetConfig, device: &Device) -> Result<Self, UNetError> {
+        Self::load_as(path, layout, cfg, device, DType::F32)
+    }
+
+    /// [`Self::load`] computing in `dtype` (f16/bf16: half the weight memory; inputs are cast, the output
+    /// comes back as f32).
+    pub fn load_as(path: &Path, layout: Option<UNetLayout>, cfg: &VideoUNetConfig, device: &Device, dtype: DType) -> Result<Self, UNetError> {
         cfg.validate()?;
-        let w = Weights::from_file(path, layout, cfg, device)?;
+        let w = Weights::from_file(path, layout, cfg, device)?.with_dtype(dtype);
         let model = VideoUNet::new(cfg, &w)?;
         w.finish()?;
         Ok(model)
@@ -210,8 +231,13 @@ impl VideoUNet {
 
     /// Seeded random weights with the given config (benchmarks).
     pub fn random(cfg: &VideoUNetConfig, seed: u64, device: &Device) -> Result<Self, UNetError> {
+        Self::random_as(cfg, seed, device, DType::F32)
+    }
+
+    /// [`Self::random`] computing in `dtype` (the same values, rounded).
+    pub fn random_as(cfg: &VideoUNetConfig, seed: u64, device: &Device, dtype: DType) -> Result<Self, UNetError> {
         cfg.validate()?;
-        let w = Weights::random(seed, device);
+        let w = Weights::random(seed, device).with_dtype(dtype);
         Ok(VideoUNet::new(cfg, &w)?)
     }
 

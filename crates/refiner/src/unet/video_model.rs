@@ -1,6 +1,6 @@
 //! sgm `video_model.py`: `VideoResBlock` and `VideoUNet` (input_blocks / middle_block / output_blocks / out).
 
-use candle_core::{Result, Tensor};
+use candle_core::{DType, Result, Tensor};
 use mvsplat360_nn::conv::{Conv2dConfig, ConvEpilogue};
 
 use mvsplat360_nn::conv::{conv2d_epilogue, temporal_conv};
@@ -205,6 +205,8 @@ pub struct VideoUNet {
     output_blocks: Vec<Vec<Layer>>,
     out_norm: Norm,
     out_conv: Conv,
+    /// Weights' dtype: inputs are cast to it, the output comes back as f32.
+    dtype: DType,
 }
 
 impl VideoUNet {
@@ -289,7 +291,13 @@ impl VideoUNet {
             output_blocks,
             out_norm: norm(w, "out.0", ch, cfg.resnet_eps)?,
             out_conv: Conv::load(w, "out.2", mc, cfg.out_channels, 3, 1)?,
+            dtype: w.dtype(),
         })
+    }
+
+    /// The dtype the model computes in.
+    pub fn dtype(&self) -> DType {
+        self.dtype
     }
 
     /// `up_size`: the spatial size an upsampler must produce (the next skip connection's), when known.
@@ -320,6 +328,17 @@ impl VideoUNet {
 
     /// Model output (v-prediction) of shape (B·F, out_channels, h, w).
     pub fn forward(&self, inp: &UNetInputs) -> Result<Tensor> {
+        if self.dtype != DType::F32 {
+            // Half precision runs inside the model; callers (sampler, losses) keep f32.
+            let cast = |t: &Tensor| t.to_dtype(self.dtype);
+            let (x, context, y) = (cast(inp.x)?, cast(inp.context)?, inp.y.map(cast).transpose()?);
+            let half = UNetInputs { x: &x, context: &context, y: y.as_ref(), ..*inp };
+            return self.forward_native(&half)?.to_dtype(DType::F32);
+        }
+        self.forward_native(inp)
+    }
+
+    fn forward_native(&self, inp: &UNetInputs) -> Result<Tensor> {
         let x = inp.x;
         let n = x.dim(0)?;
         let frames = inp.num_video_frames.max(1);

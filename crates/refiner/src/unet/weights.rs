@@ -49,6 +49,8 @@ enum Source {
 pub struct Weights {
     src: Source,
     device: Device,
+    /// dtype tensors are handed out in (f32 unless [`Weights::with_dtype`]).
+    dtype: DType,
     used: RefCell<BTreeSet<String>>,
     missing: RefCell<Vec<String>>,
     mismatched: RefCell<Vec<String>>,
@@ -109,6 +111,7 @@ impl Weights {
         Self {
             src,
             device: device.clone(),
+            dtype: DType::F32,
             used: RefCell::new(BTreeSet::new()),
             missing: RefCell::new(Vec::new()),
             mismatched: RefCell::new(Vec::new()),
@@ -128,6 +131,16 @@ impl Weights {
         self
     }
 
+    /// Hand tensors out in `dtype` (f16/bf16 inference); default f32.
+    pub fn with_dtype(mut self, dtype: DType) -> Self {
+        self.dtype = dtype;
+        self
+    }
+
+    pub fn dtype(&self) -> DType {
+        self.dtype
+    }
+
     pub fn is_trainable(&self) -> bool {
         self.trainable
     }
@@ -138,6 +151,7 @@ impl Weights {
     }
 
     fn hand_out(&self, name: &str, t: Tensor) -> Result<Tensor> {
+        let t = if t.dtype() == self.dtype { t } else { t.to_dtype(self.dtype)? };
         if !self.trainable {
             return Ok(t);
         }
@@ -147,7 +161,7 @@ impl Weights {
         Ok(out)
     }
 
-    /// Tensor `name` (sgm name, no prefix) as f32 with the expected shape. Missing or wrongly shaped
+    /// Tensor `name` (sgm name, no prefix) in [`Self::dtype`] with the expected shape. Missing or wrongly shaped
     /// tensors are recorded (reported together by [`Weights::finish`]) and replaced by a zero view.
     pub fn get(&self, name: &str, shape: &[usize]) -> Result<Tensor> {
         match &self.src {
@@ -161,7 +175,7 @@ impl Weights {
             Source::File { st, map, .. } => {
                 let Some(stored) = map.get(name) else {
                     self.missing.borrow_mut().push(name.to_string());
-                    return Tensor::zeros(1, DType::F32, &self.device)?.reshape(vec![1; shape.len()])?.broadcast_as(shape);
+                    return Tensor::zeros(1, self.dtype, &self.device)?.reshape(vec![1; shape.len()])?.broadcast_as(shape);
                 };
                 self.used.borrow_mut().insert(name.to_string());
                 let mut t = st.load(stored, &self.device)?;
@@ -172,7 +186,7 @@ impl Weights {
                 }
                 if t.dims() != shape {
                     self.mismatched.borrow_mut().push(format!("{stored}: file {:?}, model {:?}", t.dims(), shape));
-                    return Tensor::zeros(1, DType::F32, &self.device)?.reshape(vec![1; shape.len()])?.broadcast_as(shape);
+                    return Tensor::zeros(1, self.dtype, &self.device)?.reshape(vec![1; shape.len()])?.broadcast_as(shape);
                 }
                 if t.dtype() != DType::F32 {
                     t = t.to_dtype(DType::F32)?;

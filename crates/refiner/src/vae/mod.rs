@@ -182,6 +182,8 @@ pub struct AutoencoderKL {
     encoder: Encoder,
     quant_conv: Option<model::Conv>,
     decoder: VideoDecoder,
+    /// Weights' dtype: inputs are cast to it, outputs come back as f32.
+    dtype: DType,
 }
 
 impl AutoencoderKL {
@@ -189,6 +191,11 @@ impl AutoencoderKL {
     /// any missing, unexpected or wrongly shaped key is an error listing them; keys of other components
     /// (UNet, conditioner) in a full checkpoint are ignored. f16/bf16 are upcast to f32.
     pub fn load(path: &Path, layout: Option<VaeLayout>, cfg: &AutoencoderConfig, device: &Device) -> Result<Self, VaeError> {
+        Self::load_as(path, layout, cfg, device, DType::F32)
+    }
+
+    /// [`Self::load`] computing in `dtype` (f16/bf16); encode/decode outputs come back as f32.
+    pub fn load_as(path: &Path, layout: Option<VaeLayout>, cfg: &AutoencoderConfig, device: &Device, dtype: DType) -> Result<Self, VaeError> {
         cfg.validate().map_err(|msg| VaeError::Config { path: path.to_path_buf(), msg })?;
         let st = weights::open_safetensors(path)?;
         let layout = match layout {
@@ -216,6 +223,7 @@ impl AutoencoderKL {
         if w.is_empty() {
             return Err(WeightsError::UnknownLayout { path: path.to_path_buf(), what: "VAE".into(), expected: format!("layout {layout:?}") }.into());
         }
+        let w = w.with_dtype(dtype);
         let model = Self::build(&w, cfg)?;
         w.finish()?;
         Ok(model)
@@ -234,8 +242,13 @@ impl AutoencoderKL {
 
     /// Seeded random weights with the given config (benchmarks).
     pub fn random(cfg: &AutoencoderConfig, seed: u64, device: &Device) -> Result<Self, VaeError> {
+        Self::random_as(cfg, seed, device, DType::F32)
+    }
+
+    /// [`Self::random`] computing in `dtype` (the same values, rounded).
+    pub fn random_as(cfg: &AutoencoderConfig, seed: u64, device: &Device, dtype: DType) -> Result<Self, VaeError> {
         cfg.validate().map_err(|msg| VaeError::Config { path: PathBuf::from("<AutoencoderConfig>"), msg })?;
-        Ok(Self::build(&StrictWeights::random(seed, "VAE", device), cfg)?)
+        Ok(Self::build(&StrictWeights::random(seed, "VAE", device).with_dtype(dtype), cfg)?)
     }
 
     /// Seeded random weights handed out as `Var`s (gradient tests), with the `Var`s by model name.
@@ -258,6 +271,7 @@ impl AutoencoderKL {
             encoder: Encoder::load(w, cfg)?,
             quant_conv: if cfg.use_quant_conv { Some(model::Conv::load(w, "quant_conv", zc, zc, 1, 1, 0)?) } else { None },
             decoder: VideoDecoder::load(w, cfg)?,
+            dtype: w.dtype(),
         })
     }
 
@@ -269,11 +283,12 @@ impl AutoencoderKL {
         if c != self.cfg.in_channels || h % f != 0 || w % f != 0 {
             return Err(VaeError::Input(format!("encode expects (N, {}, H, W) with H, W multiples of {f}, got {:?}", self.cfg.in_channels, x.dims())));
         }
-        let x = x.to_dtype(DType::F32)?.contiguous()?;
+        let x = x.to_dtype(self.dtype)?.contiguous()?;
         let mut moments = self.encoder.forward(&x)?;
         if let Some(q) = &self.quant_conv {
             moments = q.forward(&moments)?;
         }
+        let moments = moments.to_dtype(DType::F32)?;
         if !self.cfg.double_z {
             let logvar = moments.zeros_like()?;
             return Ok((moments, logvar));
@@ -291,7 +306,7 @@ impl AutoencoderKL {
         if c != self.cfg.z_channels || num_frames == 0 || n % num_frames != 0 {
             return Err(VaeError::Input(format!("decode expects (B·{num_frames}, {}, h, w), got {:?}", self.cfg.z_channels, z.dims())));
         }
-        Ok(self.decoder.forward(&z.to_dtype(DType::F32)?.contiguous()?, num_frames)?)
+        Ok(self.decoder.forward(&z.to_dtype(self.dtype)?.contiguous()?, num_frames)?.to_dtype(DType::F32)?)
     }
 
     /// sgm `decode_first_stage` chunking (`en_and_decode_n_samples_a_time`): consecutive groups of

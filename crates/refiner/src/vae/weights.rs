@@ -59,6 +59,8 @@ pub struct StrictWeights {
     missing: RefCell<Vec<String>>,
     mismatched: RefCell<Vec<String>>,
     device: Device,
+    /// dtype tensors are handed out in (f32 unless [`StrictWeights::with_dtype`]).
+    dtype: DType,
     /// Trainable mode: every tensor is handed out as a `Var` (listed here by model name).
     trainable: bool,
     vars: RefCell<Vec<(String, Var)>>,
@@ -144,9 +146,20 @@ impl StrictWeights {
             missing: RefCell::new(Vec::new()),
             mismatched: RefCell::new(Vec::new()),
             device: device.clone(),
+            dtype: DType::F32,
             trainable: false,
             vars: RefCell::new(Vec::new()),
         }
+    }
+
+    /// Hand tensors out in `dtype` (f16/bf16 inference); default f32.
+    pub fn with_dtype(mut self, dtype: DType) -> Self {
+        self.dtype = dtype;
+        self
+    }
+
+    pub fn dtype(&self) -> DType {
+        self.dtype
     }
 
     /// Hand every tensor out as a (copied) `Var`, so that a forward in the kernels' differentiable mode
@@ -162,6 +175,7 @@ impl StrictWeights {
     }
 
     fn hand_out(&self, name: &str, t: Tensor) -> candle_core::Result<Tensor> {
+        let t = if t.dtype() == self.dtype { t } else { t.to_dtype(self.dtype)? };
         if !self.trainable {
             return Ok(t);
         }
@@ -202,10 +216,10 @@ impl StrictWeights {
     }
 
     fn placeholder(&self, shape: &[usize]) -> candle_core::Result<Tensor> {
-        Tensor::zeros(shape, DType::F32, &self.device)
+        Tensor::zeros(shape, self.dtype, &self.device)
     }
 
-    /// Model tensor `name` with the expected `shape`, as f32. Missing / wrongly shaped tensors are recorded
+    /// Model tensor `name` with the expected `shape`, in [`Self::dtype`]. Missing / wrongly shaped tensors are recorded
     /// and replaced by zeros, so that [`Self::finish`] can list every problem at once.
     pub fn get(&self, name: &str, shape: &[usize]) -> candle_core::Result<Tensor> {
         if self.st.is_none() {

@@ -1,0 +1,128 @@
+//! Where the pipeline runs (`--device`) and the refiner's precision (`--dtype`).
+
+use candle_core::{DType, Device};
+
+use crate::error::{flag, Result};
+
+/// `--device`: `cpu`, `cuda` (GPU 0) or `cuda:N`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum DeviceSpec {
+    #[default]
+    Cpu,
+    Cuda(usize),
+}
+
+impl std::str::FromStr for DeviceSpec {
+    type Err = String;
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s {
+            "cpu" => Ok(Self::Cpu),
+            "cuda" => Ok(Self::Cuda(0)),
+            _ => match s.strip_prefix("cuda:").map(str::parse::<usize>) {
+                Some(Ok(n)) => Ok(Self::Cuda(n)),
+                _ => Err(format!("`{s}` is not a device: use cpu, cuda or cuda:N (N = GPU index)")),
+            },
+        }
+    }
+}
+
+impl std::fmt::Display for DeviceSpec {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Cpu => write!(f, "cpu"),
+            Self::Cuda(n) => write!(f, "cuda:{n}"),
+        }
+    }
+}
+
+impl DeviceSpec {
+    /// Open the device; a CUDA request in a build without CUDA says how to get one.
+    pub fn open(&self) -> Result<Device> {
+        match self {
+            Self::Cpu => Ok(Device::Cpu),
+            Self::Cuda(n) => {
+                if !candle_core::utils::cuda_is_available() {
+                    return Err(flag(
+                        "--device",
+                        format!(
+                            "{self}: this binary was built without CUDA; build it with `cargo build --release --features cuda` \
+                             (nvcc at build time, an NVIDIA driver at run time; see README, GPU) or use --device cpu"
+                        ),
+                    ));
+                }
+                Device::new_cuda(*n).map_err(|e| flag("--device", format!("{self}: cannot open the GPU: {e}")))
+            }
+        }
+    }
+}
+
+/// `--dtype` of the refiner (UNet, VAE, CLIP): f32 (default), f16 or bf16 (GPU only). The encoder and the
+/// rasterizer always run in f32, as in the official code.
+pub fn parse_dtype(s: &str) -> std::result::Result<DType, String> {
+    match s {
+        "f32" | "fp32" => Ok(DType::F32),
+        "f16" | "fp16" => Ok(DType::F16),
+        "bf16" => Ok(DType::BF16),
+        _ => Err(format!("`{s}` is not a refiner dtype: use f32, f16 or bf16")),
+    }
+}
+
+/// Device and refiner precision of a run.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Compute {
+    pub device: DeviceSpec,
+    pub refiner_dtype: DType,
+}
+
+impl Default for Compute {
+    fn default() -> Self {
+        Self { device: DeviceSpec::Cpu, refiner_dtype: DType::F32 }
+    }
+}
+
+impl Compute {
+    /// Open the device, refusing a precision it cannot run.
+    pub fn open(&self) -> Result<Device> {
+        if self.device == DeviceSpec::Cpu && self.refiner_dtype == DType::BF16 {
+            // candle has no bf16 matrix product on the CPU.
+            return Err(flag("--dtype", "bf16 runs on a GPU only (--device cuda); on the CPU use f16 or f32"));
+        }
+        self.device.open()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn device_and_dtype_spellings() {
+        assert_eq!("cpu".parse::<DeviceSpec>(), Ok(DeviceSpec::Cpu));
+        assert_eq!("cuda".parse::<DeviceSpec>(), Ok(DeviceSpec::Cuda(0)));
+        assert_eq!("cuda:3".parse::<DeviceSpec>(), Ok(DeviceSpec::Cuda(3)));
+        for bad in ["gpu", "cuda:", "cuda:x", "CPU", ""] {
+            let e = bad.parse::<DeviceSpec>().unwrap_err();
+            assert!(e.contains("cpu, cuda or cuda:N"), "{bad}: {e}");
+        }
+        assert_eq!(parse_dtype("bf16"), Ok(DType::BF16));
+        assert_eq!(parse_dtype("f16"), Ok(DType::F16));
+        assert_eq!(parse_dtype("f32"), Ok(DType::F32));
+        assert!(parse_dtype("f64").unwrap_err().contains("f32, f16 or bf16"));
+    }
+
+    /// Without the `cuda` feature, `--device cuda` is refused with the build instruction, not a panic.
+    #[cfg(not(feature = "cuda"))]
+    #[test]
+    fn cuda_without_the_feature_says_how_to_build_it() {
+        let e = DeviceSpec::Cuda(0).open().unwrap_err().to_string();
+        assert!(e.starts_with("--device: cuda:0:") && e.contains("--features cuda"), "{e}");
+        assert!(DeviceSpec::Cpu.open().unwrap().is_cpu());
+    }
+
+    #[test]
+    fn bf16_on_the_cpu_is_refused_by_name() {
+        let e = Compute { device: DeviceSpec::Cpu, refiner_dtype: DType::BF16 }.open().unwrap_err().to_string();
+        assert!(e.starts_with("--dtype: bf16 runs on a GPU only"), "{e}");
+        assert!(Compute { device: DeviceSpec::Cpu, refiner_dtype: DType::F16 }.open().unwrap().is_cpu());
+    }
+}
