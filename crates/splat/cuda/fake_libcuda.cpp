@@ -94,7 +94,7 @@ CUresult cuModuleGetFunction(void** f, void*, const char* name) {
     std::lock_guard<std::mutex> g(mu);
     static const char* known[] = {"rast_preprocess", "rast_scan_block", "rast_scan_add", "rast_duplicate",
                                   "rast_fill_pad", "rast_bitonic_step", "rast_tile_ranges", "rast_render_fwd",
-                                  "rast_render_bwd", "rast_preprocess_bwd"};
+                                  "rast_render_bwd", "rast_preprocess_bwd", "rast_unpack_cols", "rast_pack_cols"};
     bool ok = false;
     for (auto k : known) ok |= !strcmp(k, name);
     if (!ok) return 500;  // CUDA_ERROR_NOT_FOUND
@@ -141,6 +141,13 @@ CUresult cuMemcpyDtoHAsync_v2(void* d, CUdeviceptr s, size_t n, void*) {
     return 0;
 }
 CUresult cuMemcpyDtoH_v2(void* d, CUdeviceptr s, size_t n) { return cuMemcpyDtoHAsync_v2(d, s, n, nullptr); }
+CUresult cuMemcpyDtoDAsync_v2(CUdeviceptr d, CUdeviceptr s, size_t n, void*) {
+    check_ptr(s, n, "dtod src");
+    check_ptr(d, n, "dtod dst");
+    memmove((void*)d, (const void*)s, n);
+    return 0;
+}
+CUresult cuMemcpyDtoD_v2(CUdeviceptr d, CUdeviceptr s, size_t n) { return cuMemcpyDtoDAsync_v2(d, s, n, nullptr); }
 CUresult cuGetErrorString(CUresult, const char** s) { *s = "fakecuda error"; return 0; }
 CUresult cuGetErrorName(CUresult, const char** s) { *s = "FAKECUDA_ERROR"; return 0; }
 
@@ -169,6 +176,8 @@ CUresult cuLaunchKernel(void* f, unsigned gx, unsigned gy, unsigned gz, unsigned
     else if (name == "rast_render_fwd") run(rast_render_fwd, a, g, b, false);
     else if (name == "rast_render_bwd") run(rast_render_bwd, a, g, b, false);
     else if (name == "rast_preprocess_bwd") run(rast_preprocess_bwd, a, g, b, true);
+    else if (name == "rast_unpack_cols") run(rast_unpack_cols, a, g, b, true);
+    else if (name == "rast_pack_cols") run(rast_pack_cols, a, g, b, true);
     else abort();
     return 0;
 }

@@ -190,6 +190,11 @@ impl CudaRasterizer {
         })
     }
 
+    /// The stream the kernels run on (to place inputs for [`Self::forward_packed`]).
+    pub fn stream(&self) -> &Arc<CudaStream> {
+        &self.stream
+    }
+
     /// Upload; empty slices become one zero so every pointer is valid.
     fn up<T: DeviceRepr + ValidAsZeroBits + Copy>(&self, v: &[T]) -> Result<CudaSlice<T>> {
         if v.is_empty() {
@@ -649,7 +654,8 @@ impl CudaRasterizer {
         let mut b = self.stream.launch_builder(&self.k.pack_cols);
         b.arg(&n_i).arg(&d_i).arg(&c0_i).arg(&cw_i).arg(src).arg(packed);
         // SAFETY: src holds n·cw values, packed n·d; argument types match rast_pack_cols.
-        unsafe { b.launch(lin(n * cw)) }.map_err(cuda_err)
+        unsafe { b.launch(lin(n * cw)) }.map_err(cuda_err)?;
+        Ok(())
     }
 
     /// Forward on the candle op's packed per-Gaussian matrix (`n` rows of means 3 | cov 6 | opacity 1 |

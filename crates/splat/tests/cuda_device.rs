@@ -73,3 +73,56 @@ fn gpu_matches_cpu_and_fixture_small() {
 fn gpu_matches_cpu_and_fixture_medium() {
     run("medium.safetensors");
 }
+
+/// The candle op's packed path (`forward_packed` / `backward_packed`: one row per Gaussian, unpacked and
+/// packed by kernels) against the per-field host path above: the forward is deterministic, so images and
+/// radii must be identical; gradients (atomics) within 1e-4 × max.
+#[test]
+fn packed_path_matches_host_path() {
+    let fx = Fixture::load("small.safetensors");
+    let gpu = CudaRasterizer::new(0).expect("a CUDA device (this test needs a GPU)");
+    let inp = fx.inputs(CovPath::Cov3d);
+    let (n, k, nf) = (inp.len(), fx.sh_coeffs, fx.nf);
+    let d = 10 + 3 * k + nf;
+    let mut packed = Vec::with_capacity(n * d);
+    for i in 0..n {
+        packed.extend_from_slice(&fx.means[3 * i..3 * i + 3]);
+        packed.extend_from_slice(&fx.cov3d[6 * i..6 * i + 6]);
+        packed.push(fx.opacities[i]);
+        packed.extend_from_slice(&fx.sh[3 * k * i..3 * k * (i + 1)]);
+        packed.extend_from_slice(&fx.features[nf * i..nf * (i + 1)]);
+    }
+    let stream = gpu.stream().clone();
+    let down = |s: &cudarc::driver::CudaSlice<f32>| -> Vec<f32> {
+        let v = stream.clone_dtoh(s).unwrap();
+        stream.synchronize().unwrap();
+        v
+    };
+    let dev_packed = stream.clone_htod(&packed).unwrap();
+    let (out, radii, state) = gpu.forward_packed(&dev_packed.slice(..), n, k, nf, fx.sh_degree, &fx.settings).unwrap();
+    let out = down(&out);
+    let host = gpu.forward(&inp, &fx.settings).unwrap();
+    let hw = fx.settings.camera.width * fx.settings.camera.height;
+    assert_eq!(out.len(), (5 + nf) * hw);
+    assert!(out[..3 * hw] == host.rgb[..], "rgb");
+    assert!(out[3 * hw..(3 + nf) * hw] == host.features[..], "features");
+    assert!(out[(3 + nf) * hw..(4 + nf) * hw] == host.alpha[..], "alpha");
+    assert!(out[(4 + nf) * hw..] == host.depth[..], "depth");
+    assert_eq!(radii, host.radii);
+
+    let quarter = vec![0.25f32; hw];
+    let grad_out: Vec<f32> = [&fx.w1[..], &fx.w2[..], &quarter[..], &quarter[..]].concat();
+    let dev_grad = stream.clone_htod(&grad_out).unwrap();
+    for mode in [GradMode::Official, GradMode::Exact] {
+        let g = down(&gpu.backward_packed(&state, &dev_grad.slice(..), mode).unwrap());
+        assert_eq!(g.len(), n * d);
+        let pg = PixelGrads { rgb: &fx.w1, features: &fx.w2, alpha: Some(&quarter), depth: Some(&quarter) };
+        let want = gpu.backward(&host, &pg, mode).unwrap();
+        let col = |c0: usize, cw: usize| -> Vec<f32> { (0..n).flat_map(|i| g[i * d + c0..i * d + c0 + cw].to_vec()).collect() };
+        check_rel("packed grad means", &col(0, 3), &want.means, 1e-4);
+        check_rel("packed grad cov3d", &col(3, 6), &want.cov3d, 1e-4);
+        check_rel("packed grad opacities", &col(9, 1), &want.opacities, 1e-4);
+        check_rel("packed grad sh", &col(10, 3 * k), &want.sh, 1e-4);
+        check_rel("packed grad features", &col(10 + 3 * k, nf), &want.features, 1e-4);
+    }
+}
