@@ -20,6 +20,8 @@ pub struct TrainScene {
     pub name: String,
     pub images: Vec<ImageF32>,
     pub cameras: Vec<Camera>,
+    /// Ground-truth ray-distance maps (H·W each, infinite = sky), for the sources that know them (procedural).
+    pub depths: Option<Vec<Vec<f32>>>,
 }
 
 /// A source of scenes with a cache of what it has loaded.
@@ -58,8 +60,9 @@ impl SceneSource {
                 let s = *seed + rng.gen_range(0..*count);
                 let g = procedural::generate(s, &GenOptions { views: *views, width: *width, height: *height, samples: 2 });
                 let images = g.views.iter().map(|v| ImageF32 { width: *width, height: *height, data: v.image.clone() }).collect();
+                let depths = g.views.iter().map(|v| v.depth.clone()).collect();
                 let cameras = g.views.into_iter().map(|v| v.camera).collect();
-                Ok(TrainScene { name: g.name, images, cameras })
+                Ok(TrainScene { name: g.name, images, cameras, depths: Some(depths) })
             }
             Kind::Folder { scenes } => {
                 let i = rng.gen_range(0..scenes.len());
@@ -105,7 +108,7 @@ pub fn prepare(scene: &Scene, pre: &Preprocess) -> Result<TrainScene> {
         images.push(img);
         cameras.push(cam);
     }
-    Ok(TrainScene { name: scene.name.clone(), images, cameras })
+    Ok(TrainScene { name: scene.name.clone(), images, cameras, depths: None })
 }
 
 /// Scene folders under `path` (itself when it is a scene).

@@ -48,6 +48,9 @@ pub struct StepRecord {
     pub mse: f64,
     #[serde(default)]
     pub lpips: Option<f64>,
+    /// Depth-supervision loss (unweighted), on steps whose examples have ground-truth depth.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub depth: Option<f64>,
     /// Refiner losses (unweighted): v-prediction diffusion loss and 0.01·latent alignment.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub diffusion: Option<f64>,
@@ -167,6 +170,20 @@ pub struct Example {
     pub context_cameras: Vec<Camera>,
     pub target_images: Tensor,
     pub target_cameras: Vec<Camera>,
+    /// (V,H,W) ground-truth ray distances of the context views in model units (infinite = sky), when the
+    /// source knows them.
+    pub context_depths: Option<Tensor>,
+}
+
+/// What the encoder and rasterizer make of an example.
+pub struct Rendered {
+    /// (T,3,H,W) target renders.
+    pub rgb: Tensor,
+    /// (T,C,H,W) rendered latent features.
+    pub features: Tensor,
+    pub gaussians: Gaussians,
+    /// (V,H,W) the encoder's per-pixel ray distances of the context views.
+    pub depths: Tensor,
 }
 
 /// Randomness of optimizer step `step`, micro-batch `micro`: a pure function of the seed, so that a resumed
@@ -202,17 +219,33 @@ pub fn make_example(scene: &TrainScene, s: &SamplerSettings, near: f32, far: f32
     };
     let (ci, cc) = prep(&v.context)?;
     let (ti, tc) = prep(&v.target)?;
-    Ok(Some(Example { context_images: ci, context_cameras: cc, target_images: ti, target_cameras: tc }))
+    let context_depths = match &scene.depths {
+        Some(depths) => {
+            let (w, h) = (scene.images[v.context[0]].width as usize, scene.images[v.context[0]].height as usize);
+            let mut data = Vec::with_capacity(v.context.len() * w * h);
+            for &i in &v.context {
+                // Scaling the scene scales every distance; a flip mirrors the map with its image.
+                let mut d: Vec<f32> = depths[i].iter().map(|&x| (x as f64 * tf.scale) as f32).collect();
+                if v.flip {
+                    sampler::flip_image(&mut d, w);
+                }
+                data.extend_from_slice(&d);
+            }
+            Some(Tensor::from_vec(data, (v.context.len(), h, w), &Device::Cpu)?)
+        }
+        None => None,
+    };
+    Ok(Some(Example { context_images: ci, context_cameras: cc, target_images: ti, target_cameras: tc, context_depths }))
 }
 
 /// Encoder forward and target renders: (renders (T,3,H,W), Gaussians).
 pub fn render_example(model: &Model, ex: &Example) -> Result<(Tensor, Gaussians)> {
-    let (rgb, _, gs) = render_example_full(model, ex)?;
-    Ok((rgb, gs))
+    let r = render_example_full(model, ex)?;
+    Ok((r.rgb, r.gaussians))
 }
 
-/// As [`render_example`], also returning the rendered features (T,C,H,W).
-pub fn render_example_full(model: &Model, ex: &Example) -> Result<(Tensor, Tensor, Gaussians)> {
+/// As [`render_example`], also returning the rendered features and the encoder's depths.
+pub fn render_example_full(model: &Model, ex: &Example) -> Result<Rendered> {
     let dev = Device::Cpu;
     let v = ex.context_cameras.len();
     let k: Vec<[f64; 4]> = ex.context_cameras.iter().map(|c| c.normalized_intrinsics()).collect();
@@ -240,7 +273,8 @@ pub fn render_example_full(model: &Model, ex: &Example) -> Result<(Tensor, Tenso
         renders.push(r.rgb);
         features.push(r.features);
     }
-    Ok((Tensor::stack(&renders, 0)?, Tensor::stack(&features, 0)?, gs))
+    let depths = g.depths.i(0)?.reshape((v, ex.context_images.dim(2)?, ex.context_images.dim(3)?))?;
+    Ok(Rendered { rgb: Tensor::stack(&renders, 0)?, features: Tensor::stack(&features, 0)?, gaussians: gs, depths })
 }
 
 /// The 3DGS losses of one example: (total, mse, lpips).
@@ -354,6 +388,8 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
         settings.warm_up = if cfg.data.gap_warm_up_steps == 0 { 1.0 } else { step as f64 / cfg.data.gap_warm_up_steps as f64 };
         let mut grads: Vec<Option<Tensor>> = vec![None; adam.params.len()];
         let (mut sum_loss, mut sum_mse, mut sum_lp, mut sum_ref) = (0f64, 0f64, None::<f64>, None::<(f64, f64)>);
+        // Mean over the micro-batches whose scene has ground-truth depth.
+        let mut depth_terms = Vec::new();
         // Examples are drawn in micro-batch order (sources cache scenes); forward and backward may then run in
         // parallel, and gradients are summed in micro-batch order either way.
         let mut examples = Vec::with_capacity(accum as usize);
@@ -362,13 +398,20 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
             examples.push(draw_example(&mut sources, &weights, wsum, &settings, cfg, &mut rng)?);
         }
         let micro_step = |micro: u32, ex: &Example| -> Result<MicroResult> {
-            let (pred, feats, _) = render_example_full(&model, ex)?;
-            let (mut total, mse, lp) = losses(cfg, lpips.as_ref(), step, &pred, &ex.target_images)?;
+            let rendered = render_example_full(&model, ex)?;
+            let (pred, feats) = (&rendered.rgb, &rendered.features);
+            let (mut total, mse, lp) = losses(cfg, lpips.as_ref(), step, pred, &ex.target_images)?;
+            let mut depth_term = None;
+            if let Some(gt) = ex.context_depths.as_ref().filter(|_| cfg.train.depth_weight > 0.0) {
+                let d = crate::loss::depth_log_l1(&rendered.depths, gt, cfg.model.near, cfg.model.far)?;
+                total = (total + (&d * cfg.train.depth_weight)?)?;
+                depth_term = Some(d.to_scalar::<f32>()? as f64);
+            }
             let mut refiner_terms = None;
             if let Some(r) = model.refiner.as_ref().filter(|_| cfg.train.refiner_weight > 0.0) {
                 // A stream of its own, so adding the refiner leaves the examples' draws unchanged.
                 let mut rng = step_rng(cfg.train.seed ^ 0x5EF1_4E70_0000_0000, step, micro);
-                let rl = r.losses(&feats, &ex.target_images, &ex.context_images, &mut rng)?;
+                let rl = r.losses(feats, &ex.target_images, &ex.context_images, &mut rng)?;
                 total = (total + ((&rl.diffusion + &rl.alignment)? * cfg.train.refiner_weight)?)?;
                 refiner_terms = Some((rl.diffusion.to_scalar::<f32>()? as f64, rl.alignment.to_scalar::<f32>()? as f64));
             }
@@ -383,6 +426,7 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
                 loss: tv,
                 mse: mse.to_scalar::<f32>()? as f64,
                 lpips: lp.map(|l| l.to_scalar::<f32>()).transpose()?.map(|l| l as f64),
+                depth: depth_term,
                 refiner: refiner_terms,
                 grads,
             })
@@ -405,6 +449,7 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
             if let Some(l) = r.lpips {
                 *sum_lp.get_or_insert(0.0) += l / accum as f64;
             }
+            depth_terms.extend(r.depth);
             if let Some((d, a)) = r.refiner {
                 let s = sum_ref.get_or_insert((0.0, 0.0));
                 s.0 += d / accum as f64;
@@ -433,6 +478,7 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
             loss: sum_loss,
             mse: sum_mse,
             lpips: sum_lp,
+            depth: (!depth_terms.is_empty()).then(|| depth_terms.iter().sum::<f64>() / depth_terms.len() as f64),
             diffusion: sum_ref.map(|r| r.0),
             alignment: sum_ref.map(|r| r.1),
             lr,
@@ -462,6 +508,7 @@ struct MicroResult {
     loss: f64,
     mse: f64,
     lpips: Option<f64>,
+    depth: Option<f64>,
     refiner: Option<(f64, f64)>,
     grads: Vec<Option<Tensor>>,
 }

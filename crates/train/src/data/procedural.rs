@@ -16,6 +16,9 @@ type V3 = Vector3<f64>;
 pub struct GenView {
     /// (3, H, W) channel-major, values in [0, 1].
     pub image: Vec<f32>,
+    /// (H, W) distance from the camera centre along each pixel centre's ray (the encoder's depth
+    /// convention); infinite where the ray sees the sky.
+    pub depth: Vec<f32>,
     pub camera: Camera,
 }
 
@@ -337,13 +340,13 @@ fn build_world(rng: &mut impl Rng) -> World {
     }
 }
 
-fn render_view(world: &World, cam: &Camera, samples: u32) -> Vec<f32> {
+fn render_view(world: &World, cam: &Camera, samples: u32) -> (Vec<f32>, Vec<f32>) {
     let (w, h) = (cam.width as usize, cam.height as usize);
     let r = cam.rotation();
     let o = cam.center();
     let s = samples.max(1) as usize;
-    let mut img = vec![0f32; 3 * w * h];
-    let rows: Vec<Vec<[f32; 3]>> = (0..h)
+    let ray = |u: f64, v: f64| (r * V3::new((u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, 1.0)).normalize();
+    let rows: Vec<Vec<([f32; 3], f32)>> = (0..h)
         .into_par_iter()
         .map(|y| {
             (0..w)
@@ -353,24 +356,27 @@ fn render_view(world: &World, cam: &Camera, samples: u32) -> Vec<f32> {
                         for sx in 0..s {
                             let u = x as f64 + (sx as f64 + 0.5) / s as f64;
                             let v = y as f64 + (sy as f64 + 0.5) / s as f64;
-                            let dc = V3::new((u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, 1.0);
-                            acc += world.shade(o, (r * dc).normalize());
+                            acc += world.shade(o, ray(u, v));
                         }
                     }
                     let c = acc / (s * s) as f64;
-                    [c.x.clamp(0.0, 1.0) as f32, c.y.clamp(0.0, 1.0) as f32, c.z.clamp(0.0, 1.0) as f32]
+                    let depth = world.hit(o, ray(x as f64 + 0.5, y as f64 + 0.5)).map_or(f32::INFINITY, |hit| hit.t as f32);
+                    ([c.x.clamp(0.0, 1.0) as f32, c.y.clamp(0.0, 1.0) as f32, c.z.clamp(0.0, 1.0) as f32], depth)
                 })
                 .collect()
         })
         .collect();
+    let mut img = vec![0f32; 3 * w * h];
+    let mut depth = vec![0f32; w * h];
     for (y, row) in rows.iter().enumerate() {
-        for (x, c) in row.iter().enumerate() {
+        for (x, (c, d)) in row.iter().enumerate() {
             for k in 0..3 {
                 img[k * w * h + y * w + x] = c[k];
             }
+            depth[y * w + x] = *d;
         }
     }
-    img
+    (img, depth)
 }
 
 /// The camera loop: radius and elevation jittered per scene and per view, looking at the scene centre.
@@ -400,7 +406,13 @@ pub fn generate(seed: u64, opts: &GenOptions) -> GenScene {
     let mut rng = rand::rngs::StdRng::seed_from_u64(seed ^ 0x5EED_0F5C_E7E5);
     let world = build_world(&mut rng);
     let cams = camera_loop(&mut rng, opts.views, opts.width, opts.height);
-    let views = cams.into_iter().map(|c| GenView { image: render_view(&world, &c, opts.samples), camera: c }).collect();
+    let views = cams
+        .into_iter()
+        .map(|c| {
+            let (image, depth) = render_view(&world, &c, opts.samples);
+            GenView { image, depth, camera: c }
+        })
+        .collect();
     GenScene { name: format!("procedural-{seed}"), views, near: 1.0, far: 100.0 }
 }
 
@@ -451,7 +463,7 @@ mod tests {
         let mut rng = rand::rngs::StdRng::seed_from_u64(4);
         let cams = camera_loop(&mut rng, 5, 160, 96);
         for cam in &cams {
-            let img = render_view(&world, cam, 3);
+            let (img, _) = render_view(&world, cam, 3);
             let (w, h) = (160usize, 96usize);
             let (mut sx, mut sy, mut sw) = (0.0, 0.0, 0.0);
             for y in 0..h {
@@ -467,5 +479,63 @@ mod tests {
             let (cx, cy) = (sx / sw, sy / sw);
             assert!((cx - u).abs() < 1.0 && (cy - v).abs() < 1.0, "centroid ({cx:.2},{cy:.2}) vs projection ({u:.2},{v:.2})");
         }
+    }
+
+    /// Depth is the distance along the pixel centre's ray to the first surface: for a lone sphere on the
+    /// ground, every finite depth puts the point on the sphere (|p − c| = r) or on the ground (y = 0), the
+    /// sky's rays miss both, and the sphere's pixels are nearer than the ground behind them would be.
+    #[test]
+    fn depth_is_the_ray_distance_to_the_first_surface() {
+        let (c, r) = (V3::new(0.3, -0.9, 0.2), 0.9);
+        let plain = Material { a: V3::repeat(0.5), b: V3::repeat(0.5), pattern: Pattern::Checker(1.0), seed: 0 };
+        let world = World {
+            objects: vec![Object { shape: Shape::Sphere { c, r }, mat: plain }],
+            ground: plain,
+            light: V3::new(0.0, -1.0, 0.0),
+            sky_top: V3::zeros(),
+            sky_horizon: V3::zeros(),
+            ambient: 1.0,
+        };
+        let mut rng = rand::rngs::StdRng::seed_from_u64(9);
+        let mut cams = camera_loop(&mut rng, 3, 64, 32);
+        // The loop looks down on the ground; a level camera also sees the sky.
+        cams.push(trajectory::look_at(&cams[0], &V3::new(8.0, -1.5, 0.5), &V3::new(0.0, -1.5, 0.0), &V3::new(0.0, -1.0, 0.0)));
+        let (mut on_sphere, mut on_ground, mut sky) = (0, 0, 0);
+        for cam in &cams {
+            let (_, depth) = render_view(&world, cam, 1);
+            let (o, rot) = (cam.center(), cam.rotation());
+            for y in 0..32 {
+                for x in 0..64 {
+                    let d = (rot * V3::new((x as f64 + 0.5 - cam.cx) / cam.fx, (y as f64 + 0.5 - cam.cy) / cam.fy, 1.0)).normalize();
+                    let t = depth[y * 64 + x] as f64;
+                    // Closed forms of the two surfaces along this ray.
+                    let oc = o - c;
+                    let (b, cc) = (oc.dot(&d), oc.norm_squared() - r * r);
+                    let t_sphere = (b * b - cc >= 0.0).then(|| -b - (b * b - cc).sqrt()).filter(|&t| t > 0.0);
+                    let t_ground = (d.y > 0.0).then(|| -o.y / d.y);
+                    let want = match (t_sphere, t_ground) {
+                        (Some(a), Some(g)) => Some(a.min(g)),
+                        (a, g) => a.or(g),
+                    };
+                    match want {
+                        None => {
+                            assert!(t.is_infinite(), "pixel ({x},{y}) sees the sky but has depth {t}");
+                            sky += 1;
+                        }
+                        Some(w) => {
+                            assert!((t - w).abs() <= 1e-4 * w, "pixel ({x},{y}): depth {t}, closed form {w}");
+                            let p = o + d * t;
+                            if ((p - c).norm() - r).abs() < 1e-3 {
+                                on_sphere += 1;
+                            } else {
+                                assert!(p.y.abs() < 1e-3, "pixel ({x},{y}): point {p:?} on neither surface");
+                                on_ground += 1;
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        assert!(on_sphere > 50 && on_ground > 50 && sky > 50, "sphere {on_sphere}, ground {on_ground}, sky {sky}");
     }
 }
