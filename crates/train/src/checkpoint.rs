@@ -104,3 +104,51 @@ pub fn load_latest(out: &Path) -> Result<Option<Loaded>> {
     let optim = candle_core::safetensors::load(p.join("optimizer.safetensors"), &Device::Cpu).map_err(|e| cerr(&e))?;
     Ok(Some(Loaded { state, model, optim, path: p }))
 }
+
+/// One training run per output folder: `<out>/train.lock` holds the writer's process id while it runs and is
+/// removed when the run ends (also on Ctrl-C or an error). A lock left by a killed run is taken over, so
+/// `--resume` after SIGKILL works; a second run while the first is alive is refused instead of mixing two
+/// runs' checkpoints and logs.
+pub struct RunLock {
+    path: PathBuf,
+}
+
+impl RunLock {
+    pub fn acquire(out: &Path) -> Result<Self> {
+        let path = out.join("train.lock");
+        for _ in 0..2 {
+            match std::fs::OpenOptions::new().write(true).create_new(true).open(&path) {
+                Ok(mut f) => {
+                    use std::io::Write;
+                    writeln!(f, "{}", std::process::id()).map_err(|e| TrainError::Write { path: path.clone(), msg: e.to_string() })?;
+                    return Ok(Self { path });
+                }
+                Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
+                    let owner = std::fs::read_to_string(&path).ok().and_then(|s| s.trim().parse::<u32>().ok());
+                    if let Some(pid) = owner.filter(|&p| process_alive(p)) {
+                        return Err(TrainError::Checkpoint(format!(
+                            "{}: another training run (process {pid}) is writing to this folder; wait for it, stop it, or \
+                             choose another `train.out` (delete the file if process {pid} is not a training run)",
+                            path.display()
+                        )));
+                    }
+                    // Left by a run that was killed: take it over.
+                    std::fs::remove_file(&path).map_err(|e| TrainError::Write { path: path.clone(), msg: e.to_string() })?;
+                }
+                Err(e) => return Err(TrainError::Write { path, msg: e.to_string() }),
+            }
+        }
+        Err(TrainError::Checkpoint(format!("{}: could not take the run lock; retry", path.display())))
+    }
+}
+
+impl Drop for RunLock {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_file(&self.path);
+    }
+}
+
+/// Whether a process with this id runs (Linux: /proc; elsewhere a lock is always treated as stale).
+fn process_alive(pid: u32) -> bool {
+    cfg!(target_os = "linux") && Path::new(&format!("/proc/{pid}")).exists()
+}

@@ -294,6 +294,7 @@ pub fn losses(cfg: &TrainConfig, lpips: Option<&Lpips>, step: u64, pred: &Tensor
 pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Summary> {
     let out = cfg.train.out.clone();
     std::fs::create_dir_all(&out).map_err(|e| TrainError::Write { path: out.clone(), msg: e.to_string() })?;
+    let _lock = checkpoint::RunLock::acquire(&out)?;
     let model = Model::new(cfg)?;
     let multiple = cfg.model.encoder.image_multiple() as u32;
     let mut sources = cfg

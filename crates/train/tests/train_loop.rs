@@ -26,6 +26,7 @@ fn tiny_config_loss_decreases() {
     let spec = mvsplat360_pipeline::model::read_model_dir(&s.model_dir).unwrap();
     assert_eq!(spec.encoder.num_depth_candidates, 16);
     assert!(dir.path().join("loss.png").is_file());
+    assert!(!dir.path().join("train.lock").exists(), "a finished run leaves no lock");
 }
 
 fn write_config(dir: &std::path::Path, out: &std::path::Path) -> std::path::PathBuf {
@@ -192,4 +193,31 @@ fn sigterm_checkpoints_the_last_step() {
     let ck = mvsplat360_train::checkpoint::list(&out).unwrap();
     let (newest, path) = ck.last().expect("a checkpoint was written on SIGTERM");
     assert_eq!(*newest as usize, steps, "newest checkpoint {} after {steps} logged steps", path.display());
+}
+
+/// While a run is alive, a second one on its folder is refused by name; SIGKILL leaves the lock behind, and the
+/// next run (e.g. `--resume`) takes it over.
+#[test]
+fn second_run_on_a_live_folder_is_refused_and_a_killed_runs_lock_taken_over() {
+    let bin = env!("CARGO_BIN_EXE_mvsplat360-train");
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("o");
+    let cfg = write_config(dir.path(), &out);
+    let mut child = Command::new(bin).args(["--config", cfg.to_str().unwrap()]).stdout(Stdio::null()).stderr(Stdio::null()).spawn().unwrap();
+    let lock = out.join("train.lock");
+    let t0 = Instant::now();
+    while std::fs::read_to_string(&lock).map_or(true, |s| s.trim().is_empty()) {
+        assert!(t0.elapsed() < Duration::from_secs(120), "the run never took its lock");
+        assert!(child.try_wait().unwrap().is_none(), "the run ended before the lock was checked");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let err = mvsplat360_train::checkpoint::RunLock::acquire(&out).err().expect("a second run on a live folder is refused");
+    assert!(err.to_string().contains(&format!("process {}", child.id())), "{err}");
+    child.kill().unwrap();
+    child.wait().unwrap();
+    assert!(lock.is_file(), "SIGKILL runs no clean-up: the lock stays");
+    let taken = mvsplat360_train::checkpoint::RunLock::acquire(&out).expect("a killed run's lock is taken over");
+    assert_eq!(std::fs::read_to_string(&lock).unwrap().trim(), std::process::id().to_string());
+    drop(taken);
+    assert!(!lock.exists(), "the lock is removed when its run ends");
 }
