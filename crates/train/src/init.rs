@@ -6,7 +6,7 @@
 
 use std::path::Path;
 
-use candle_core::{DType, Device, Tensor};
+use candle_core::{DType, Tensor};
 use candle_nn::VarMap;
 use mvsplat360_encoder::Checkpoint;
 
@@ -33,7 +33,7 @@ pub fn load_into(varmap: &VarMap, path: &Path) -> Result<InitReport> {
             rep.missing.push(name.clone());
             continue;
         };
-        let t = ck.load(name, DType::F32, &Device::Cpu).map_err(|e| cerr(e.to_string()))?;
+        let t = ck.load(name, DType::F32, var.device()).map_err(|e| cerr(e.to_string()))?;
         let want = var.dims().to_vec();
         if shape == want {
             var.set(&t)?;
@@ -45,7 +45,7 @@ pub fn load_into(varmap: &VarMap, path: &Path) -> Result<InitReport> {
                 if have < full {
                     let mut pad_dims = block.dims().to_vec();
                     pad_dims[d] = full - have;
-                    let pad = Tensor::zeros(pad_dims, DType::F32, &Device::Cpu)?;
+                    let pad = Tensor::zeros(pad_dims, DType::F32, var.device())?;
                     block = Tensor::cat(&[&block, &pad], d)?;
                 }
             }

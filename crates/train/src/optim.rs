@@ -97,8 +97,8 @@ impl Adam {
     pub fn state_tensors(&self) -> Result<Vec<(String, Tensor)>> {
         let mut out = Vec::with_capacity(2 * self.params.len() + 1);
         for (i, p) in self.params.iter().enumerate() {
-            out.push((format!("m.{}", p.name), self.m[i].clone()));
-            out.push((format!("v.{}", p.name), self.v[i].clone()));
+            out.push((format!("m.{}", p.name), self.m[i].to_device(&candle_core::Device::Cpu)?));
+            out.push((format!("v.{}", p.name), self.v[i].to_device(&candle_core::Device::Cpu)?));
         }
         // u64 as two u32 words keeps the count exact in a float-free tensor.
         let t = Tensor::new(&[(self.t & 0xffff_ffff) as u32, (self.t >> 32) as u32], &candle_core::Device::Cpu)?;
@@ -114,7 +114,7 @@ impl Adam {
                 if t.dims() != p.var.dims() {
                     return Err(TrainError::Checkpoint(format!("optimizer `{key}` has shape {:?}, the model {:?}", t.dims(), p.var.dims())));
                 }
-                let t = t.to_dtype(DType::F32)?;
+                let t = t.to_dtype(DType::F32)?.to_device(p.var.device())?;
                 if slot == 0 {
                     self.m[i] = t;
                 } else {

@@ -11,6 +11,7 @@ use mvsplat360_camera::Camera;
 use mvsplat360_encoder::encoder_costvolume::camera_tensors;
 use mvsplat360_encoder::EncoderCostVolume;
 use mvsplat360_metrics::lpips::Lpips;
+use mvsplat360_pipeline::compute::DeviceSpec;
 use mvsplat360_pipeline::model::{DataConfig, ModelConfig, MODEL_FORMAT};
 use mvsplat360_pipeline::render::raster_camera;
 use mvsplat360_pipeline::scale::{scene_transform, SceneScale};
@@ -68,6 +69,8 @@ pub struct RunOptions {
     pub resume: bool,
     /// Folder of the metric weights (LPIPS); None = the default search.
     pub weights_dir: Option<PathBuf>,
+    /// Where the encoder, rasterizer and losses run (`--device`); data, sampling and checkpoints stay on the host.
+    pub device: DeviceSpec,
 }
 
 #[derive(Debug, Clone)]
@@ -92,18 +95,29 @@ impl Model {
     /// The encoder with seeded initial weights, or `train.init`'s; the refiner (if configured) from
     /// `train.refiner_init` or seeded random weights written to `train.out`.
     pub fn new(cfg: &TrainConfig) -> Result<Self> {
-        let dev = Device::Cpu;
+        Self::new_on(cfg, &Device::Cpu)
+    }
+
+    /// As [`Model::new`], with the encoder's weights on `dev`. The initial weights are drawn on the host, so a
+    /// seed gives the same model on every device.
+    pub fn new_on(cfg: &TrainConfig, dev: &Device) -> Result<Self> {
         let ecfg = cfg.encoder();
         let varmap = VarMap::new();
-        let encoder = EncoderCostVolume::new(VarBuilder::from_varmap(&varmap, DType::F32, &dev).pp("encoder"), &ecfg)?;
-        let init = mvsplat360_encoder::weights::random_tensors(cfg.train.seed, &dev, |vb| EncoderCostVolume::new(vb.pp("encoder"), &ecfg))?;
+        let encoder = EncoderCostVolume::new(VarBuilder::from_varmap(&varmap, DType::F32, dev).pp("encoder"), &ecfg)?;
+        let init = mvsplat360_encoder::weights::random_tensors(cfg.train.seed, &Device::Cpu, |vb| EncoderCostVolume::new(vb.pp("encoder"), &ecfg))?;
         {
             let data = varmap.data().lock().map_err(|_| TrainError::Data("varmap poisoned".into()))?;
             for (name, var) in data.iter() {
-                var.set(&init[name])?;
+                var.set(&init[name].to_device(dev)?)?;
             }
         }
         let refiner = match &cfg.model.refiner {
+            Some(_) if !dev.is_cpu() => {
+                return Err(TrainError::Config {
+                    path: PathBuf::from("model.refiner"),
+                    msg: "the refiner trains on the CPU only for now; remove [model.refiner] or use --device cpu".into(),
+                })
+            }
             Some(r) => {
                 std::fs::create_dir_all(&cfg.train.out).map_err(|e| TrainError::Write { path: cfg.train.out.clone(), msg: e.to_string() })?;
                 Some(TrainRefiner::new(r, cfg.train.refiner_init.as_deref(), cfg.train.seed, &cfg.train.out)?)
@@ -128,8 +142,9 @@ impl Model {
         v
     }
 
-    pub fn state_dict(&self) -> Vec<(String, Tensor)> {
-        self.vars().into_iter().map(|(k, v)| (k, v.as_tensor().detach())).collect()
+    /// The trainable weights, on the host.
+    pub fn state_dict(&self) -> Result<Vec<(String, Tensor)>> {
+        self.vars().into_iter().map(|(k, v)| Ok((k, v.as_tensor().detach().to_device(&Device::Cpu)?))).collect()
     }
 
     pub fn load_state_dict(&self, sd: &std::collections::HashMap<String, Tensor>) -> Result<()> {
@@ -138,18 +153,18 @@ impl Model {
             if t.dims() != var.dims() {
                 return Err(TrainError::Checkpoint(format!("`{name}` has shape {:?}, the model {:?}", t.dims(), var.dims())));
             }
-            var.set(&t.to_dtype(DType::F32)?)?;
+            var.set(&t.to_dtype(DType::F32)?.to_device(var.device())?)?;
         }
         Ok(())
     }
 
     /// Everything a model folder holds: the trained weights and the refiner's frozen VAE and CLIP.
-    pub fn model_tensors(&self) -> Vec<(String, Tensor)> {
-        let mut t = self.state_dict();
+    pub fn model_tensors(&self) -> Result<Vec<(String, Tensor)>> {
+        let mut t = self.state_dict()?;
         if let Some(r) = &self.refiner {
             t.extend(r.frozen().iter().cloned());
         }
-        t
+        Ok(t)
     }
 
     /// The model-folder config of this model.
@@ -165,6 +180,7 @@ impl Model {
 }
 
 /// One training example at model scale: context and targets with their photos.
+#[derive(Clone)]
 pub struct Example {
     pub context_images: Tensor,
     pub context_cameras: Vec<Camera>,
@@ -173,6 +189,20 @@ pub struct Example {
     /// (V,H,W) ground-truth ray distances of the context views in model units (infinite = sky), when the
     /// source knows them.
     pub context_depths: Option<Tensor>,
+}
+
+impl Example {
+    pub fn to_device(self, dev: &Device) -> Result<Self> {
+        if dev.same_device(self.context_images.device()) {
+            return Ok(self);
+        }
+        Ok(Self {
+            context_images: self.context_images.to_device(dev)?,
+            target_images: self.target_images.to_device(dev)?,
+            context_depths: self.context_depths.map(|d| d.to_device(dev)).transpose()?,
+            ..self
+        })
+    }
 }
 
 /// What the encoder and rasterizer make of an example.
@@ -246,7 +276,7 @@ pub fn render_example(model: &Model, ex: &Example) -> Result<(Tensor, Gaussians)
 
 /// As [`render_example`], also returning the rendered features and the encoder's depths.
 pub fn render_example_full(model: &Model, ex: &Example) -> Result<Rendered> {
-    let dev = Device::Cpu;
+    let dev = ex.context_images.device().clone();
     let v = ex.context_cameras.len();
     let k: Vec<[f64; 4]> = ex.context_cameras.iter().map(|c| c.normalized_intrinsics()).collect();
     let c2w: Vec<[[f64; 4]; 4]> = ex.context_cameras.iter().map(|c| c.c2w).collect();
@@ -295,7 +325,8 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
     let out = cfg.train.out.clone();
     std::fs::create_dir_all(&out).map_err(|e| TrainError::Write { path: out.clone(), msg: e.to_string() })?;
     let _lock = checkpoint::RunLock::acquire(&out)?;
-    let model = Model::new(cfg)?;
+    let dev = opts.device.open()?;
+    let model = Model::new_on(cfg, &dev)?;
     let multiple = cfg.model.encoder.image_multiple() as u32;
     let mut sources = cfg
         .data
@@ -304,7 +335,7 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
         .map(|s| SceneSource::open(s, cfg.model.width, cfg.model.height, multiple))
         .collect::<Result<Vec<_>>>()?;
     let lpips = if cfg.train.lpips_weight > 0.0 {
-        match Lpips::load(opts.weights_dir.as_deref(), mvsplat360_metrics::lpips::Net::Vgg, &Device::Cpu) {
+        match Lpips::load(opts.weights_dir.as_deref(), mvsplat360_metrics::lpips::Net::Vgg, &dev) {
             Ok(l) => Some(l),
             Err(e) => {
                 mon.note(&format!("training without LPIPS (its VGG weights are missing: {e}); run scripts/metric-weights/fetch"));
@@ -359,7 +390,7 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
     }
     if start == 0 {
         // The step-0 model, for before/after comparisons.
-        mvsplat360_pipeline::model::write_model_dir(&out.join("model-step0"), &model.model_config(), &model.model_tensors())?;
+        mvsplat360_pipeline::model::write_model_dir(&out.join("model-step0"), &model.model_config(), &model.model_tensors()?)?;
     }
     let log_path = out.join("log.jsonl");
     let mut records = crate::log::read(&log_path)?.into_iter().filter(|r| r.step <= start).collect::<Vec<_>>();
@@ -380,7 +411,7 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
     let accum = cfg.train.accumulate;
     let save = |adam: &Adam, step: u64, secs: f64| -> Result<()> {
         let state = State { step, seed: cfg.train.seed, config: config_text.clone(), train_seconds: secs };
-        checkpoint::save(&out, &state, &model.state_dict(), &adam.state_tensors()?, cfg.train.keep_checkpoints)?;
+        checkpoint::save(&out, &state, &model.state_dict()?, &adam.state_tensors()?, cfg.train.keep_checkpoints)?;
         Ok(())
     };
     let mut step = start;
@@ -396,7 +427,7 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
         let mut examples = Vec::with_capacity(accum as usize);
         for micro in 0..accum {
             let mut rng = step_rng(cfg.train.seed, step, micro);
-            examples.push(draw_example(&mut sources, &weights, wsum, &settings, cfg, &mut rng)?);
+            examples.push(draw_example(&mut sources, &weights, wsum, &settings, cfg, &mut rng)?.to_device(&dev)?);
         }
         let micro_step = |micro: u32, ex: &Example| -> Result<MicroResult> {
             let rendered = render_example_full(&model, ex)?;
@@ -500,7 +531,7 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
         }
     }
     let model_dir = out.join("model");
-    mvsplat360_pipeline::model::write_model_dir(&model_dir, &model.model_config(), &model.model_tensors())?;
+    mvsplat360_pipeline::model::write_model_dir(&model_dir, &model.model_config(), &model.model_tensors()?)?;
     let _ = crate::log::plot(&records, &out.join("loss.png"));
     Ok(Summary { steps: step, last: records.last().cloned(), model_dir, train_seconds, lpips: lpips.is_some() })
 }

@@ -25,6 +25,11 @@ pub struct Args {
     /// `~/.cache/mvsplat360/metric-weights`). Without them training runs without the LPIPS term and says so.
     #[arg(long)]
     pub weights_dir: Option<PathBuf>,
+    /// Where the encoder, rasterizer and losses run: cpu, cuda (GPU 0) or cuda:N. CUDA needs a build with
+    /// `--features cuda` (README, GPU); scene loading, view sampling and checkpoints stay on the host. The
+    /// refiner (`[model.refiner]`) trains on the CPU only.
+    #[arg(long, default_value = "cpu")]
+    pub device: mvsplat360_pipeline::compute::DeviceSpec,
 }
 
 struct Bar {
@@ -77,7 +82,7 @@ pub fn run(a: Args, quiet: bool) -> anyhow::Result<()> {
         pb
     });
     let mon = Bar { pb, stop };
-    let opts = RunOptions { resume: a.resume, weights_dir: a.weights_dir };
+    let opts = RunOptions { resume: a.resume, weights_dir: a.weights_dir, device: a.device };
     match mvsplat360_train::run(&cfg, &opts, &mon) {
         Ok(s) => {
             if let Some(pb) = &mon.pb {

@@ -13,8 +13,19 @@ fn main() {
             "--config" => config = args.next(),
             "--resume" => opts.resume = true,
             "--weights-dir" => opts.weights_dir = args.next().map(Into::into),
+            "--device" => match args.next().map(|d| d.parse()) {
+                Some(Ok(d)) => opts.device = d,
+                Some(Err(e)) => {
+                    eprintln!("error: --device: {e}");
+                    std::process::exit(2);
+                }
+                None => {
+                    eprintln!("error: --device needs a value (cpu, cuda or cuda:N)");
+                    std::process::exit(2);
+                }
+            },
             "-h" | "--help" => {
-                println!("usage: mvsplat360-train --config <toml> [--resume] [--weights-dir DIR]");
+                println!("usage: mvsplat360-train --config <toml> [--resume] [--weights-dir DIR] [--device cpu|cuda|cuda:N]");
                 return;
             }
             other => {
