@@ -176,12 +176,20 @@ pub fn fused_attention(q: &Tensor, k: &Tensor, v: &Tensor, mask: Option<&RegionM
     q.contiguous()?.apply_op3_no_bwd(&k.contiguous()?, &v.contiguous()?, &FusedAttention { mask })
 }
 
-/// Scores one composed [`fused_attention`] call may hold (floats); larger batches run in slices.
+/// Scores one composed [`fused_attention`] call may hold (floats); larger batches run in slices, and a single
+/// sequence longer than that in slices of query rows (softmax runs along the keys, so slicing rows is exact).
+/// Off the CPU this bounds the memory of the encoder UNets' cross-view attention, whose token count grows with
+/// the image (a 256×448 input: 5·7168 tokens, a 5 GB score matrix per head unsliced).
 const COMPOSED_SCORES: usize = 1 << 26;
 
-/// [`fused_attention`] as matmul + softmax + matmul (differentiable, any device), in batch slices of at most
+/// [`fused_attention`] as matmul + softmax + matmul (differentiable, any device), in slices of at most
 /// [`COMPOSED_SCORES`] scores.
 pub(crate) fn fused_attention_composed(q: &Tensor, k: &Tensor, v: &Tensor, mask: Option<&RegionMask>) -> Result<Tensor> {
+    fused_attention_composed_capped(q, k, v, mask, COMPOSED_SCORES)
+}
+
+/// [`fused_attention_composed`] with a chosen score budget (tests use small ones to exercise the slicing).
+pub(crate) fn fused_attention_composed_capped(q: &Tensor, k: &Tensor, v: &Tensor, mask: Option<&RegionMask>, cap: usize) -> Result<Tensor> {
     let (b, lq, _) = q.dims3()?;
     let s = k.dim(1)?;
     let dense = match mask {
@@ -194,24 +202,32 @@ pub(crate) fn fused_attention_composed(q: &Tensor, k: &Tensor, v: &Tensor, mask:
         None => None,
     };
     let p = mask.map_or(1, |m| m.p);
-    // Slices start at multiples of p, so mask row `b mod p` stays aligned.
-    let per = (COMPOSED_SCORES / (lq * s).max(1) / p).max(1) * p;
-    let run = |q: &Tensor, k: &Tensor, v: &Tensor| -> Result<Tensor> {
-        let nb = q.dim(0)?;
+    // (query rows r0.., batch slice) → attention of those rows; the mask's rows are sliced with the queries.
+    let run = |q: &Tensor, k: &Tensor, v: &Tensor, r0: usize| -> Result<Tensor> {
+        let (nb, rows, _) = q.dims3()?;
         let mut sc = q.contiguous()?.matmul(&k.contiguous()?.t()?)?;
         if let Some(d) = &dense {
-            sc = sc.reshape((nb / p, p, lq, s))?.broadcast_add(d)?.reshape((nb, lq, s))?;
+            let d = d.narrow(2, r0, rows)?;
+            sc = sc.reshape((nb / p, p, rows, s))?.broadcast_add(&d)?.reshape((nb, rows, s))?;
         }
         let e = sc.broadcast_sub(&sc.max_keepdim(D::Minus1)?)?.exp()?;
         e.broadcast_div(&e.sum_keepdim(D::Minus1)?)?.matmul(&v.contiguous()?)
     };
+    // Slices start at multiples of p, so mask row `b mod p` stays aligned.
+    let per = (cap / (lq * s).max(1) / p).max(1) * p;
+    let rows = (cap / (p * s).max(1)).clamp(1, lq.max(1));
+    let slice = |i: usize, m: usize| -> Result<Tensor> {
+        let (q, k, v) = (q.narrow(0, i, m)?, k.narrow(0, i, m)?, v.narrow(0, i, m)?);
+        if rows >= lq {
+            return run(&q, &k, &v, 0);
+        }
+        let parts = (0..lq).step_by(rows).map(|r| run(&q.narrow(1, r, rows.min(lq - r))?, &k, &v, r));
+        Tensor::cat(&parts.collect::<Result<Vec<_>>>()?, 1)
+    };
     if b <= per {
-        return run(q, k, v);
+        return slice(0, b);
     }
-    let parts = (0..b).step_by(per).map(|i| {
-        let m = per.min(b - i);
-        run(&q.narrow(0, i, m)?, &k.narrow(0, i, m)?, &v.narrow(0, i, m)?)
-    });
+    let parts = (0..b).step_by(per).map(|i| slice(i, per.min(b - i)));
     Tensor::cat(&parts.collect::<Result<Vec<_>>>()?, 0)
 }
 

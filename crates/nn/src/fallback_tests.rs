@@ -84,11 +84,24 @@ fn attention_compositions_match_kernels() {
         p,
     };
     for m in [None, Some(&mask)] {
-        close(
-            "fused_attention",
-            &attention::fused_attention_composed(&q, &k, &v, m).unwrap(),
-            &attention::fused_attention(&q, &k, &v, m).unwrap(),
-        );
+        let kernel = attention::fused_attention(&q, &k, &v, m).unwrap();
+        close("fused_attention", &attention::fused_attention_composed(&q, &k, &v, m).unwrap(), &kernel);
+        // Score budgets below one sequence's lq·s: slices of query rows (uneven last slice), one row at a time.
+        for cap in [p * 10 * s, p * s, 1] {
+            close(&format!("fused_attention, {cap} scores a slice"), &attention::fused_attention_composed_capped(&q, &k, &v, m, cap).unwrap(), &kernel);
+        }
+    }
+    // Row slices keep gradients: d/dq, d/dk, d/dv of a weighted sum equal those of the unsliced composition.
+    let (qv, kv, vv) = (candle_core::Var::from_tensor(&q).unwrap(), candle_core::Var::from_tensor(&k).unwrap(), candle_core::Var::from_tensor(&v).unwrap());
+    let w = randn(&[b, lq, 12], 1.0);
+    let grads = |cap: usize| {
+        let o = attention::fused_attention_composed_capped(&qv, &kv, &vv, Some(&mask), cap).unwrap();
+        let g = (o * &w).unwrap().sum_all().unwrap().backward().unwrap();
+        [&qv, &kv, &vv].map(|x| g.get(x.as_tensor()).unwrap().clone())
+    };
+    let (whole, sliced) = (grads(usize::MAX), grads(p * 10 * s));
+    for (i, what) in ["d/q", "d/k", "d/v"].iter().enumerate() {
+        close(&format!("sliced fused_attention {what}"), &sliced[i], &whole[i]);
     }
     // Multi-head: the small-sequence and the blocked gemm paths; composed in several score blocks.
     for (n, lq, lk, heads, d) in [(3, 14, 14, 2, 16), (2, 70, 300, 2, 8)] {

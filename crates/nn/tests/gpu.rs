@@ -139,9 +139,14 @@ fn sampling_ops_values_and_gradients() {
     for (i, what) in ["grid_sample", "grid_sample d/input", "grid_sample d/grid"].iter().enumerate() {
         close(what, &g[i], &cpu[i]);
     }
-    let wgt = randn(&[n, c, 13, 17], 1.0);
-    for (name, f) in [("upsample_bilinear", upsample::upsample_bilinear as fn(&Tensor, (usize, usize)) -> candle_core::Result<Tensor>), ("upsample_nearest", upsample::upsample_nearest)] {
-        let h = |t: &[Tensor]| f(&t[0], (13, 17)).unwrap();
+    // Bilinear to any size; nearest by one whole factor on both axes (as the models use it; candle's backward
+    // refuses unequal factors).
+    for (name, f, hw) in [
+        ("upsample_bilinear", upsample::upsample_bilinear as fn(&Tensor, (usize, usize)) -> candle_core::Result<Tensor>, (13, 17)),
+        ("upsample_nearest", upsample::upsample_nearest, (14, 18)),
+    ] {
+        let wgt = randn(&[n, c, hw.0, hw.1], 1.0);
+        let h = |t: &[Tensor]| f(&t[0], hw).unwrap();
         let (g, cpu) = (value_and_grads(&h, &[x.clone()], &wgt, &d), value_and_grads(&h, &[x.clone()], &wgt, &Device::Cpu));
         close(name, &g[0], &cpu[0]);
         close(&format!("{name} d/input"), &g[1], &cpu[1]);
