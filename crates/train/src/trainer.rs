@@ -192,6 +192,7 @@ pub struct Example {
 }
 
 impl Example {
+    /// The photos and depths on `dev` (cameras stay on the host; the encoder builds its camera tensors there).
     pub fn to_device(self, dev: &Device) -> Result<Self> {
         if dev.same_device(self.context_images.device()) {
             return Ok(self);

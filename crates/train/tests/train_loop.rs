@@ -221,3 +221,15 @@ fn second_run_on_a_live_folder_is_refused_and_a_killed_runs_lock_taken_over() {
     drop(taken);
     assert!(!lock.exists(), "the lock is removed when its run ends");
 }
+
+/// A build without CUDA refuses `--device cuda` by name before touching the output folder's checkpoints.
+#[cfg(not(feature = "cuda"))]
+#[test]
+fn cuda_device_in_a_cpu_build_is_refused_with_the_fix() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = common::tiny_config(dir.path(), 1, "");
+    let opts = RunOptions { device: mvsplat360_pipeline::compute::DeviceSpec::Cuda(0), ..Default::default() };
+    let e = mvsplat360_train::run(&cfg, &opts, &Quiet).unwrap_err().to_string();
+    assert!(e.contains("--device") && e.contains("built without CUDA") && e.contains("--features cuda"), "{e}");
+    assert!(!dir.path().join("checkpoints").exists() && !dir.path().join("train.lock").exists());
+}
