@@ -7,11 +7,8 @@ mod common;
 
 use candle_core::{Device, Tensor};
 use mvsplat360_pipeline::compute::DeviceSpec;
-use mvsplat360_train::sampler::SamplerSettings;
-use mvsplat360_train::scenes::SceneSource;
-use mvsplat360_train::trainer::{make_example, render_example_full, Model};
+use mvsplat360_train::trainer::{render_example_full, Model};
 use mvsplat360_train::{log, Quiet, RunOptions};
-use rand::SeedableRng;
 
 fn values(t: &Tensor) -> Vec<f32> {
     t.flatten_all().unwrap().to_device(&Device::Cpu).unwrap().to_vec1().unwrap()
@@ -24,11 +21,7 @@ fn gpu_loss_and_gradients_match_cpu() {
     let dir = tempfile::tempdir().unwrap();
     let cfg = common::tiny_config(dir.path(), 1, "depth_weight = 0.1");
     let gpu = Device::new_cuda(0).unwrap();
-    let mut src = SceneSource::open(&cfg.data.sources[0], cfg.model.width, cfg.model.height, 64).unwrap();
-    let mut rng = rand::rngs::StdRng::seed_from_u64(2);
-    let scene = src.draw(&mut rng).unwrap();
-    let s = SamplerSettings { num_context: 3, num_target: 2, gap: None, gap_initial: None, warm_up: 0.0, closed_loop: true, flip: true };
-    let ex = make_example(&scene, &s, cfg.model.near, cfg.model.far, &mut rng).unwrap().unwrap();
+    let ex = common::example(&cfg, 2, 2, true);
     let (near, far) = (cfg.model.near, cfg.model.far);
     let run = |dev: &Device| {
         let model = Model::new_on(&cfg, dev).unwrap();

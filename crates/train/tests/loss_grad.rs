@@ -103,11 +103,7 @@ fn encoder_parameter_gradients() {
     cfg.data.sources = vec![Source::Folder { path: repo().join("assets/woodbox") }];
     cfg.data.flip = false;
     let model = Model::new(&cfg).unwrap();
-    let mut src = mvsplat360_train::scenes::SceneSource::open(&cfg.data.sources[0], cfg.model.width, cfg.model.height, 64).unwrap();
-    let mut rng = rand::rngs::StdRng::seed_from_u64(2);
-    let scene = src.draw(&mut rng).unwrap();
-    let s = mvsplat360_train::sampler::SamplerSettings { num_context: 3, num_target: 2, gap: None, gap_initial: None, warm_up: 0.0, closed_loop: true, flip: false };
-    let ex = make_example(&scene, &s, 1.0, 100.0, &mut rng).unwrap().unwrap();
+    let ex = common::example(&cfg, 2, 2, false);
     let loss_of = |m: &Model| -> Tensor {
         let (pred, _) = render_example(m, &ex).unwrap();
         mvsplat360_train::loss::mse(&pred, &ex.target_images).unwrap()
@@ -175,11 +171,7 @@ fn depth_loss_encoder_gradients() {
     let mut cfg = common::tiny_config(dir.path(), 1, "depth_weight = 1.0");
     cfg.data.flip = true;
     let model = Model::new(&cfg).unwrap();
-    let mut src = mvsplat360_train::scenes::SceneSource::open(&cfg.data.sources[0], cfg.model.width, cfg.model.height, 64).unwrap();
-    let mut rng = rand::rngs::StdRng::seed_from_u64(3);
-    let scene = src.draw(&mut rng).unwrap();
-    let s = mvsplat360_train::sampler::SamplerSettings { num_context: 3, num_target: 1, gap: None, gap_initial: None, warm_up: 0.0, closed_loop: true, flip: true };
-    let ex = make_example(&scene, &s, 1.0, 100.0, &mut rng).unwrap().unwrap();
+    let ex = common::example(&cfg, 3, 1, true);
     let gt = ex.context_depths.clone().expect("procedural examples carry depth");
     assert_eq!(gt.dims(), &[3, 64, 64]);
     let loss_of = |m: &Model| -> Tensor {

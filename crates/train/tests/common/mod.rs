@@ -42,3 +42,14 @@ out = "{}"
     );
     TrainConfig::from_toml(&text, Path::new("tiny.toml")).expect("tiny config parses")
 }
+
+/// One example from `cfg`'s first source: the scene drawn with `seed`, 3 context views by farthest-point
+/// sampling on the whole loop, `num_target` targets, a random flip when `flip`; at `cfg`'s near/far.
+pub fn example(cfg: &TrainConfig, seed: u64, num_target: usize, flip: bool) -> mvsplat360_train::trainer::Example {
+    use rand::SeedableRng;
+    let mut src = mvsplat360_train::scenes::SceneSource::open(&cfg.data.sources[0], cfg.model.width, cfg.model.height, 64).unwrap();
+    let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+    let scene = src.draw(&mut rng).unwrap();
+    let s = mvsplat360_train::sampler::SamplerSettings { num_context: 3, num_target, gap: None, gap_initial: None, warm_up: 0.0, closed_loop: true, flip };
+    mvsplat360_train::trainer::make_example(&scene, &s, cfg.model.near, cfg.model.far, &mut rng).unwrap().unwrap()
+}
