@@ -14,6 +14,9 @@ pub enum TrainError {
     NonFinite { step: u64, what: String },
     #[error("cannot write {path}: {msg}")]
     Write { path: PathBuf, msg: String },
+    /// Data-parallel runs: the launcher, the hub or a rank's link.
+    #[error("data parallel: {0}")]
+    Dist(String),
     #[error("interrupted")]
     Interrupted,
     #[error(transparent)]

@@ -70,7 +70,10 @@ pub struct RunOptions {
     /// Folder of the metric weights (LPIPS); None = the default search.
     pub weights_dir: Option<PathBuf>,
     /// Where the encoder, rasterizer and losses run (`--device`); data, sampling and checkpoints stay on the host.
+    /// In a data-parallel run rank r uses `cuda:(N + r)` for `cuda:N`.
     pub device: DeviceSpec,
+    /// This process's rank in a data-parallel run ([`crate::dist::launch`]); None = a single process.
+    pub dist: Option<crate::dist::Rank>,
 }
 
 #[derive(Debug, Clone)]
@@ -325,8 +328,16 @@ pub fn losses(cfg: &TrainConfig, lpips: Option<&Lpips>, step: u64, pred: &Tensor
 pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Summary> {
     let out = cfg.train.out.clone();
     std::fs::create_dir_all(&out).map_err(|e| TrainError::Write { path: out.clone(), msg: e.to_string() })?;
-    let _lock = checkpoint::RunLock::acquire(&out)?;
-    let dev = opts.device.open()?;
+    let (rank, world) = opts.dist.as_ref().map_or((0, 1), |r| (r.rank, r.world));
+    // Rank 0 owns the output folder: lock, log, plots, checkpoints, model folders.
+    let main = rank == 0;
+    let _lock = if main { Some(checkpoint::RunLock::acquire(&out)?) } else { None };
+    let dev = match opts.device {
+        DeviceSpec::Cuda(n) => DeviceSpec::Cuda(n + rank),
+        d => d,
+    }
+    .open()?;
+    let mut coll = opts.dist.as_ref().map(|r| crate::dist::connect(r, &dev)).transpose()?;
     let model = Model::new_on(cfg, &dev)?;
     let multiple = cfg.model.encoder.image_multiple() as u32;
     let mut sources = cfg
@@ -389,14 +400,18 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
             out.display()
         )));
     }
-    if start == 0 {
+    if start == 0 && main {
         // The step-0 model, for before/after comparisons.
         mvsplat360_pipeline::model::write_model_dir(&out.join("model-step0"), &model.model_config(), &model.model_tensors()?)?;
     }
     let log_path = out.join("log.jsonl");
-    let mut records = crate::log::read(&log_path)?.into_iter().filter(|r| r.step <= start).collect::<Vec<_>>();
-    crate::log::rewrite(&log_path, &records)?;
-    let mut log = std::fs::OpenOptions::new().append(true).create(true).open(&log_path).map_err(|e| TrainError::Write { path: log_path.clone(), msg: e.to_string() })?;
+    let mut records = Vec::new();
+    let mut log = None;
+    if main {
+        records = crate::log::read(&log_path)?.into_iter().filter(|r| r.step <= start).collect::<Vec<_>>();
+        crate::log::rewrite(&log_path, &records)?;
+        log = Some(std::fs::OpenOptions::new().append(true).create(true).open(&log_path).map_err(|e| TrainError::Write { path: log_path.clone(), msg: e.to_string() })?);
+    }
 
     let mut settings = SamplerSettings {
         num_context: cfg.data.num_context,
@@ -410,6 +425,8 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
     let weights: Vec<f64> = if cfg.data.weights.is_empty() { vec![1.0; sources.len()] } else { cfg.data.weights.clone() };
     let wsum: f64 = weights.iter().sum();
     let accum = cfg.train.accumulate;
+    // Every loss is divided by all micro-batches of the step, over all ranks (Lightning's 1/k times DDP's mean).
+    let denom = (accum as usize * world) as f64;
     let save = |adam: &Adam, step: u64, secs: f64| -> Result<()> {
         let state = State { step, seed: cfg.train.seed, config: config_text.clone(), train_seconds: secs };
         checkpoint::save(&out, &state, &model.state_dict()?, &adam.state_tensors()?, cfg.train.keep_checkpoints)?;
@@ -421,13 +438,16 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
         settings.warm_up = if cfg.data.gap_warm_up_steps == 0 { 1.0 } else { step as f64 / cfg.data.gap_warm_up_steps as f64 };
         let mut grads: Vec<Option<Tensor>> = vec![None; adam.params.len()];
         let (mut sum_loss, mut sum_mse, mut sum_lp, mut sum_ref) = (0f64, 0f64, None::<f64>, None::<(f64, f64)>);
+        let (mut n_lp, mut n_ref) = (0usize, 0usize);
         // Mean over the micro-batches whose scene has ground-truth depth.
         let mut depth_terms = Vec::new();
         // Examples are drawn in micro-batch order (sources cache scenes); forward and backward may then run in
         // parallel, and gradients are summed in micro-batch order either way.
         let mut examples = Vec::with_capacity(accum as usize);
+        // Rank r's micro-batch m is the step's micro-batch r·k + m, as in one process accumulating world·k.
+        let global = |micro: u32| rank as u32 * accum + micro;
         for micro in 0..accum {
-            let mut rng = step_rng(cfg.train.seed, step, micro);
+            let mut rng = step_rng(cfg.train.seed, step, global(micro));
             examples.push(draw_example(&mut sources, &weights, wsum, &settings, cfg, &mut rng)?.to_device(&dev)?);
         }
         let micro_step = |micro: u32, ex: &Example| -> Result<MicroResult> {
@@ -443,7 +463,7 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
             let mut refiner_terms = None;
             if let Some(r) = model.refiner.as_ref().filter(|_| cfg.train.refiner_weight > 0.0) {
                 // A stream of its own, so adding the refiner leaves the examples' draws unchanged.
-                let mut rng = step_rng(cfg.train.seed ^ 0x5EF1_4E70_0000_0000, step, micro);
+                let mut rng = step_rng(cfg.train.seed ^ 0x5EF1_4E70_0000_0000, step, global(micro));
                 let rl = r.losses(feats, &ex.target_images, &ex.context_images, &mut rng)?;
                 total = (total + ((&rl.diffusion + &rl.alignment)? * cfg.train.refiner_weight)?)?;
                 refiner_terms = Some((rl.diffusion.to_scalar::<f32>()? as f64, rl.alignment.to_scalar::<f32>()? as f64));
@@ -453,7 +473,7 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
                 return Err(TrainError::NonFinite { step: step + 1, what: format!("loss {tv}") });
             }
             // Lightning divides each micro-batch's loss by the accumulation count.
-            let g = (total / accum as f64)?.backward()?;
+            let g = (total / denom)?.backward()?;
             let grads = adam.params.iter().map(|p| g.get(p.var.as_tensor()).cloned()).collect();
             Ok(MicroResult {
                 loss: tv,
@@ -477,16 +497,18 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
         };
         for r in results {
             let r = r?;
-            sum_loss += r.loss / accum as f64;
-            sum_mse += r.mse / accum as f64;
+            sum_loss += r.loss / denom;
+            sum_mse += r.mse / denom;
             if let Some(l) = r.lpips {
-                *sum_lp.get_or_insert(0.0) += l / accum as f64;
+                *sum_lp.get_or_insert(0.0) += l / denom;
+                n_lp += 1;
             }
             depth_terms.extend(r.depth);
             if let Some((d, a)) = r.refiner {
                 let s = sum_ref.get_or_insert((0.0, 0.0));
-                s.0 += d / accum as f64;
-                s.1 += a / accum as f64;
+                s.0 += d / denom;
+                s.1 += a / denom;
+                n_ref += 1;
             }
             for (i, gi) in r.grads.into_iter().enumerate() {
                 if let Some(gi) = gi {
@@ -496,6 +518,15 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
                     });
                 }
             }
+        }
+        let mut depth_mean = (!depth_terms.is_empty()).then(|| depth_terms.iter().sum::<f64>() / depth_terms.len() as f64);
+        let mut stop_all = None;
+        if let Some(c) = coll.as_mut() {
+            // Sampled before the sums, so that every rank stops after the same step.
+            let stop_here = mon.should_stop();
+            let sums = StepSums { loss: sum_loss, mse: sum_mse, lpips: sum_lp, n_lpips: n_lp, refiner: sum_ref, n_refiner: n_ref, depth: &depth_terms, stop: stop_here };
+            let r = reduce_step(c.as_mut(), sums, &mut grads, &adam.params, &dev)?;
+            (sum_loss, sum_mse, sum_lp, sum_ref, depth_mean, stop_all) = (r.loss, r.mse, r.lpips, r.refiner, r.depth, Some(r.stop));
         }
         let norm = if cfg.train.clip_grad_norm > 0.0 { clip_grad_norm(&mut grads, cfg.train.clip_grad_norm)? } else { crate::optim::grad_norm(&grads)? };
         if !norm.is_finite() {
@@ -511,19 +542,21 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
             loss: sum_loss,
             mse: sum_mse,
             lpips: sum_lp,
-            depth: (!depth_terms.is_empty()).then(|| depth_terms.iter().sum::<f64>() / depth_terms.len() as f64),
+            depth: depth_mean,
             diffusion: sum_ref.map(|r| r.0),
             alignment: sum_ref.map(|r| r.1),
             lr,
             grad_norm: norm,
             seconds: secs,
         };
-        let line = serde_json::to_string(&rec).map_err(|e| TrainError::Write { path: log_path.clone(), msg: e.to_string() })?;
-        writeln!(log, "{line}").and_then(|_| log.flush()).map_err(|e| TrainError::Write { path: log_path.clone(), msg: e.to_string() })?;
-        records.push(rec.clone());
+        if let Some(log) = log.as_mut() {
+            let line = serde_json::to_string(&rec).map_err(|e| TrainError::Write { path: log_path.clone(), msg: e.to_string() })?;
+            writeln!(log, "{line}").and_then(|_| log.flush()).map_err(|e| TrainError::Write { path: log_path.clone(), msg: e.to_string() })?;
+            records.push(rec.clone());
+        }
         mon.step(&rec, cfg.train.steps);
-        let stop = mon.should_stop();
-        if step % cfg.train.checkpoint_every == 0 || step == cfg.train.steps || stop {
+        let stop = stop_all.unwrap_or_else(|| mon.should_stop());
+        if main && (step % cfg.train.checkpoint_every == 0 || step == cfg.train.steps || stop) {
             save(&adam, step, train_seconds)?;
             let _ = crate::log::plot(&records, &out.join("loss.png"));
         }
@@ -532,9 +565,79 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
         }
     }
     let model_dir = out.join("model");
-    mvsplat360_pipeline::model::write_model_dir(&model_dir, &model.model_config(), &model.model_tensors()?)?;
-    let _ = crate::log::plot(&records, &out.join("loss.png"));
+    if main {
+        mvsplat360_pipeline::model::write_model_dir(&model_dir, &model.model_config(), &model.model_tensors()?)?;
+        let _ = crate::log::plot(&records, &out.join("loss.png"));
+    }
     Ok(Summary { steps: step, last: records.last().cloned(), model_dir, train_seconds, lpips: lpips.is_some() })
+}
+
+/// One rank's sums of a step, before the all-reduce (losses already divided by the step's micro-batch count).
+struct StepSums<'a> {
+    loss: f64,
+    mse: f64,
+    lpips: Option<f64>,
+    n_lpips: usize,
+    refiner: Option<(f64, f64)>,
+    n_refiner: usize,
+    /// This rank's depth terms (their mean over all ranks is logged).
+    depth: &'a [f64],
+    stop: bool,
+}
+
+struct Reduced {
+    loss: f64,
+    mse: f64,
+    lpips: Option<f64>,
+    refiner: Option<(f64, f64)>,
+    depth: Option<f64>,
+    stop: bool,
+}
+
+/// Sums the step's losses and gradients over the ranks. A parameter without a gradient on some rank adds
+/// zeros there; it keeps none only when no rank has one (as in one process).
+fn reduce_step(c: &mut dyn crate::dist::Collective, s: StepSums, grads: &mut [Option<Tensor>], params: &[Param], dev: &Device) -> Result<Reduced> {
+    let (lp, rf) = (s.lpips.unwrap_or(0.0), s.refiner.unwrap_or((0.0, 0.0)));
+    let mut v = vec![
+        s.loss,
+        s.mse,
+        lp,
+        s.n_lpips as f64,
+        rf.0,
+        rf.1,
+        s.n_refiner as f64,
+        s.depth.iter().sum::<f64>(),
+        s.depth.len() as f64,
+        s.stop as u8 as f64,
+    ];
+    const HEAD: usize = 10;
+    v.extend(grads.iter().map(|g| g.is_some() as u8 as f64));
+    c.all_reduce_f64(&mut v)?;
+    let present: Vec<usize> = (0..grads.len()).filter(|&i| v[HEAD + i] > 0.0).collect();
+    if !present.is_empty() {
+        let parts = present
+            .iter()
+            .map(|&i| match &grads[i] {
+                Some(g) => g.flatten_all(),
+                None => Tensor::zeros(params[i].var.elem_count(), DType::F32, dev),
+            })
+            .collect::<candle_core::Result<Vec<_>>>()?;
+        let sum = c.all_reduce_tensor(&Tensor::cat(&parts, 0)?)?;
+        let mut off = 0;
+        for &i in &present {
+            let n = params[i].var.elem_count();
+            grads[i] = Some(sum.narrow(0, off, n)?.reshape(params[i].var.dims())?);
+            off += n;
+        }
+    }
+    Ok(Reduced {
+        loss: v[0],
+        mse: v[1],
+        lpips: (v[3] > 0.0).then_some(v[2]),
+        refiner: (v[6] > 0.0).then_some((v[4], v[5])),
+        depth: (v[8] > 0.0).then(|| v[7] / v[8]),
+        stop: v[9] > 0.0,
+    })
 }
 
 struct MicroResult {

@@ -91,3 +91,27 @@ fn gpu_training_run() {
     assert!(gpu.iter().all(|r| r.loss.is_finite() && r.grad_norm.is_finite()));
     assert!(dir.path().join("gpu/model/model.safetensors").is_file());
 }
+
+/// Data parallelism over NCCL with world size 1 (lent machines have one GPU; NCCL refuses two ranks on one):
+/// the all-reduce is the identity, so the run equals a run without it. Compiled with `--features nccl`.
+#[cfg(feature = "nccl")]
+#[test]
+#[ignore = "needs a CUDA GPU and NCCL: cargo test --features nccl -- --include-ignored"]
+fn nccl_world_size_one_equals_a_single_process() {
+    use mvsplat360_train::dist::{Link, Rank};
+    let dir = tempfile::tempdir().unwrap();
+    let run = |name: &str, dist: Option<Rank>| {
+        let cfg = common::tiny_config(&dir.path().join(name), 3, "depth_weight = 0.1");
+        mvsplat360_train::run(&cfg, &RunOptions { device: DeviceSpec::Cuda(0), dist, ..Default::default() }, &Quiet).unwrap();
+        log::read(&dir.path().join(name).join("log.jsonl")).unwrap()
+    };
+    let single = run("single", None);
+    let id = mvsplat360_train::dist::nccl_unique_id().unwrap();
+    let dp = run("nccl", Some(Rank { rank: 0, world: 1, link: Link::NcclId(id) }));
+    assert_eq!(dp.len(), 3);
+    for (a, b) in single.iter().zip(&dp) {
+        println!("step {}: loss {:.7} vs {:.7}, grad norm {:.6} vs {:.6}", a.step, a.loss, b.loss, a.grad_norm, b.grad_norm);
+        assert!((a.loss - b.loss).abs() <= 1e-5 * a.loss, "step {}", a.step);
+        assert!((a.grad_norm - b.grad_norm).abs() <= 1e-4 * a.grad_norm, "step {}", a.step);
+    }
+}

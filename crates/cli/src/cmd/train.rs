@@ -30,17 +30,29 @@ pub struct Args {
     /// refiner (`[model.refiner]`) trains on the CPU only.
     #[arg(long, default_value = "cpu")]
     pub device: mvsplat360_pipeline::compute::DeviceSpec,
+    /// Data-parallel training over N processes (ranks), started by this command: one per GPU with `--device
+    /// cuda` (GPUs N..N+world-1 for `cuda:N`), or sharing the cores on the CPU. Each rank draws its own
+    /// micro-batches and gradients are summed every step, so a step equals one process with `accumulate` ×
+    /// N micro-batches. Rank 0 writes the log, checkpoints and model folder.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..))]
+    pub world_size: u64,
+    /// How the ranks sum gradients: `nccl` (GPUs; a build with `--features nccl`), `host` (over TCP through
+    /// this process, any device), or `auto` = nccl on GPUs, host on the CPU.
+    #[arg(long, default_value = "auto")]
+    pub dist_backend: mvsplat360_train::dist::Backend,
 }
 
 struct Bar {
     pb: Option<ProgressBar>,
     stop: Arc<AtomicBool>,
+    rank: usize,
 }
 
 impl Monitor for Bar {
     fn note(&self, msg: &str) {
         match &self.pb {
             Some(pb) => pb.println(msg),
+            None if self.rank > 0 => eprintln!("rank {}: {msg}", self.rank),
             None => eprintln!("{msg}"),
         }
     }
@@ -63,16 +75,34 @@ pub fn run(a: Args, quiet: bool) -> anyhow::Result<()> {
     if let Some(o) = a.out {
         cfg.train.out = o;
     }
+    let rank = mvsplat360_train::dist::Rank::from_env()?;
     let stop = Arc::new(AtomicBool::new(false));
     let s2 = stop.clone();
-    let _ = ctrlc::set_handler(move || {
+    if rank.is_some() {
+        // A rank: its launcher forwards one SIGTERM per interrupt; finish the step, checkpoint, exit 130.
+        let _ = ctrlc::set_handler(move || s2.store(true, Ordering::SeqCst));
+    } else {
+        let _ = ctrlc::set_handler(move || {
         if s2.swap(true, Ordering::SeqCst) {
             eprintln!("interrupted again: exiting without a checkpoint");
             std::process::exit(130);
         }
         eprintln!("interrupt: finishing this step and writing a checkpoint (Ctrl-C again to exit now)");
-    });
-    let pb = (!quiet).then(|| {
+        });
+    }
+    let cuda = a.device != mvsplat360_pipeline::compute::DeviceSpec::Cpu;
+    if rank.is_none() && a.world_size > 1 {
+        return match mvsplat360_train::dist::launch_self(a.world_size as usize, a.dist_backend, cuda, &stop) {
+            Ok(()) => Ok(()),
+            Err(TrainError::Interrupted) => {
+                eprintln!("stopped; continue with --resume");
+                std::process::exit(130);
+            }
+            Err(e) => Err(e).with_context(|| format!("training with {} on {} ranks", a.config.display(), a.world_size)),
+        };
+    }
+    let rank_no = rank.as_ref().map_or(0, |r| r.rank);
+    let pb = (!quiet && rank_no == 0).then(|| {
         let pb = ProgressBar::new(cfg.train.steps);
         pb.set_style(
             ProgressStyle::with_template("train [{bar:30}] {pos}/{len} {elapsed_precise} ETA {eta} {msg}")
@@ -81,9 +111,10 @@ pub fn run(a: Args, quiet: bool) -> anyhow::Result<()> {
         );
         pb
     });
-    let mon = Bar { pb, stop };
-    let opts = RunOptions { resume: a.resume, weights_dir: a.weights_dir, device: a.device };
+    let mon = Bar { pb, stop, rank: rank_no };
+    let opts = RunOptions { resume: a.resume, weights_dir: a.weights_dir, device: a.device, dist: rank };
     match mvsplat360_train::run(&cfg, &opts, &mon) {
+        Ok(_) if rank_no > 0 => Ok(()),
         Ok(s) => {
             if let Some(pb) = &mon.pb {
                 pb.finish();
@@ -99,9 +130,12 @@ pub fn run(a: Args, quiet: bool) -> anyhow::Result<()> {
             Ok(())
         }
         Err(TrainError::Interrupted) => {
-            eprintln!("stopped; continue with --resume");
+            if rank_no == 0 {
+                eprintln!("stopped; continue with --resume");
+            }
             std::process::exit(130);
         }
+        Err(e) if rank_no > 0 => Err(e).with_context(|| format!("rank {rank_no}: training with {}", a.config.display())),
         Err(e) => Err(e).with_context(|| format!("training with {}", a.config.display())),
     }
 }

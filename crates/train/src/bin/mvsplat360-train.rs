@@ -1,5 +1,6 @@
 //! Stand-alone trainer (`mvsplat360-train --config C [--resume]`): the same loop as `mvsplat360 train`, in a
 //! small binary for background jobs and the crate's kill-and-resume test. Prints one JSON line per step.
+//! `--world-size N` trains data-parallel: this binary starts N copies of itself (ranks), rank 0 prints the lines.
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -7,6 +8,7 @@ use std::sync::Arc;
 fn main() {
     let mut config = None;
     let mut opts = mvsplat360_train::RunOptions::default();
+    let (mut world, mut backend) = (1usize, mvsplat360_train::dist::Backend::Auto);
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         match a.as_str() {
@@ -24,8 +26,29 @@ fn main() {
                     std::process::exit(2);
                 }
             },
+            "--world-size" => match args.next().map(|n| n.parse::<usize>()) {
+                Some(Ok(n)) if n > 0 => world = n,
+                _ => {
+                    eprintln!("error: --world-size needs a number of processes ≥ 1");
+                    std::process::exit(2);
+                }
+            },
+            "--dist-backend" => match args.next().map(|b| b.parse()) {
+                Some(Ok(b)) => backend = b,
+                Some(Err(e)) => {
+                    eprintln!("error: --dist-backend: {e}");
+                    std::process::exit(2);
+                }
+                None => {
+                    eprintln!("error: --dist-backend needs a value (auto, host or nccl)");
+                    std::process::exit(2);
+                }
+            },
             "-h" | "--help" => {
-                println!("usage: mvsplat360-train --config <toml> [--resume] [--weights-dir DIR] [--device cpu|cuda|cuda:N]");
+                println!(
+                    "usage: mvsplat360-train --config <toml> [--resume] [--weights-dir DIR] [--device cpu|cuda|cuda:N] \
+                     [--world-size N] [--dist-backend auto|host|nccl]"
+                );
                 return;
             }
             other => {
@@ -39,21 +62,46 @@ fn main() {
         std::process::exit(2);
     };
     mvsplat360_pipeline::setup::init_process();
-    let lines = Lines { stop: Arc::new(AtomicBool::new(false)) };
+    let rank = match mvsplat360_train::dist::Rank::from_env() {
+        Ok(r) => r,
+        Err(e) => {
+            eprintln!("error: {e}");
+            std::process::exit(2);
+        }
+    };
+    let lines = Lines { stop: Arc::new(AtomicBool::new(false)), rank: rank.as_ref().map_or(0, |r| r.rank) };
     let stop = lines.stop.clone();
     // Background jobs are stopped with SIGTERM (and a shell's `&` ignores SIGINT): finish the step, checkpoint.
     if let Err(e) = ctrlc::set_handler(move || stop.store(true, Ordering::SeqCst)) {
         eprintln!("warning: no stop handler ({e}); a stop signal will lose the steps since the last checkpoint");
     }
+    let cuda = opts.device != mvsplat360_pipeline::compute::DeviceSpec::Cpu;
+    if rank.is_none() && world > 1 {
+        let result = mvsplat360_train::TrainConfig::from_file(config.as_ref())
+            .and_then(|_| mvsplat360_train::dist::launch_self(world, backend, cuda, &lines.stop));
+        match result {
+            Ok(()) => {}
+            Err(mvsplat360_train::TrainError::Interrupted) => std::process::exit(130),
+            Err(e) => {
+                eprintln!("error: {e}");
+                std::process::exit(1);
+            }
+        }
+        return;
+    }
+    opts.dist = rank;
     let result = mvsplat360_train::TrainConfig::from_file(config.as_ref()).and_then(|cfg| mvsplat360_train::run(&cfg, &opts, &lines));
     match result {
+        Ok(s) if lines.rank > 0 => drop(s),
         Ok(s) => eprintln!("done: {} steps, model in {}", s.steps, s.model_dir.display()),
         Err(mvsplat360_train::TrainError::Interrupted) => {
-            eprintln!("stopped: checkpoint written; continue with --resume");
+            if lines.rank == 0 {
+                eprintln!("stopped: checkpoint written; continue with --resume");
+            }
             std::process::exit(130);
         }
         Err(e) => {
-            eprintln!("error: {e}");
+            lines.note(&format!("error: {e}"));
             std::process::exit(1);
         }
     }
@@ -61,16 +109,24 @@ fn main() {
 
 struct Lines {
     stop: Arc<AtomicBool>,
+    rank: usize,
 }
+
+use mvsplat360_train::Monitor as _;
 
 impl mvsplat360_train::Monitor for Lines {
     fn should_stop(&self) -> bool {
         self.stop.load(Ordering::SeqCst)
     }
     fn note(&self, msg: &str) {
-        eprintln!("{msg}");
+        match self.rank {
+            0 => eprintln!("{msg}"),
+            r => eprintln!("rank {r}: {msg}"),
+        }
     }
     fn step(&self, rec: &mvsplat360_train::StepRecord, _total: u64) {
-        println!("{}", serde_json::to_string(rec).unwrap_or_default());
+        if self.rank == 0 {
+            println!("{}", serde_json::to_string(rec).unwrap_or_default());
+        }
     }
 }

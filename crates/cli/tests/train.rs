@@ -1,0 +1,69 @@
+//! `train --world-size 2`: the command starts two ranks of itself on the CPU (host backend); rank 0 alone writes
+//! the log and the model folder. Bad flags fail before anything starts.
+
+use std::process::Command;
+
+fn bin() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_mvsplat360"))
+}
+
+fn tiny_config(out: &std::path::Path) -> String {
+    format!(
+        r#"
+[model]
+width = 64
+height = 64
+[model.encoder]
+d_feature = 32
+num_depth_candidates = 16
+costvolume_unet_feat_dim = 32
+costvolume_unet_channel_mult = [1, 1]
+costvolume_unet_attn_res = [2]
+depth_unet_feat_dim = 32
+depth_unet_channel_mult = [1, 1]
+depth_unet_attn_res = []
+num_transformer_layers = 1
+[data]
+sources = [{{ kind = "procedural", count = 4, seed = 7, views = 12 }}]
+num_context = 3
+num_target = 2
+[train]
+steps = 2
+accumulate = 1
+seed = 5
+lpips_weight = 0.0
+checkpoint_every = 1
+out = "{}"
+"#,
+        out.display()
+    )
+}
+
+#[test]
+fn two_ranks_train_and_rank_zero_writes_the_outputs() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("run");
+    let cfg = tmp.path().join("tiny.toml");
+    std::fs::write(&cfg, tiny_config(&out)).unwrap();
+    let o = bin().args(["--quiet", "train", "--world-size", "2", "--config"]).arg(&cfg).output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    let log = std::fs::read_to_string(out.join("log.jsonl")).unwrap();
+    assert_eq!(log.lines().count(), 2, "one line per step, from rank 0 only:\n{log}");
+    assert!(out.join("model/model.safetensors").is_file());
+    assert!(!out.join("train.lock").exists(), "the finished run leaves no lock");
+}
+
+#[test]
+fn bad_data_parallel_flags_fail_cleanly() {
+    let tmp = tempfile::tempdir().unwrap();
+    let cfg = tmp.path().join("tiny.toml");
+    std::fs::write(&cfg, tiny_config(&tmp.path().join("run"))).unwrap();
+    let o = bin().args(["train", "--world-size", "0", "--config"]).arg(&cfg).output().unwrap();
+    assert_eq!(o.status.code(), Some(2), "{}", String::from_utf8_lossy(&o.stderr));
+    let o = bin().args(["train", "--world-size", "2", "--dist-backend", "nccl", "--config"]).arg(&cfg).output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success());
+    assert!(err.contains("--dist-backend host"), "NCCL on the CPU names the fix: {err}");
+    assert!(!tmp.path().join("run/log.jsonl").exists(), "nothing started");
+}
