@@ -140,8 +140,8 @@ pub struct TrainSection {
     /// Initial weights: a model folder or a weights file with `encoder.*` keys (official checkpoints included).
     #[serde(default)]
     pub init: Option<PathBuf>,
-    /// Refiner weights (with `[model.refiner]`): svd.safetensors, a converted MVSplat360 checkpoint or a model
-    /// folder; absent = seeded random weights.
+    /// Refiner weights (with `[model.refiner]`): svd.safetensors, a converted MVSplat360 checkpoint, a model
+    /// folder or a diffusers SVD folder (`unet/`, `vae/`, `image_encoder/`); absent = seeded random weights.
     #[serde(default)]
     pub refiner_init: Option<PathBuf>,
     /// Weight of the refiner's losses (diffusion + 0.01·latent alignment; official 1).

@@ -233,6 +233,12 @@ pub fn step_rng(seed: u64, step: u64, micro: u32) -> rand::rngs::StdRng {
 /// Build an example from a scene: sample views, scale like `render --scene-scale auto`, flip.
 pub fn make_example(scene: &TrainScene, s: &SamplerSettings, near: f32, far: f32, rng: &mut impl Rng) -> Result<Option<Example>> {
     let Some(v) = sampler::sample(&scene.cameras, s, rng) else { return Ok(None) };
+    example_from_views(scene, &v, near, far).map(Some)
+}
+
+/// The example of chosen views: scaled like `render --scene-scale auto` (from the context cameras), flipped
+/// when `v.flip`.
+pub fn example_from_views(scene: &TrainScene, v: &sampler::ViewSample, near: f32, far: f32) -> Result<Example> {
     let ctx: Vec<Camera> = v.context.iter().map(|&i| scene.cameras[i].clone()).collect();
     let (tf, _) = scene_transform(SceneScale::Auto, &ctx, near, far);
     let prep = |idx: &[usize]| -> Result<(Tensor, Vec<Camera>)> {
@@ -269,7 +275,7 @@ pub fn make_example(scene: &TrainScene, s: &SamplerSettings, near: f32, far: f32
         }
         None => None,
     };
-    Ok(Some(Example { context_images: ci, context_cameras: cc, target_images: ti, target_cameras: tc, context_depths }))
+    Ok(Example { context_images: ci, context_cameras: cc, target_images: ti, target_cameras: tc, context_depths })
 }
 
 /// Encoder forward and target renders: (renders (T,3,H,W), Gaussians).

@@ -122,3 +122,71 @@ fn refiner_config_errors_name_the_field() {
     let e = mvsplat360_train::run(&cfg, &RunOptions::default(), &Quiet).err().expect("missing init fails").to_string();
     assert!(e.contains("absent.safetensors") && e.contains("refiner init"), "{e}");
 }
+
+/// A diffusers SVD folder (`unet/`, `vae/`, `image_encoder/`, as on the Hub) made of the shared fixtures:
+/// the run starts from its weights, and the model folder holds its VAE and CLIP under the official keys
+/// (they load with the strict sgm/open_clip loaders and compute what the diffusers-layout files compute).
+#[test]
+fn diffusers_svd_folder_initialises_the_refiner() {
+    use mvsplat360_refiner::clip::{ClipLayout, ClipVisionConfig};
+    use mvsplat360_refiner::unet::VideoUNetConfig;
+    use mvsplat360_refiner::vae::{AutoencoderConfig, VaeLayout};
+    let dir = tempfile::tempdir().unwrap();
+    let svd = dir.path().join("svd-diffusers");
+    for (sub, cfg, weights, name) in [
+        ("unet", "svd_unet_config.json", "svd_unet.safetensors", "diffusion_pytorch_model.safetensors"),
+        ("vae", "svd_vae_config.json", "svd_vae.safetensors", "diffusion_pytorch_model.safetensors"),
+        ("image_encoder", "svd_clip_vision_config.json", "svd_clip_vision.safetensors", "model.safetensors"),
+    ] {
+        std::fs::create_dir_all(svd.join(sub)).unwrap();
+        std::fs::copy(mvsplat360_testkit::fixture(&format!("svd/{cfg}")), svd.join(sub).join("config.json")).unwrap();
+        std::fs::copy(mvsplat360_testkit::fixture(&format!("svd/{weights}")), svd.join(sub).join(name)).unwrap();
+    }
+    let rcfg = mvsplat360_pipeline::model::RefinerModelConfig {
+        unet: VideoUNetConfig::from_diffusers_json(&svd.join("unet/config.json")).unwrap(),
+        vae: AutoencoderConfig::from_diffusers_json(&svd.join("vae/config.json")).unwrap(),
+        clip: ClipVisionConfig::from_transformers_json(&svd.join("image_encoder/config.json")).unwrap(),
+    };
+    let out = dir.path().join("run");
+    let mut cfg = common::tiny_config(&out, 1, "");
+    cfg.train.accumulate = 1;
+    cfg.model.refiner = Some(rcfg.clone());
+    cfg.train.refiner_init = Some(svd.clone());
+    let s = mvsplat360_train::run(&cfg, &RunOptions::default(), &Quiet).unwrap();
+    assert!(!out.join(mvsplat360_train::refiner::RANDOM_INIT).exists());
+
+    // The initial UNet is the diffusers file's, tensor by tensor (names through the diffusers → sgm table).
+    let step0 = load(&out.join("model-step0/model.safetensors"));
+    let unet_file = load(&svd.join("unet/diffusion_pytorch_model.safetensors"));
+    for (k, t) in &unet_file {
+        let sgm = mvsplat360_refiner::keymap::unet::diffusers_to_sgm(k, &rcfg.unet).unwrap_or_else(|| panic!("{k} has no sgm name"));
+        assert_eq!(max_abs_diff(&step0[&format!("refiner.model.diffusion_model.{sgm}")], t), 0.0, "{k}");
+    }
+    assert_eq!(step0.keys().filter(|k| k.starts_with("refiner.model.")).count(), unet_file.len());
+
+    // VAE and CLIP from the model folder (official keys) = from the diffusers/transformers files.
+    let w = s.model_dir.join("model.safetensors");
+    let dev = Device::Cpu;
+    let x = Tensor::rand(0f32, 1f32, (1, 3, 64, 64), &dev).unwrap();
+    let vae_ours = AutoencoderKL::load(&w, None, &rcfg.vae, &dev).unwrap();
+    let vae_ref = AutoencoderKL::load(&svd.join("vae/diffusion_pytorch_model.safetensors"), Some(VaeLayout::Diffusers), &rcfg.vae, &dev).unwrap();
+    let (m1, l1) = vae_ours.encode(&x).unwrap();
+    let (m2, l2) = vae_ref.encode(&x).unwrap();
+    assert_eq!(max_abs_diff(&m1, &m2), 0.0);
+    assert_eq!(max_abs_diff(&l1, &l2), 0.0);
+    let clip_ours = ClipImageEmbedder::load(&w, None, &rcfg.clip, &dev).unwrap();
+    let clip_ref = ClipImageEmbedder::load(&svd.join("image_encoder/model.safetensors"), Some(ClipLayout::Transformers), &rcfg.clip, &dev).unwrap();
+    let v = Tensor::rand(0f32, 1f32, (1, 2, 3, 64, 64), &dev).unwrap();
+    let (e1, e2) = (clip_ours.embed_mean(&v).unwrap(), clip_ref.embed_mean(&v).unwrap());
+    let d = max_abs_diff(&e1, &e2);
+    assert!(d <= 1e-6, "CLIP embeddings differ by {d}");
+    // And the UNet loads from the folder too (strict: no key missing or left over).
+    VideoUNet::load(&w, None, &rcfg.unet, &dev).unwrap();
+
+    // A folder without its image encoder names what is missing.
+    std::fs::remove_file(svd.join("image_encoder/model.safetensors")).unwrap();
+    let mut c2 = cfg.clone();
+    c2.train.out = dir.path().join("run2");
+    let e = mvsplat360_train::run(&c2, &RunOptions::default(), &Quiet).err().expect("fails").to_string();
+    assert!(e.contains("image_encoder") && e.contains("model.safetensors"), "{e}");
+}
