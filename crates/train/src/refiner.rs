@@ -50,28 +50,28 @@ pub struct RefinerLosses {
 
 impl TrainRefiner {
     /// `init`: a safetensors file, a model folder or a diffusers SVD folder; None = seeded random weights
-    /// (written under `out`).
-    pub fn new(cfg: &RefinerModelConfig, init: Option<&Path>, seed: u64, out: &Path) -> Result<Self> {
+    /// (written under `out`). The networks live on `dev`; the frozen copies for the model folder on the host.
+    pub fn new(cfg: &RefinerModelConfig, init: Option<&Path>, seed: u64, out: &Path, dev: &Device) -> Result<Self> {
         let file = match init {
-            Some(p) if p.join("unet").is_dir() => return Self::load_diffusers(cfg, p),
+            Some(p) if p.join("unet").is_dir() => return Self::load_diffusers(cfg, p, dev),
             Some(p) if p.is_dir() => p.join(mvsplat360_pipeline::model::MODEL_WEIGHTS),
             Some(p) => p.to_path_buf(),
             None => write_random_init(cfg, seed, out)?,
         };
-        Self::load(cfg, &file)
+        Self::load(cfg, &file, dev)
     }
 
-    fn load(cfg: &RefinerModelConfig, file: &Path) -> Result<Self> {
+    fn load(cfg: &RefinerModelConfig, file: &Path, dev: &Device) -> Result<Self> {
         let bad = |msg: String| TrainError::Config { path: file.to_path_buf(), msg: format!("refiner init: {msg}") };
         if !file.is_file() {
             return Err(bad("no such file (train.refiner_init: a safetensors file, a model folder or a diffusers SVD folder)".into()));
         }
         let frozen = frozen_tensors(file).map_err(bad)?;
-        Self::load_parts(cfg, (file, None), (file, None), (file, None), frozen)
+        Self::load_parts(cfg, (file, None), (file, None), (file, None), frozen, dev)
     }
 
     /// A diffusers SVD folder: `unet/` and `vae/` (diffusers names), `image_encoder/` (transformers CLIP).
-    fn load_diffusers(cfg: &RefinerModelConfig, dir: &Path) -> Result<Self> {
+    fn load_diffusers(cfg: &RefinerModelConfig, dir: &Path, dev: &Device) -> Result<Self> {
         let bad = |path: &Path, msg: String| TrainError::Config { path: path.to_path_buf(), msg: format!("refiner init (diffusers SVD folder): {msg}") };
         let find = |sub: &str, names: &[&str]| -> Result<PathBuf> {
             let d = dir.join(sub);
@@ -82,7 +82,7 @@ impl TrainRefiner {
         let clip = find("image_encoder", &["model.safetensors", "model.fp16.safetensors"])?;
         let mut frozen = renamed(&vae, VAE_PREFIX, |k| keymap::vae::diffusers_to_sgm(k, cfg.vae.ch_mult.len()).map(Some)).map_err(|e| bad(&vae, e))?;
         frozen.extend(renamed(&clip, CLIP_PREFIX, keymap::clip::transformers_to_open_clip).map_err(|e| bad(&clip, e))?);
-        Self::load_parts(cfg, (&unet, Some(UNetLayout::Diffusers)), (&vae, Some(VaeLayout::Diffusers)), (&clip, Some(ClipLayout::Transformers)), frozen)
+        Self::load_parts(cfg, (&unet, Some(UNetLayout::Diffusers)), (&vae, Some(VaeLayout::Diffusers)), (&clip, Some(ClipLayout::Transformers)), frozen, dev)
     }
 
     fn load_parts(
@@ -91,15 +91,15 @@ impl TrainRefiner {
         vae: (&Path, Option<VaeLayout>),
         clip: (&Path, Option<ClipLayout>),
         frozen: Vec<(String, Tensor)>,
+        dev: &Device,
     ) -> Result<Self> {
-        let dev = Device::Cpu;
         let bad = |file: &Path, msg: String| TrainError::Config { path: file.to_path_buf(), msg: format!("refiner init: {msg}") };
-        let w = Weights::from_file(unet.0, unet.1, &cfg.unet, &dev).map_err(|e| bad(unet.0, e.to_string()))?.trainable();
+        let w = Weights::from_file(unet.0, unet.1, &cfg.unet, dev).map_err(|e| bad(unet.0, e.to_string()))?.trainable();
         let unet_model = VideoUNet::new(&cfg.unet, &w).map_err(|e| bad(unet.0, format!("UNet: {e}")))?;
         let unet_vars = w.take_vars().into_iter().map(|(k, v)| (format!("{UNET_PREFIX}{k}"), v)).collect();
         w.finish().map_err(|e| bad(unet.0, e.to_string()))?;
-        let vae_model = AutoencoderKL::load(vae.0, vae.1, &cfg.vae, &dev).map_err(|e| bad(vae.0, e.to_string()))?;
-        let clip_model = ClipImageEmbedder::load(clip.0, clip.1, &cfg.clip, &dev).map_err(|e| bad(clip.0, e.to_string()))?;
+        let vae_model = AutoencoderKL::load(vae.0, vae.1, &cfg.vae, dev).map_err(|e| bad(vae.0, e.to_string()))?;
+        let clip_model = ClipImageEmbedder::load(clip.0, clip.1, &cfg.clip, dev).map_err(|e| bad(clip.0, e.to_string()))?;
         Ok(Self { cfg: cfg.clone(), unet: unet_model, unet_vars, vae: vae_model, clip: clip_model, frozen, sigmas: DdpmSigmas::official() })
     }
 
@@ -118,10 +118,12 @@ impl TrainRefiner {
         let zc = self.cfg.vae.z_channels;
         let up = diffusion::TARGET_UPSAMPLE;
         // Draw every random number from the step's generator, in a fixed order, so a resumed run repeats it.
-        let eps = normal(rng, &[t, zc, lh, lw])?;
+        // Drawn on the host, so a step's numbers are the same on every device.
+        let dev = targets.device();
+        let eps = normal(rng, &[t, zc, lh, lw], dev)?;
         let sigmas = self.sigmas.sample(rng, t);
-        let noise = normal(rng, &[t, zc, lh, lw])?;
-        let align_noise = normal(rng, &[t, 3, h * up, w * up])?;
+        let noise = normal(rng, &[t, zc, lh, lw], dev)?;
+        let align_noise = normal(rng, &[t, 3, h * up, w * up], dev)?;
         let latents = diffusion::target_latents(&self.vae, targets, Some(&eps))?;
         if latents.dims()[2..] != feats.dims()[2..] {
             return Err(TrainError::Data(format!(
@@ -137,10 +139,10 @@ impl TrainRefiner {
     }
 }
 
-fn normal(rng: &mut impl Rng, shape: &[usize]) -> Result<Tensor> {
+fn normal(rng: &mut impl Rng, shape: &[usize], dev: &Device) -> Result<Tensor> {
     let n: usize = shape.iter().product();
     let v: Vec<f32> = (0..n).map(|_| rng.sample(StandardNormal)).collect();
-    Ok(Tensor::from_vec(v, shape, &Device::Cpu)?)
+    Ok(Tensor::from_vec(v, shape, dev)?)
 }
 
 fn write_random_init(cfg: &RefinerModelConfig, seed: u64, out: &Path) -> Result<PathBuf> {

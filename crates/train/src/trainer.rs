@@ -115,15 +115,9 @@ impl Model {
             }
         }
         let refiner = match &cfg.model.refiner {
-            Some(_) if !dev.is_cpu() => {
-                return Err(TrainError::Config {
-                    path: PathBuf::from("model.refiner"),
-                    msg: "the refiner trains on the CPU only for now; remove [model.refiner] or use --device cpu".into(),
-                })
-            }
             Some(r) => {
                 std::fs::create_dir_all(&cfg.train.out).map_err(|e| TrainError::Write { path: cfg.train.out.clone(), msg: e.to_string() })?;
-                Some(TrainRefiner::new(r, cfg.train.refiner_init.as_deref(), cfg.train.seed, &cfg.train.out)?)
+                Some(TrainRefiner::new(r, cfg.train.refiner_init.as_deref(), cfg.train.seed, &cfg.train.out, dev)?)
             }
             None => None,
         };

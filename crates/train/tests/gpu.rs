@@ -115,3 +115,39 @@ fn nccl_world_size_one_equals_a_single_process() {
         assert!((a.grad_norm - b.grad_norm).abs() <= 1e-4 * a.grad_norm, "step {}", a.step);
     }
 }
+
+/// The refiner's training losses (diffusion + latent alignment, the UNet in its differentiable mode) on the GPU
+/// equal the CPU's for the same weights, example and noise draws, and so do the UNet's gradients (whole norm).
+#[test]
+#[ignore = "needs a CUDA GPU: cargo test --features cuda -- --include-ignored"]
+fn gpu_refiner_losses_match_cpu() {
+    use rand::SeedableRng;
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = common::with_refiner(dir.path(), 1, "");
+    let ex = common::example(&cfg, 2, 2, false);
+    let gpu = Device::new_cuda(0).unwrap();
+    let run = |dev: &Device| {
+        let model = Model::new_on(&cfg, dev).unwrap();
+        let ex = ex.clone().to_device(dev).unwrap();
+        let r = render_example_full(&model, &ex).unwrap();
+        let refiner = model.refiner.as_ref().unwrap();
+        let mut rng = rand::rngs::StdRng::seed_from_u64(9);
+        let l = refiner.losses(&r.features, &ex.target_images, &ex.context_images, &mut rng).unwrap();
+        let g = (&l.diffusion + &l.alignment).unwrap().backward().unwrap();
+        let sq: f64 = refiner
+            .unet_vars
+            .iter()
+            .filter_map(|(_, v)| g.get(v.as_tensor()))
+            .map(|t| t.sqr().unwrap().sum_all().unwrap().to_device(&Device::Cpu).unwrap().to_scalar::<f32>().unwrap() as f64)
+            .sum();
+        let s = |t: &Tensor| t.to_device(&Device::Cpu).unwrap().to_scalar::<f32>().unwrap() as f64;
+        (s(&l.diffusion), s(&l.alignment), sq.sqrt())
+    };
+    let c = run(&Device::Cpu);
+    let g = run(&gpu);
+    println!("diffusion {:.6} / {:.6}, alignment {:.6} / {:.6}, UNet grad norm {:.6} / {:.6} (CPU / GPU)", c.0, g.0, c.1, g.1, c.2, g.2);
+    for (what, a, b) in [("diffusion", c.0, g.0), ("alignment", c.1, g.1), ("UNet gradient norm", c.2, g.2)] {
+        assert!(a.is_finite() && a > 0.0, "{what} {a}");
+        assert!((a - b).abs() <= 1e-3 * a, "{what}: CPU {a} vs GPU {b}");
+    }
+}

@@ -11,36 +11,6 @@ use mvsplat360_refiner::unet::VideoUNet;
 use mvsplat360_refiner::vae::AutoencoderKL;
 use mvsplat360_train::{log, Quiet, RunOptions, TrainConfig};
 
-/// The tiny refiner of `pipeline::model::tiny_config`, as TOML (unspecified fields = MVSplat360's).
-const TINY_REFINER: &str = r#"
-[model.refiner.unet]
-model_channels = 32
-num_res_blocks = 1
-attention_resolutions = [1, 2]
-channel_mult = [1, 2]
-num_head_channels = 16
-context_dim = 32
-adm_in_channels = 32
-[model.refiner.vae]
-ch = 32
-ch_mult = [1, 1, 2, 2]
-num_res_blocks = 1
-[model.refiner.clip]
-width = 32
-layers = 2
-heads = 2
-mlp_width = 64
-patch_size = 8
-image_size = 32
-output_dim = 32
-"#;
-
-fn with_refiner(out: &std::path::Path, steps: u64, extra_train: &str) -> TrainConfig {
-    let base = common::tiny_config(out, steps, extra_train);
-    let text = base.to_toml().replacen("[data]", &format!("{TINY_REFINER}\n[data]"), 1);
-    TrainConfig::from_toml(&text, std::path::Path::new("tiny-refiner.toml")).expect("refiner config parses")
-}
-
 fn load(path: &std::path::Path) -> HashMap<String, Tensor> {
     candle_core::safetensors::load(path, &Device::Cpu).unwrap()
 }
@@ -52,7 +22,7 @@ fn max_abs_diff(a: &Tensor, b: &Tensor) -> f32 {
 #[test]
 fn unet_trains_and_model_folder_loads() {
     let dir = tempfile::tempdir().unwrap();
-    let mut cfg = with_refiner(dir.path(), 2, "");
+    let mut cfg = common::with_refiner(dir.path(), 2, "");
     cfg.train.accumulate = 1;
     let s = mvsplat360_train::run(&cfg, &RunOptions::default(), &Quiet).unwrap();
     assert_eq!(s.steps, 2);
@@ -95,7 +65,7 @@ fn unet_trains_and_model_folder_loads() {
     let svd_path = dir.path().join("svd-like.safetensors");
     candle_core::safetensors::save(&svd, &svd_path).unwrap();
     let out2 = dir.path().join("from-svd");
-    let mut cfg2 = with_refiner(&out2, 1, "");
+    let mut cfg2 = common::with_refiner(&out2, 1, "");
     cfg2.train.accumulate = 1;
     cfg2.train.refiner_init = Some(svd_path);
     let s2 = mvsplat360_train::run(&cfg2, &RunOptions::default(), &Quiet).unwrap();
@@ -110,14 +80,14 @@ fn unet_trains_and_model_folder_loads() {
 #[test]
 fn refiner_config_errors_name_the_field() {
     let dir = tempfile::tempdir().unwrap();
-    let text = with_refiner(dir.path(), 1, "").to_toml().replace("in_channels = 8", "in_channels = 4");
+    let text = common::with_refiner(dir.path(), 1, "").to_toml().replace("in_channels = 8", "in_channels = 4");
     let e = TrainConfig::from_toml(&text, std::path::Path::new("r.toml")).unwrap_err().to_string();
     assert!(e.contains("model.refiner.unet.in_channels"), "{e}");
     let text = common::tiny_config(dir.path(), 1, "").to_toml().replacen("[train]\n", "[train]\nrefiner_init = \"svd.safetensors\"\n", 1);
     let e = TrainConfig::from_toml(&text, std::path::Path::new("r.toml")).unwrap_err().to_string();
     assert!(e.contains("train.refiner_init") && e.contains("[model.refiner]"), "{e}");
     // A refiner_init that is not there names the file.
-    let mut cfg = with_refiner(dir.path(), 1, "");
+    let mut cfg = common::with_refiner(dir.path(), 1, "");
     cfg.train.refiner_init = Some(dir.path().join("absent.safetensors"));
     let e = mvsplat360_train::run(&cfg, &RunOptions::default(), &Quiet).err().expect("missing init fails").to_string();
     assert!(e.contains("absent.safetensors") && e.contains("refiner init"), "{e}");

@@ -25,9 +25,9 @@ pub struct Args {
     /// `~/.cache/mvsplat360/metric-weights`). Without them training runs without the LPIPS term and says so.
     #[arg(long)]
     pub weights_dir: Option<PathBuf>,
-    /// Where the encoder, rasterizer and losses run: cpu, cuda (GPU 0) or cuda:N. CUDA needs a build with
-    /// `--features cuda` (README, GPU); scene loading, view sampling and checkpoints stay on the host. The
-    /// refiner (`[model.refiner]`) trains on the CPU only.
+    /// Where the encoder, the refiner (`[model.refiner]`), the rasterizer and the losses run: cpu, cuda (GPU 0)
+    /// or cuda:N. CUDA needs a build with `--features cuda` (README, GPU); scene loading, view sampling, noise
+    /// draws and checkpoints stay on the host.
     #[arg(long, default_value = "cpu")]
     pub device: mvsplat360_pipeline::compute::DeviceSpec,
     /// Data-parallel training over N processes (ranks), started by this command: one per GPU with `--device

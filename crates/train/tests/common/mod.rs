@@ -53,3 +53,34 @@ pub fn example(cfg: &TrainConfig, seed: u64, num_target: usize, flip: bool) -> m
     let s = mvsplat360_train::sampler::SamplerSettings { num_context: 3, num_target, gap: None, gap_initial: None, warm_up: 0.0, closed_loop: true, flip };
     mvsplat360_train::trainer::make_example(&scene, &s, cfg.model.near, cfg.model.far, &mut rng).unwrap().unwrap()
 }
+
+/// The tiny refiner of `pipeline::model::tiny_config`, as TOML (unspecified fields = MVSplat360's).
+pub const TINY_REFINER: &str = r#"
+[model.refiner.unet]
+model_channels = 32
+num_res_blocks = 1
+attention_resolutions = [1, 2]
+channel_mult = [1, 2]
+num_head_channels = 16
+context_dim = 32
+adm_in_channels = 32
+[model.refiner.vae]
+ch = 32
+ch_mult = [1, 1, 2, 2]
+num_res_blocks = 1
+[model.refiner.clip]
+width = 32
+layers = 2
+heads = 2
+mlp_width = 64
+patch_size = 8
+image_size = 32
+output_dim = 32
+"#;
+
+pub fn with_refiner(out: &std::path::Path, steps: u64, extra_train: &str) -> TrainConfig {
+    let base = tiny_config(out, steps, extra_train);
+    let text = base.to_toml().replacen("[data]", &format!("{TINY_REFINER}\n[data]"), 1);
+    TrainConfig::from_toml(&text, std::path::Path::new("tiny-refiner.toml")).expect("refiner config parses")
+}
+
