@@ -115,6 +115,33 @@ fn tiny_vae_encoder_differentiable_mode_matches_fast_path_and_reaches_every_weig
     let _ = DType::F32;
 }
 
+/// The decoder (training a VAE from scratch): one frame per call, as MVSplat360 decodes.
+#[test]
+fn tiny_vae_decoder_differentiable_mode_matches_fast_path_and_reaches_every_weight() {
+    let dev = Device::Cpu;
+    let cfg = AutoencoderConfig { ch: 32, ch_mult: vec![1, 2], num_res_blocks: 1, ..AutoencoderConfig::default() };
+    let z = Tensor::randn(0f32, 1.0, (2, 4, 4, 5), &dev).unwrap();
+    let fast = AutoencoderKL::random(&cfg, 5, &dev).unwrap().decode(&z, 1).unwrap();
+    let (model, vars) = AutoencoderKL::random_trainable(&cfg, 5, &dev).unwrap();
+    let zv = Var::from_tensor(&z).unwrap();
+    let x = {
+        let _g = kernels::differentiable();
+        model.decode(zv.as_tensor(), 1).unwrap()
+    };
+    let d = rel_diff(&x, &fast);
+    eprintln!("VAE decoder differentiable vs fast: {d:.2e}");
+    assert!(d <= 1e-4, "VAE decoder: {d:.2e}");
+    assert_eq!(x.dims(), &[2, 3, 8, 10]);
+    let r = Tensor::randn(0f32, 1.0, x.dims(), &dev).unwrap();
+    let grads = (&x * &r).unwrap().sum_all().unwrap().backward().unwrap();
+    assert!(max_abs(grads.get(zv.as_tensor()).expect("latent gradient")) > 0.0);
+    // The decoder's mix factors are read as numbers by the fused temporal convolution (no gradient: a VAE
+    // trained here keeps its initial mix); every other decoder weight, the temporal convolutions included,
+    // gets one.
+    let n = assert_all_grads_nonzero(&grads, &vars, |k| k.starts_with("decoder.") && !k.ends_with("mix_factor"));
+    assert!(n > 20, "only {n} decoder weights");
+}
+
 #[test]
 fn differentiable_switch_is_per_thread_and_restored() {
     assert!(!kernels::is_differentiable());

@@ -97,6 +97,11 @@ pub struct LrGroup {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct TrainSection {
+    /// What this run trains: `model` (the encoder, and the refiner's UNet with `[model.refiner]`) or `vae`
+    /// (the refiner's first-stage autoencoder alone, from seeded random weights — the stand-in for SVD's
+    /// pretrained VAE where its weights are not at hand; its model folder is a `refiner_init` for a `model` run).
+    #[serde(default)]
+    pub stage: Stage,
     /// Optimizer steps.
     pub steps: u64,
     /// Peak learning rate of the one-cycle schedule.
@@ -147,6 +152,9 @@ pub struct TrainSection {
     /// Weight of the refiner's losses (diffusion + 0.01·latent alignment; official 1).
     #[serde(default = "one_f64")]
     pub refiner_weight: f64,
+    /// Stage `vae`: weight of the KL term (per element, as the L1 term; Stable Diffusion's autoencoders: 1e-6).
+    #[serde(default = "default_kl")]
+    pub kl_weight: f64,
     #[serde(default = "hundred_u64")]
     pub checkpoint_every: u64,
     /// Checkpoints kept on disk (older ones are deleted).
@@ -154,6 +162,14 @@ pub struct TrainSection {
     pub keep_checkpoints: usize,
     /// Output folder (checkpoints, log.jsonl, loss.png, the final model folder).
     pub out: PathBuf,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Stage {
+    #[default]
+    Model,
+    Vae,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -187,6 +203,9 @@ fn yes() -> bool {
 }
 fn default_lr() -> f64 {
     2e-4
+}
+fn default_kl() -> f64 {
+    1e-6
 }
 fn default_pct_start() -> f64 {
     0.01
@@ -277,6 +296,9 @@ impl TrainConfig {
                 return bad("model.refiner.unet.in_channels", format!("{} ≠ 4 latent + {} feature channels = {want}", r.unet.in_channels, want - 4));
             }
         }
+        if self.train.stage == Stage::Vae && self.model.refiner.is_none() {
+            return bad("train.stage", "`vae` trains the refiner's autoencoder: add [model.refiner.vae] (and the other refiner sections)".into());
+        }
         if self.train.steps == 0 {
             return bad("train.steps", "must be at least 1".into());
         }
@@ -286,7 +308,12 @@ impl TrainConfig {
         if !(self.train.pct_start > 0.0 && self.train.pct_start < 1.0) {
             return bad("train.pct_start", "must lie in (0, 1)".into());
         }
-        for (field, w) in [("train.mse_weight", self.train.mse_weight), ("train.lpips_weight", self.train.lpips_weight), ("train.depth_weight", self.train.depth_weight)] {
+        for (field, w) in [
+            ("train.mse_weight", self.train.mse_weight),
+            ("train.lpips_weight", self.train.lpips_weight),
+            ("train.depth_weight", self.train.depth_weight),
+            ("train.kl_weight", self.train.kl_weight),
+        ] {
             if !(w >= 0.0 && w.is_finite()) {
                 return bad(field, format!("{w} is not a non-negative number"));
             }

@@ -14,6 +14,7 @@ pub mod refiner;
 pub mod sampler;
 pub mod scenes;
 pub mod trainer;
+pub mod vae_stage;
 
 pub use config::TrainConfig;
 pub use error::{Result, TrainError};

@@ -57,6 +57,12 @@ pub struct StepRecord {
     pub diffusion: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub alignment: Option<f64>,
+    /// Stage `vae`: reconstruction L1 (in [−1, 1]) and KL terms (unweighted); `mse` is then the
+    /// reconstruction's MSE in [0, 1].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub l1: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub kl: Option<f64>,
     pub lr: f64,
     pub grad_norm: f64,
     /// Wall seconds of this step.
@@ -89,8 +95,10 @@ pub struct Summary {
 pub struct Model {
     pub varmap: VarMap,
     pub encoder: EncoderCostVolume,
-    /// Present with `[model.refiner]`.
+    /// Present with `[model.refiner]` (stage `model`).
     pub refiner: Option<TrainRefiner>,
+    /// Stage `vae`: the autoencoder being trained (the encoder is then not trained).
+    pub vae: Option<crate::vae_stage::TrainVae>,
     pub cfg: TrainConfig,
 }
 
@@ -114,22 +122,33 @@ impl Model {
                 var.set(&init[name].to_device(dev)?)?;
             }
         }
+        let vae_stage = cfg.train.stage == crate::config::Stage::Vae;
+        let vae = match &cfg.model.refiner {
+            Some(r) if vae_stage => Some(crate::vae_stage::TrainVae::new(&r.vae, cfg.train.seed, dev)?),
+            _ => None,
+        };
         let refiner = match &cfg.model.refiner {
+            Some(_) if vae_stage => None,
             Some(r) => {
                 std::fs::create_dir_all(&cfg.train.out).map_err(|e| TrainError::Write { path: cfg.train.out.clone(), msg: e.to_string() })?;
                 Some(TrainRefiner::new(r, cfg.train.refiner_init.as_deref(), cfg.train.seed, &cfg.train.out, dev)?)
             }
             None => None,
         };
-        let m = Self { varmap, encoder, refiner, cfg: cfg.clone() };
+        let m = Self { varmap, encoder, refiner, vae, cfg: cfg.clone() };
         if let Some(p) = &cfg.train.init {
             crate::init::load_into(&m.varmap, p)?;
         }
         Ok(m)
     }
 
-    /// (name, var), sorted by name.
+    /// (name, var) of what this run trains, sorted by name.
     pub fn vars(&self) -> Vec<(String, Var)> {
+        if let Some(v) = &self.vae {
+            let mut v = v.vars.clone();
+            v.sort_by(|a, b| a.0.cmp(&b.0));
+            return v;
+        }
         let data = self.varmap.data().lock().expect("varmap lock");
         let mut v: Vec<(String, Var)> = data.iter().map(|(k, v)| (k.clone(), v.clone())).collect();
         if let Some(r) = &self.refiner {
@@ -155,8 +174,24 @@ impl Model {
         Ok(())
     }
 
-    /// Everything a model folder holds: the trained weights and the refiner's frozen VAE and CLIP.
+    /// Everything a model folder holds: the trained weights and the refiner's frozen VAE and CLIP. Stage `vae`:
+    /// the encoder as initialised, the trained autoencoder, a seeded random UNet and CLIP (a `refiner_init`).
     pub fn model_tensors(&self) -> Result<Vec<(String, Tensor)>> {
+        if let (Some(v), Some(r)) = (&self.vae, &self.cfg.model.refiner) {
+            let data = self.varmap.data().lock().map_err(|_| TrainError::Data("varmap poisoned".into()))?;
+            let mut t: Vec<(String, Tensor)> =
+                data.iter().map(|(k, var)| Ok((k.clone(), var.as_tensor().detach().to_device(&Device::Cpu)?))).collect::<Result<_>>()?;
+            let trained: std::collections::HashMap<&str, &Var> = v.vars.iter().map(|(k, var)| (k.as_str(), var)).collect();
+            let rest = mvsplat360_refiner::state_dict::random_refiner_state_dict(&r.unet, &r.vae, &r.clip, self.cfg.train.seed.wrapping_add(17))
+                .map_err(|msg| TrainError::Config { path: PathBuf::from("model.refiner"), msg })?;
+            for (k, x) in rest {
+                match trained.get(k.as_str()) {
+                    Some(var) => t.push((k, var.as_tensor().detach().to_device(&Device::Cpu)?)),
+                    None => t.push((k, x)),
+                }
+            }
+            return Ok(t);
+        }
         let mut t = self.state_dict()?;
         if let Some(r) = &self.refiner {
             t.extend(r.frozen().iter().cloned());
@@ -439,6 +474,7 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
         let mut grads: Vec<Option<Tensor>> = vec![None; adam.params.len()];
         let (mut sum_loss, mut sum_mse, mut sum_lp, mut sum_ref) = (0f64, 0f64, None::<f64>, None::<(f64, f64)>);
         let (mut n_lp, mut n_ref) = (0usize, 0usize);
+        let mut sum_vae: Option<(f64, f64)> = None;
         // Mean over the micro-batches whose scene has ground-truth depth.
         let mut depth_terms = Vec::new();
         // Examples are drawn in micro-batch order (sources cache scenes); forward and backward may then run in
@@ -450,8 +486,37 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
             let mut rng = step_rng(cfg.train.seed, step, global(micro));
             examples.push(draw_example(&mut sources, &weights, wsum, &settings, cfg, &mut rng)?.to_device(&dev)?);
         }
+        let train_encoder = adam.params.iter().any(|p| p.name.starts_with("encoder."));
         let micro_step = |micro: u32, ex: &Example| -> Result<MicroResult> {
-            let rendered = render_example_full(&model, ex)?;
+            if let Some(v) = model.vae.as_ref() {
+                let mut rng = step_rng(cfg.train.seed ^ 0x7AE0_0000_0000_0000, step, global(micro));
+                let l = v.losses(&ex.target_images, &mut rng)?;
+                let (mut total, mse, lp) = losses(cfg, lpips.as_ref(), step, &l.recon, &ex.target_images)?;
+                // The reconstruction terms replace the render's MSE; `mse` stays a number to log.
+                total = (total - (&mse * cfg.train.mse_weight)?)?;
+                total = ((total + &l.l1)? + (&l.kl * cfg.train.kl_weight)?)?;
+                let tv = total.to_scalar::<f32>()? as f64;
+                if !tv.is_finite() {
+                    return Err(TrainError::NonFinite { step: step + 1, what: format!("loss {tv}") });
+                }
+                let g = (total / denom)?.backward()?;
+                return Ok(MicroResult {
+                    loss: tv,
+                    mse: mse.to_scalar::<f32>()? as f64,
+                    lpips: lp.map(|l| l.to_scalar::<f32>()).transpose()?.map(|l| l as f64),
+                    depth: None,
+                    refiner: None,
+                    vae: Some((l.l1.to_scalar::<f32>()? as f64, l.kl.to_scalar::<f32>()? as f64)),
+                    grads: adam.params.iter().map(|p| g.get(p.var.as_tensor()).cloned()).collect(),
+                });
+            }
+            let mut rendered = render_example_full(&model, ex)?;
+            if !train_encoder {
+                // A frozen encoder (e.g. a refiner-only run): no backward through the rasterizer and encoder.
+                rendered.rgb = rendered.rgb.detach();
+                rendered.features = rendered.features.detach();
+                rendered.depths = rendered.depths.detach();
+            }
             let (pred, feats) = (&rendered.rgb, &rendered.features);
             let (mut total, mse, lp) = losses(cfg, lpips.as_ref(), step, pred, &ex.target_images)?;
             let mut depth_term = None;
@@ -481,6 +546,7 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
                 lpips: lp.map(|l| l.to_scalar::<f32>()).transpose()?.map(|l| l as f64),
                 depth: depth_term,
                 refiner: refiner_terms,
+                vae: None,
                 grads,
             })
         };
@@ -510,6 +576,11 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
                 s.1 += a / denom;
                 n_ref += 1;
             }
+            if let Some((l1, kl)) = r.vae {
+                let s = sum_vae.get_or_insert((0.0, 0.0));
+                s.0 += l1 / denom;
+                s.1 += kl / denom;
+            }
             for (i, gi) in r.grads.into_iter().enumerate() {
                 if let Some(gi) = gi {
                     grads[i] = Some(match grads[i].take() {
@@ -524,9 +595,9 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
         if let Some(c) = coll.as_mut() {
             // Sampled before the sums, so that every rank stops after the same step.
             let stop_here = mon.should_stop();
-            let sums = StepSums { loss: sum_loss, mse: sum_mse, lpips: sum_lp, n_lpips: n_lp, refiner: sum_ref, n_refiner: n_ref, depth: &depth_terms, stop: stop_here };
+            let sums = StepSums { loss: sum_loss, mse: sum_mse, lpips: sum_lp, n_lpips: n_lp, refiner: sum_ref, n_refiner: n_ref, vae: sum_vae, depth: &depth_terms, stop: stop_here };
             let r = reduce_step(c.as_mut(), sums, &mut grads, &adam.params, &dev)?;
-            (sum_loss, sum_mse, sum_lp, sum_ref, depth_mean, stop_all) = (r.loss, r.mse, r.lpips, r.refiner, r.depth, Some(r.stop));
+            (sum_loss, sum_mse, sum_lp, sum_ref, sum_vae, depth_mean, stop_all) = (r.loss, r.mse, r.lpips, r.refiner, r.vae, r.depth, Some(r.stop));
         }
         let norm = if cfg.train.clip_grad_norm > 0.0 { clip_grad_norm(&mut grads, cfg.train.clip_grad_norm)? } else { crate::optim::grad_norm(&grads)? };
         if !norm.is_finite() {
@@ -545,6 +616,8 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
             depth: depth_mean,
             diffusion: sum_ref.map(|r| r.0),
             alignment: sum_ref.map(|r| r.1),
+            l1: sum_vae.map(|v| v.0),
+            kl: sum_vae.map(|v| v.1),
             lr,
             grad_norm: norm,
             seconds: secs,
@@ -580,6 +653,7 @@ struct StepSums<'a> {
     n_lpips: usize,
     refiner: Option<(f64, f64)>,
     n_refiner: usize,
+    vae: Option<(f64, f64)>,
     /// This rank's depth terms (their mean over all ranks is logged).
     depth: &'a [f64],
     stop: bool,
@@ -590,6 +664,7 @@ struct Reduced {
     mse: f64,
     lpips: Option<f64>,
     refiner: Option<(f64, f64)>,
+    vae: Option<(f64, f64)>,
     depth: Option<f64>,
     stop: bool,
 }
@@ -609,8 +684,11 @@ fn reduce_step(c: &mut dyn crate::dist::Collective, s: StepSums, grads: &mut [Op
         s.depth.iter().sum::<f64>(),
         s.depth.len() as f64,
         s.stop as u8 as f64,
+        s.vae.unwrap_or((0.0, 0.0)).0,
+        s.vae.unwrap_or((0.0, 0.0)).1,
+        s.vae.is_some() as u8 as f64,
     ];
-    const HEAD: usize = 10;
+    const HEAD: usize = 13;
     v.extend(grads.iter().map(|g| g.is_some() as u8 as f64));
     c.all_reduce_f64(&mut v)?;
     let present: Vec<usize> = (0..grads.len()).filter(|&i| v[HEAD + i] > 0.0).collect();
@@ -637,6 +715,7 @@ fn reduce_step(c: &mut dyn crate::dist::Collective, s: StepSums, grads: &mut [Op
         refiner: (v[6] > 0.0).then_some((v[4], v[5])),
         depth: (v[8] > 0.0).then(|| v[7] / v[8]),
         stop: v[9] > 0.0,
+        vae: (v[12] > 0.0).then_some((v[10], v[11])),
     })
 }
 
@@ -646,6 +725,8 @@ struct MicroResult {
     lpips: Option<f64>,
     depth: Option<f64>,
     refiner: Option<(f64, f64)>,
+    /// Stage `vae`: (l1, kl).
+    vae: Option<(f64, f64)>,
     grads: Vec<Option<Tensor>>,
 }
 
