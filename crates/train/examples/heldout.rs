@@ -1,6 +1,9 @@
 //! Held-out table for MODEL.md: per scene, 5 context views by farthest-point sampling, every other view a
 //! target; PSNR / SSIM / LPIPS (VGG) of each model's 3DGS renders and of the baseline that copies the photo of
-//! the context camera nearest each target.
+//! the context camera nearest each target. A model folder with a refiner also gets rows for its refined frames
+//! (25 EDM steps, guidance 1 → 2.5, windows of 14, as `render`) and the final frames (refined, then
+//! histogram-matched to the 3DGS renders); `--refiner none` as a second `--model` entry skips them
+//! (`--model name=DIR:norefine`).
 //!
 //!     cargo run --release -p mvsplat360-train --example heldout -- \
 //!         --model step0=out/train/shipped/model-step0 --model final=assets/models/default data/heldout/*
@@ -53,7 +56,7 @@ fn contact_sheet(path: &std::path::Path, preds: &[ImageF32], gts: &[ImageF32]) -
 
 fn main() -> anyhow::Result<()> {
     mvsplat360_pipeline::setup::init_process();
-    let mut models: Vec<(String, PathBuf)> = Vec::new();
+    let mut models: Vec<(String, PathBuf, bool)> = Vec::new();
     let mut scenes: Vec<PathBuf> = Vec::new();
     let mut json_out: Option<PathBuf> = None;
     let mut dump: Option<PathBuf> = None;
@@ -63,7 +66,11 @@ fn main() -> anyhow::Result<()> {
             "--model" => {
                 let v = args.next().ok_or_else(|| anyhow::anyhow!("--model name=DIR"))?;
                 let (n, d) = v.split_once('=').ok_or_else(|| anyhow::anyhow!("--model name=DIR, got {v}"))?;
-                models.push((n.into(), d.into()));
+                let (d, refine) = match d.strip_suffix(":norefine") {
+                    Some(d) => (d, false),
+                    None => (d, true),
+                };
+                models.push((n.into(), d.into(), refine));
             }
             "--json" => json_out = args.next().map(Into::into),
             "--dump" => dump = args.next().map(Into::into),
@@ -78,13 +85,13 @@ fn main() -> anyhow::Result<()> {
         let name = scene.file_name().map(|s| s.to_string_lossy().to_string()).unwrap_or_default();
         let n = mvsplat360_dataset::read_scene(scene)?.len();
         let mut baseline_done = false;
-        for (mname, dir) in &models {
+        for (mname, dir, refine) in &models {
             let req = RenderRequest {
                 scene: scene.clone(),
                 scene_key: None,
                 context: ContextSpec::Count(5),
                 targets: TargetSpec::Views((0..n).collect()),
-                model: ModelArgs { ckpt: Some(dir.clone()), refiner: Some(mvsplat360_pipeline::model::RefinerArg::None), ..Default::default() },
+                model: ModelArgs { ckpt: Some(dir.clone()), refiner: (!refine).then_some(mvsplat360_pipeline::model::RefinerArg::None), ..Default::default() },
                 size: None,
                 scene_scale: mvsplat360_pipeline::scale::SceneScale::Auto,
                 refine: Default::default(),
@@ -134,6 +141,39 @@ fn main() -> anyhow::Result<()> {
             let [ps, ss, ls] = scores(&lp, &preds, &gts)?;
             println!("| {name} | {mname} (3DGS) | {ps:.2} | {ss:.3} | {ls:.3} |");
             rows.push(serde_json::json!({"scene": name, "method": format!("{mname} 3DGS"), "psnr": ps, "ssim": ss, "lpips": ls, "targets": gts.len()}));
+            if let Some((rcfg, w)) = &p.spec.refiner {
+                let file = mvsplat360_pipeline::model::refiner_safetensors(w, &|_| {})?;
+                // What the refiner's decoder can give at best: the photos encoded (posterior mode) and decoded.
+                use mvsplat360_refiner::vae::{frames_from_decoded, prepare_encoder_input, AutoencoderKL};
+                let vae = AutoencoderKL::load(&file, None, &rcfg.vae, &Device::Cpu)?;
+                let (gh, gw) = (gts[0].height as usize, gts[0].width as usize);
+                let photos = Tensor::stack(&gts.iter().map(|g| Tensor::from_slice(&g.data, (3, gh, gw), &Device::Cpu)).collect::<Result<Vec<_>, _>>()?, 0)?;
+                let (mean, _) = vae.encode(&prepare_encoder_input(&photos, 2)?)?;
+                let rec = frames_from_decoded(&vae.decode(&mean, 1)?, 2)?;
+                let rec: Vec<ImageF32> =
+                    (0..gts.len()).map(|i| Ok(ImageF32 { width: gw as u32, height: gh as u32, data: rec.get(i)?.flatten_all()?.to_vec1()? })).collect::<anyhow::Result<_>>()?;
+                let [ps, ss, ls] = scores(&lp, &rec, &gts)?;
+                println!("| {name} | {mname} (its VAE on the photos: encode, decode) | {ps:.2} | {ss:.3} | {ls:.3} |");
+                rows.push(serde_json::json!({"scene": name, "method": format!("{mname} VAE reconstruction"), "psnr": ps, "ssim": ss, "lpips": ls, "targets": gts.len()}));
+                let feats: Vec<Tensor> = out.iter().map(|(_, f)| f.clone()).collect();
+                let refined = render::refine_frames(&p, &feats, &file, &Default::default(), &Silent)?;
+                let refined: Vec<ImageF32> = refined
+                    .iter()
+                    .map(|f| {
+                        let (_, h, w) = f.dims3()?;
+                        Ok(ImageF32 { width: w as u32, height: h as u32, data: f.to_device(&Device::Cpu)?.flatten_all()?.to_vec1()? })
+                    })
+                    .collect::<anyhow::Result<_>>()?;
+                let fin: Vec<ImageF32> = refined.iter().zip(&preds).map(|(r, g)| render::histogram_match(r, g)).collect::<Result<_, _>>()?;
+                for (label, frames) in [("refined", &refined), ("final", &fin)] {
+                    if let Some(d) = &dump {
+                        contact_sheet(&d.join(format!("{name}-{mname}-{label}.png")), frames, &gts)?;
+                    }
+                    let [ps, ss, ls] = scores(&lp, frames, &gts)?;
+                    println!("| {name} | {mname} ({label}) | {ps:.2} | {ss:.3} | {ls:.3} |");
+                    rows.push(serde_json::json!({"scene": name, "method": format!("{mname} {label}"), "psnr": ps, "ssim": ss, "lpips": ls, "targets": gts.len()}));
+                }
+            }
         }
     }
     if let Some(j) = json_out {
