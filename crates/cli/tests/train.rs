@@ -3,40 +3,19 @@
 
 use std::process::Command;
 
+#[path = "../../train/tests/common/mod.rs"]
+mod common;
+
 fn bin() -> Command {
     Command::new(env!("CARGO_BIN_EXE_mvsplat360"))
 }
 
+/// The train crate's tiny config (64×64, 3 context views, generated scenes), 2 steps, a checkpoint each.
 fn tiny_config(out: &std::path::Path) -> String {
-    format!(
-        r#"
-[model]
-width = 64
-height = 64
-[model.encoder]
-d_feature = 32
-num_depth_candidates = 16
-costvolume_unet_feat_dim = 32
-costvolume_unet_channel_mult = [1, 1]
-costvolume_unet_attn_res = [2]
-depth_unet_feat_dim = 32
-depth_unet_channel_mult = [1, 1]
-depth_unet_attn_res = []
-num_transformer_layers = 1
-[data]
-sources = [{{ kind = "procedural", count = 4, seed = 7, views = 12 }}]
-num_context = 3
-num_target = 2
-[train]
-steps = 2
-accumulate = 1
-seed = 5
-lpips_weight = 0.0
-checkpoint_every = 1
-out = "{}"
-"#,
-        out.display()
-    )
+    let mut c = common::tiny_config(out, 2, "");
+    c.train.accumulate = 1;
+    c.train.checkpoint_every = 1;
+    c.to_toml()
 }
 
 #[test]
