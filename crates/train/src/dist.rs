@@ -224,9 +224,14 @@ fn write_frame(w: &mut impl Write, kind: u8, payload: &[u8]) -> std::io::Result<
 /// None at a clean end of stream (the rank finished).
 fn read_frame(r: &mut impl Read) -> std::io::Result<Option<(u8, Vec<u8>)>> {
     let mut kind = [0u8; 1];
-    match r.read(&mut kind)? {
-        0 => return Ok(None),
-        _ => {}
+    loop {
+        // A stop signal landing during the wait must not end the run (read_exact retries by itself).
+        match r.read(&mut kind) {
+            Ok(0) => return Ok(None),
+            Ok(_) => break,
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
+            Err(e) => return Err(e),
+        }
     }
     let mut n = [0u8; 8];
     r.read_exact(&mut n)?;

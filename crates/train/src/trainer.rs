@@ -491,10 +491,14 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
             if let Some(v) = model.vae.as_ref() {
                 let mut rng = step_rng(cfg.train.seed ^ 0x7AE0_0000_0000_0000, step, global(micro));
                 let l = v.losses(&ex.target_images, &mut rng)?;
-                let (mut total, mse, lp) = losses(cfg, lpips.as_ref(), step, &l.recon, &ex.target_images)?;
-                // The reconstruction terms replace the render's MSE; `mse` stays a number to log.
-                total = (total - (&mse * cfg.train.mse_weight)?)?;
-                total = ((total + &l.l1)? + (&l.kl * cfg.train.kl_weight)?)?;
+                let mse = crate::loss::mse(&l.recon.detach(), &ex.target_images)?;
+                let mut total = (&l.l1 + (&l.kl * cfg.train.kl_weight)?)?;
+                let mut lp = None;
+                if let Some(net) = lpips.as_ref().filter(|_| step >= cfg.train.lpips_after_step && cfg.train.lpips_weight > 0.0) {
+                    let x = crate::loss::lpips(net, &l.recon, &ex.target_images)?;
+                    total = (total + (&x * cfg.train.lpips_weight)?)?;
+                    lp = Some(x);
+                }
                 let tv = total.to_scalar::<f32>()? as f64;
                 if !tv.is_finite() {
                     return Err(TrainError::NonFinite { step: step + 1, what: format!("loss {tv}") });
