@@ -70,14 +70,19 @@ impl Backend {
             return Err(flag("--dist-backend", "nccl reduces GPU tensors only; use --device cuda or --dist-backend host"));
         }
         if b == Self::Nccl && !cfg!(feature = "nccl") {
-            return Err(flag(
-                "--dist-backend",
-                "this binary was built without NCCL: build with `--features nccl` (NCCL's library at build and run \
-                 time; README, GPU) or pass --dist-backend host",
-            ));
+            return Err(no_nccl());
         }
         Ok(b)
     }
+}
+
+/// What a build without the `nccl` feature says when asked for NCCL.
+fn no_nccl() -> TrainError {
+    flag(
+        "--dist-backend",
+        "this binary was built without NCCL: build with `--features nccl` (NCCL's library at build and run time; \
+         README, GPU) or pass --dist-backend host",
+    )
 }
 
 fn flag(name: &str, msg: &str) -> TrainError {
@@ -151,7 +156,7 @@ pub fn connect(rank: &Rank, dev: &Device) -> Result<Box<dyn Collective>> {
             #[cfg(not(feature = "nccl"))]
             {
                 let _ = (id, dev);
-                Err(Backend::Nccl.resolve(true).err().unwrap_or_else(|| net("nccl", "unavailable")))
+                Err(no_nccl())
             }
         }
     }
@@ -283,31 +288,32 @@ pub fn serve_hub(listener: TcpListener, world: usize) -> Result<()> {
         if got.iter().any(|(k, p)| *k != kind || p.len() != len) {
             return Err(net("hub", "the ranks sent different amounts (they run different configs?)"));
         }
+        let parts = got.iter().map(|(_, p)| p.as_slice());
         let sum: Vec<u8> = match kind {
-            KIND_F32 => {
-                let mut acc: Vec<f32> = got[0].1.chunks_exact(4).map(|c| f32::from_le_bytes(c.try_into().expect("4"))).collect();
-                for (_, p) in &got[1..] {
-                    for (a, c) in acc.iter_mut().zip(p.chunks_exact(4)) {
-                        *a += f32::from_le_bytes(c.try_into().expect("4"));
-                    }
-                }
-                acc.iter().flat_map(|x| x.to_le_bytes()).collect()
-            }
-            KIND_F64 => {
-                let mut acc: Vec<f64> = got[0].1.chunks_exact(8).map(|c| f64::from_le_bytes(c.try_into().expect("8"))).collect();
-                for (_, p) in &got[1..] {
-                    for (a, c) in acc.iter_mut().zip(p.chunks_exact(8)) {
-                        *a += f64::from_le_bytes(c.try_into().expect("8"));
-                    }
-                }
-                acc.iter().flat_map(|x| x.to_le_bytes()).collect()
-            }
+            KIND_F32 => sum_le(parts, f32::from_le_bytes, f32::to_le_bytes),
+            KIND_F64 => sum_le(parts, f64::from_le_bytes, f64::to_le_bytes),
             k => return Err(net("hub", format!("unknown frame kind {k}"))),
         };
         for (rank, (_, w)) in conns.iter_mut().enumerate() {
             write_frame(w, kind, &sum).map_err(|e| net(&format!("hub: rank {rank}"), e))?;
         }
     }
+}
+
+/// Element-wise sum of little-endian buffers of one number type, added in the order given.
+fn sum_le<'a, T: std::ops::AddAssign + Copy, const N: usize>(
+    mut parts: impl Iterator<Item = &'a [u8]>,
+    from: fn([u8; N]) -> T,
+    to: fn(T) -> [u8; N],
+) -> Vec<u8> {
+    let read = |c: &[u8]| from(c.try_into().expect("N bytes"));
+    let mut acc: Vec<T> = parts.next().map(|p| p.chunks_exact(N).map(read).collect()).unwrap_or_default();
+    for p in parts {
+        for (a, c) in acc.iter_mut().zip(p.chunks_exact(N)) {
+            *a += read(c);
+        }
+    }
+    acc.into_iter().flat_map(to).collect()
 }
 
 // ---------------------------------------------------------------------------------------------- launcher
@@ -336,7 +342,7 @@ pub fn launch(spec: &LaunchSpec, mut command: impl FnMut(usize) -> Command, stop
             #[cfg(feature = "nccl")]
             env.push((ENV_NCCL_ID.into(), nccl::new_id_hex()?));
             #[cfg(not(feature = "nccl"))]
-            return Err(Backend::Nccl.resolve(true).err().unwrap_or_else(|| net("nccl", "unavailable")));
+            return Err(no_nccl());
             #[cfg(feature = "nccl")]
             None
         }

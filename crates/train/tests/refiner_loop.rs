@@ -157,7 +157,7 @@ fn diffusers_svd_folder_initialises_the_refiner() {
     std::fs::remove_file(svd.join("image_encoder/model.safetensors")).unwrap();
     let mut c2 = cfg.clone();
     c2.train.out = dir.path().join("run2");
-    let e = mvsplat360_train::run(&c2, &RunOptions::default(), &Quiet).err().expect("fails").to_string();
+    let e = mvsplat360_train::run(&c2, &RunOptions::default(), &Quiet).unwrap_err().to_string();
     assert!(e.contains("image_encoder") && e.contains("model.safetensors"), "{e}");
 }
 
