@@ -8,14 +8,19 @@
 //!   Gaussians with exact geometry and no view-dependent colour can do; what is left is disocclusion and
 //!   resampling.
 //!
-//!     cargo run --release -p mvsplat360-train --example oracle -- CONFIG.toml MODEL_DIR [--sigma 0.6] SEED…
+//! A scene folder with depth maps (`scripts/render-povray-sets` writes them) instead of a seed runs the same on
+//! that scene, with the context views `heldout` chooses (unknown depths — sky, clipped colours — sit at 0.9 × far).
+//!
+//!     cargo run --release -p mvsplat360-train --example oracle -- CONFIG.toml MODEL_DIR [--sigma 0.6] SEED|DIR…
 
 use candle_core::{Device, Tensor};
 use mvsplat360_pipeline::render::raster_camera;
 use mvsplat360_splat::{Gaussians, RenderOptions};
 use mvsplat360_train::data::procedural::{generate, GenOptions};
 use mvsplat360_train::sampler::{self, SamplerSettings};
-use mvsplat360_train::scenes::TrainScene;
+use mvsplat360_pipeline::preprocess::{InputSize, Preprocess};
+use mvsplat360_pipeline::views::{choose, ContextSpec, TargetSpec};
+use mvsplat360_train::scenes::{read_folder_scene, TrainScene};
 use mvsplat360_train::trainer::{example_from_views, render_example, Example, Model};
 use rand::SeedableRng;
 
@@ -75,7 +80,7 @@ fn main() -> anyhow::Result<()> {
         sigma = args.get(i + 1).ok_or_else(|| anyhow::anyhow!("--sigma needs a value"))?.parse()?;
         args.drain(i..i + 2);
     }
-    anyhow::ensure!(args.len() >= 3, "usage: oracle CONFIG.toml MODEL_DIR [--sigma S] SEED…");
+    anyhow::ensure!(args.len() >= 3, "usage: oracle CONFIG.toml MODEL_DIR [--sigma S] SEED|DIR…");
     let mut cfg = mvsplat360_train::TrainConfig::from_file(args[0].as_ref())?;
     cfg.train.init = Some(args[1].clone().into());
     cfg.model.refiner = None;
@@ -84,16 +89,32 @@ fn main() -> anyhow::Result<()> {
     let (near, far) = (cfg.model.near, cfg.model.far);
     println!("| scene | nearest context | model (3DGS) | depth oracle (σ = {sigma} px) |\n|---|---|---|---|");
     let mut sums = [0.0f64; 3];
-    let seeds: Vec<u64> = args[2..].iter().map(|s| s.parse()).collect::<Result<_, _>>()?;
-    for &seed in &seeds {
-        let g = generate(seed, &GenOptions { views: 32, width: w, height: h, samples: 2 });
-        let images = g.views.iter().map(|v| mvsplat360_dataset::ImageF32 { width: w, height: h, data: v.image.clone() }).collect();
-        let depths = Some(g.views.iter().map(|v| v.depth.clone()).collect());
-        let cameras: Vec<_> = g.views.into_iter().map(|v| v.camera).collect();
-        let scene = TrainScene { name: g.name, images, cameras, depths };
-        let s = SamplerSettings { num_context: 5, num_target: 1, gap: None, gap_initial: None, warm_up: 1.0, closed_loop: true, flip: false };
-        let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
-        let mut v = sampler::sample(&scene.cameras, &s, &mut rng).ok_or_else(|| anyhow::anyhow!("no views"))?;
+    let pre = Preprocess { size: InputSize::Fixed { width: w, height: h }, multiple: cfg.model.encoder.image_multiple() as u32 };
+    for arg in &args[2..] {
+        let (scene, mut v, label) = match arg.parse::<u64>() {
+            Ok(seed) => {
+                let g = generate(seed, &GenOptions { views: 32, width: w, height: h, samples: 2 });
+                let images = g.views.iter().map(|v| mvsplat360_dataset::ImageF32 { width: w, height: h, data: v.image.clone() }).collect();
+                let depths = Some(g.views.iter().map(|v| v.depth.clone()).collect());
+                let cameras: Vec<_> = g.views.into_iter().map(|v| v.camera).collect();
+                let scene = TrainScene { name: g.name, images, cameras, depths };
+                let s = SamplerSettings { num_context: 5, num_target: 1, gap: None, gap_initial: None, warm_up: 1.0, closed_loop: true, flip: false };
+                let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+                let v = sampler::sample(&scene.cameras, &s, &mut rng).ok_or_else(|| anyhow::anyhow!("no views"))?;
+                let label = format!("{} (seed {seed})", scene.name);
+                (scene, v, label)
+            }
+            Err(_) => {
+                let dir = std::path::Path::new(arg);
+                let scene = read_folder_scene(dir, &pre)?;
+                anyhow::ensure!(scene.depths.is_some(), "{arg}: no depth/depth.json (render it with scripts/render-povray-scene --depth)");
+                let raw = mvsplat360_dataset::read_scene(dir)?;
+                let choice = choose(&raw, &ContextSpec::Count(5), &TargetSpec::Views(vec![0]))?;
+                let v = sampler::ViewSample { context: choice.context, target: vec![], flip: false };
+                let label = dir.file_name().map_or(arg.clone(), |n| n.to_string_lossy().to_string());
+                (scene, v, label)
+            }
+        };
         v.target = (0..scene.cameras.len()).filter(|i| !v.context.contains(i)).collect();
         let ex = example_from_views(&scene, &v, near, far)?;
         let mut base = 0.0;
@@ -127,17 +148,17 @@ fn main() -> anyhow::Result<()> {
         };
         let r0 = mvsplat360_splat::render(&g0, &raster_camera(&ex.context_cameras[0], near, far), &RenderOptions::default())?;
         eprintln!(
-            "seed {seed}: oracle renders context view 0 from its own camera at {:.2} dB ({:.2} dB from its own Gaussians alone)",
+            "{label}: oracle renders context view 0 from its own camera at {:.2} dB ({:.2} dB from its own Gaussians alone)",
             psnr(&r.rgb, &ex.context_images.get(0)?)?,
             psnr(&r0.rgb, &ex.context_images.get(0)?)?
         );
         let row = [base / nt, m / nt, o / nt];
-        println!("| {} (seed {seed}) | {:.2} | {:.2} | {:.2} |", scene.name, row[0], row[1], row[2]);
+        println!("| {label} | {:.2} | {:.2} | {:.2} |", row[0], row[1], row[2]);
         for (s, r) in sums.iter_mut().zip(row) {
             *s += r;
         }
     }
-    let n = seeds.len() as f64;
+    let n = (args.len() - 2) as f64;
     println!("| **mean** | {:.2} | {:.2} | {:.2} |", sums[0] / n, sums[1] / n, sums[2] / n);
     Ok(())
 }

@@ -20,7 +20,8 @@ pub struct TrainScene {
     pub name: String,
     pub images: Vec<ImageF32>,
     pub cameras: Vec<Camera>,
-    /// Ground-truth ray-distance maps (H·W each, infinite = sky), for the sources that know them (procedural).
+    /// Ground-truth ray-distance maps (H·W each, infinite = sky or unknown), for the sources that know them
+    /// (procedural scenes; folder scenes with `depth/`, see [`read_depths`]).
     pub depths: Option<Vec<Vec<f32>>>,
 }
 
@@ -69,8 +70,7 @@ impl SceneSource {
                 if let Some(s) = self.cache.get(&i) {
                     return Ok(s.clone());
                 }
-                let scene = mvsplat360_dataset::read_scene(&scenes[i]).map_err(|e| TrainError::Data(format!("{}: {e}", scenes[i].display())))?;
-                let s = prepare(&scene, &self.pre)?;
+                let s = read_folder_scene(&scenes[i], &self.pre)?;
                 self.cache.insert(i, s.clone());
                 Ok(s)
             }
@@ -109,6 +109,59 @@ pub fn prepare(scene: &Scene, pre: &Preprocess) -> Result<TrainScene> {
         cameras.push(cam);
     }
     Ok(TrainScene { name: scene.name.clone(), images, cameras, depths: None })
+}
+
+/// A folder scene at the training size, with its depth maps when it has them.
+pub fn read_folder_scene(dir: &Path, pre: &Preprocess) -> Result<TrainScene> {
+    let scene = mvsplat360_dataset::read_scene(dir).map_err(|e| TrainError::Data(format!("{}: {e}", dir.display())))?;
+    let mut s = prepare(&scene, pre)?;
+    s.depths = read_depths(dir, &scene, &s.cameras)?;
+    Ok(s)
+}
+
+/// The ray-distance maps of a folder scene (`scripts/render-povray-scene --depth` writes them):
+/// `depth/<view's file stem>.png`, 16-bit greyscale, distance = value × `unit` of `depth/depth.json`, 0 = unknown.
+/// None when the folder has no `depth/depth.json`. Resampling a depth map would blend surfaces, so they are used
+/// only when the photos already are at the training size (`prepared` = the views' cameras after preprocessing).
+pub fn read_depths(dir: &Path, scene: &Scene, prepared: &[Camera]) -> Result<Option<Vec<Vec<f32>>>> {
+    let meta = dir.join("depth").join("depth.json");
+    if !meta.is_file() {
+        return Ok(None);
+    }
+    #[derive(serde::Deserialize)]
+    struct Meta {
+        unit: f64,
+    }
+    let bad = |p: &Path, msg: String| TrainError::Data(format!("{}: {msg}", p.display()));
+    let text = std::fs::read_to_string(&meta).map_err(|e| bad(&meta, e.to_string()))?;
+    let m: Meta = serde_json::from_str(&text).map_err(|e| bad(&meta, format!("{e} (expected {{\"unit\": <distance per step>}})")))?;
+    if !(m.unit.is_finite() && m.unit > 0.0) {
+        return Err(bad(&meta, format!("`unit` must be a positive number, got {}", m.unit)));
+    }
+    let mut out = Vec::with_capacity(scene.len());
+    for ((name, cam), pc) in scene.view_names.iter().zip(&scene.cameras).zip(prepared) {
+        if (pc.width, pc.height, pc.fx, pc.cx, pc.cy) != (cam.width, cam.height, cam.fx, cam.cx, cam.cy) {
+            return Err(bad(
+                dir,
+                format!(
+                    "view {name} is {}×{} but trained at {}×{}: depth maps are only used when the photos are at the \
+                     training size; render the scene at that size or remove depth/",
+                    cam.width, cam.height, pc.width, pc.height
+                ),
+            ));
+        }
+        let stem = Path::new(name).file_stem().and_then(|s| s.to_str()).unwrap_or(name);
+        let p = dir.join("depth").join(format!("{stem}.png"));
+        let map = image::open(&p).map_err(|e| bad(&p, format!("{e} (every view needs its depth map once depth/depth.json exists)")))?;
+        if map.color() != image::ColorType::L16 {
+            return Err(bad(&p, format!("expected a 16-bit greyscale PNG, got {:?}", map.color())));
+        }
+        if (map.width(), map.height()) != (cam.width, cam.height) {
+            return Err(bad(&p, format!("the depth map is {}×{} but its photo is {}×{}", map.width(), map.height(), cam.width, cam.height)));
+        }
+        out.push(map.to_luma16().into_raw().into_iter().map(|v| if v == 0 { f32::INFINITY } else { (v as f64 * m.unit) as f32 }).collect());
+    }
+    Ok(Some(out))
 }
 
 /// Scene folders under `path` (itself when it is a scene).
