@@ -21,7 +21,7 @@ use mvsplat360_train::sampler::{self, SamplerSettings};
 use mvsplat360_pipeline::preprocess::{InputSize, Preprocess};
 use mvsplat360_pipeline::views::{choose, ContextSpec, TargetSpec};
 use mvsplat360_train::scenes::{read_folder_scene, TrainScene};
-use mvsplat360_train::trainer::{example_from_views, render_example, Example, Model};
+use mvsplat360_train::trainer::{example_from_views, render_example_full, Example, Model};
 use rand::SeedableRng;
 
 fn psnr(a: &Tensor, b: &Tensor) -> anyhow::Result<f64> {
@@ -87,8 +87,8 @@ fn main() -> anyhow::Result<()> {
     let model = Model::new(&cfg)?;
     let (w, h) = (cfg.model.width, cfg.model.height);
     let (near, far) = (cfg.model.near, cfg.model.far);
-    println!("| scene | nearest context | model (3DGS) | depth oracle (σ = {sigma} px) |\n|---|---|---|---|");
-    let mut sums = [0.0f64; 3];
+    println!("| scene | nearest context | model (3DGS) | depth oracle (σ = {sigma} px) | model depth error |\n|---|---|---|---|---|");
+    let mut sums = [0.0f64; 4];
     let pre = Preprocess { size: InputSize::Fixed { width: w, height: h }, multiple: cfg.model.encoder.image_multiple() as u32 };
     for arg in &args[2..] {
         let (scene, mut v, label) = match arg.parse::<u64>() {
@@ -125,7 +125,11 @@ fn main() -> anyhow::Result<()> {
             base += psnr(&ex.context_images.get(k)?, &ex.target_images.get(t)?)?;
         }
         let nt = ex.target_cameras.len() as f64;
-        let (renders, _) = render_example(&model, &ex)?;
+        let full = render_example_full(&model, &ex)?;
+        let renders = full.rgb;
+        // The model's context depths against the truth: mean |ln d̂ − ln d| (the depth loss), unknown pixels out.
+        let depth_err = mvsplat360_train::loss::depth_log_l1(&full.depths, ex.context_depths.as_ref().expect("depths checked"), near, far)?
+            .to_scalar::<f32>()?;
         let mut m = 0.0;
         for t in 0..ex.target_cameras.len() {
             m += psnr(&renders.get(t)?, &ex.target_images.get(t)?)?;
@@ -152,13 +156,13 @@ fn main() -> anyhow::Result<()> {
             psnr(&r.rgb, &ex.context_images.get(0)?)?,
             psnr(&r0.rgb, &ex.context_images.get(0)?)?
         );
-        let row = [base / nt, m / nt, o / nt];
-        println!("| {label} | {:.2} | {:.2} | {:.2} |", row[0], row[1], row[2]);
+        let row = [base / nt, m / nt, o / nt, depth_err as f64];
+        println!("| {label} | {:.2} | {:.2} | {:.2} | {:.3} |", row[0], row[1], row[2], row[3]);
         for (s, r) in sums.iter_mut().zip(row) {
             *s += r;
         }
     }
     let n = (args.len() - 2) as f64;
-    println!("| **mean** | {:.2} | {:.2} | {:.2} |", sums[0] / n, sums[1] / n, sums[2] / n);
+    println!("| **mean** | {:.2} | {:.2} | {:.2} | {:.3} |", sums[0] / n, sums[1] / n, sums[2] / n, sums[3] / n);
     Ok(())
 }
