@@ -14,12 +14,12 @@
 //!     cargo run --release -p mvsplat360-train --example oracle -- CONFIG.toml MODEL_DIR [--sigma 0.6] SEED|DIR…
 
 use candle_core::{Device, Tensor};
+use mvsplat360_pipeline::preprocess::{InputSize, Preprocess};
 use mvsplat360_pipeline::render::raster_camera;
+use mvsplat360_pipeline::views::{choose, ContextSpec, TargetSpec};
 use mvsplat360_splat::{Gaussians, RenderOptions};
 use mvsplat360_train::data::procedural::{generate, GenOptions};
 use mvsplat360_train::sampler::{self, SamplerSettings};
-use mvsplat360_pipeline::preprocess::{InputSize, Preprocess};
-use mvsplat360_pipeline::views::{choose, ContextSpec, TargetSpec};
 use mvsplat360_train::scenes::{read_folder_scene, TrainScene};
 use mvsplat360_train::trainer::{example_from_views, render_example_full, Example, Model};
 use rand::SeedableRng;
