@@ -350,13 +350,19 @@ pub fn render_example_full(model: &Model, ex: &Example) -> Result<Rendered> {
 pub fn losses(cfg: &TrainConfig, lpips: Option<&Lpips>, step: u64, pred: &Tensor, gt: &Tensor) -> Result<(Tensor, Tensor, Option<Tensor>)> {
     let mse = crate::loss::mse(pred, gt)?;
     let mut total = (&mse * cfg.train.mse_weight)?;
-    let mut lp = None;
-    if let Some(l) = lpips.filter(|_| step >= cfg.train.lpips_after_step && cfg.train.lpips_weight > 0.0) {
-        let v = crate::loss::lpips(l, pred, gt)?;
-        total = (total + (&v * cfg.train.lpips_weight)?)?;
-        lp = Some(v);
+    let lp = lpips_term(cfg, lpips, step, pred, gt)?;
+    if let Some(v) = &lp {
+        total = (total + (v * cfg.train.lpips_weight)?)?;
     }
     Ok((total, mse, lp))
+}
+
+/// LPIPS of `pred` against `gt` (unweighted) when the term is on at this step.
+fn lpips_term(cfg: &TrainConfig, lpips: Option<&Lpips>, step: u64, pred: &Tensor, gt: &Tensor) -> Result<Option<Tensor>> {
+    match lpips.filter(|_| step >= cfg.train.lpips_after_step && cfg.train.lpips_weight > 0.0) {
+        Some(l) => Ok(Some(crate::loss::lpips(l, pred, gt)?)),
+        None => Ok(None),
+    }
 }
 
 /// Train as configured; returns when `train.steps` are done or the monitor asks to stop.
@@ -493,11 +499,9 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
                 let l = v.losses(&ex.target_images, &mut rng)?;
                 let mse = crate::loss::mse(&l.recon.detach(), &ex.target_images)?;
                 let mut total = (&l.l1 + (&l.kl * cfg.train.kl_weight)?)?;
-                let mut lp = None;
-                if let Some(net) = lpips.as_ref().filter(|_| step >= cfg.train.lpips_after_step && cfg.train.lpips_weight > 0.0) {
-                    let x = crate::loss::lpips(net, &l.recon, &ex.target_images)?;
-                    total = (total + (&x * cfg.train.lpips_weight)?)?;
-                    lp = Some(x);
+                let lp = lpips_term(cfg, lpips.as_ref(), step, &l.recon, &ex.target_images)?;
+                if let Some(x) = &lp {
+                    total = (total + (x * cfg.train.lpips_weight)?)?;
                 }
                 let tv = total.to_scalar::<f32>()? as f64;
                 if !tv.is_finite() {
