@@ -94,6 +94,12 @@ fn gpu_training_run() {
 
 /// Data parallelism over NCCL with world size 1 (lent machines have one GPU; NCCL refuses two ranks on one):
 /// the all-reduce is the identity, so the run equals a run without it. Compiled with `--features nccl`.
+/// Step 1 starts from the same weights and must match to float noise: that checks the reduction itself. Later
+/// steps inherit the GPU's run-to-run noise (the rasterizer's backward sums with atomics), which Adam's first
+/// update amplifies (≈ the sign of each gradient entry). On an H200 the single-process run alone gave step 2
+/// gradient norms 3.1656 and 3.1702 in two sessions; against the NCCL run, the losses of steps 2 and 3 differed
+/// by 5e-6 and 6.2e-4 (relative) and step 3's gradient norms by half (15.4 vs 10.1). So later steps only check
+/// the losses (1e-2) and that the norms are finite.
 #[cfg(feature = "nccl")]
 #[test]
 #[ignore = "needs a CUDA GPU and NCCL: cargo test --features nccl -- --include-ignored"]
@@ -111,8 +117,13 @@ fn nccl_world_size_one_equals_a_single_process() {
     assert_eq!(dp.len(), 3);
     for (a, b) in single.iter().zip(&dp) {
         println!("step {}: loss {:.7} vs {:.7}, grad norm {:.6} vs {:.6}", a.step, a.loss, b.loss, a.grad_norm, b.grad_norm);
-        assert!((a.loss - b.loss).abs() <= 1e-5 * a.loss, "step {}", a.step);
-        assert!((a.grad_norm - b.grad_norm).abs() <= 1e-4 * a.grad_norm, "step {}", a.step);
+        if a.step == 1 {
+            assert!((a.loss - b.loss).abs() <= 1e-5 * a.loss, "step 1 loss");
+            assert!((a.grad_norm - b.grad_norm).abs() <= 1e-5 * a.grad_norm, "step 1 gradient norm");
+        } else {
+            assert!((a.loss - b.loss).abs() <= 1e-2 * a.loss, "step {} loss", a.step);
+            assert!(b.grad_norm.is_finite(), "step {} gradient norm", a.step);
+        }
     }
 }
 
