@@ -12,10 +12,16 @@ fn cores() -> usize {
 
 /// Run `mvsplat360 bench <args>` and parse its one stdout line.
 fn bench(args: &[&str]) -> Value {
+    bench_env(args, &[])
+}
+
+fn bench_env(args: &[&str], env: &[(&str, &str)]) -> Value {
     let home = tempfile::tempdir().unwrap();
     let out = Command::new(env!("CARGO_BIN_EXE_mvsplat360"))
         .arg("bench")
         .args(args)
+        .env_remove("MVSPLAT360_PROFILE")
+        .envs(env.iter().copied())
         // No metric-network weights: keeps `bench metrics` to the closed-form metrics (and fast).
         .env("MVSPLAT360_METRIC_WEIGHTS", home.path())
         .env("HOME", home.path())
@@ -117,6 +123,15 @@ fn scene_runs_the_whole_pipeline() {
     assert!(stages.keys().any(|k| k.contains("refin")), "no refiner stage in {v}");
     assert!(v["peak_rss_mib"].as_f64().is_some_and(|m| m > 0.0), "{v}");
     assert!(v["gpu_peak_mib"].is_null(), "no GPU memory on the CPU: {v}");
+    assert!(v.get("refiner_profile").is_none(), "profile without MVSPLAT360_PROFILE: {v}");
+    // Profiled: per-module totals of the refiner (one 2-frame window, 1 guided step: UNet, VAE, CLIP scopes).
+    let p = bench_env(&["scene", "--tiny", "--views", "3", "--height", "64", "--width", "128", "--frames", "2", "--steps", "1", "--threads", "1"], &[("MVSPLAT360_PROFILE", "1")]);
+    let prof = p["refiner_profile"].as_object().unwrap_or_else(|| panic!("no refiner_profile in {p}"));
+    for k in ["unet.conv", "group_norm", "attention_core", "vae.decoder_total", "clip.block"] {
+        let e = &prof.get(k).unwrap_or_else(|| panic!("no `{k}` in {p}"));
+        assert!(e["calls"].as_u64().is_some_and(|n| n > 0), "{k}: {e}");
+        time_field(e, "ms");
+    }
     // 3DGS only: no refiner stage.
     let v = bench(&["scene", "--tiny", "--no-refiner", "--views", "2", "--height", "64", "--width", "64", "--frames", "1", "--threads", "1"]);
     assert!(!v["stage_seconds"].as_object().unwrap().keys().any(|k| k.contains("refin")), "{v}");

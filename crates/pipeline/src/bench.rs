@@ -68,6 +68,11 @@ pub fn run_scene_bench(o: &SceneBenchOpts) -> Result<serde_json::Value> {
     let mut totals = Vec::new();
     let mut gaussians = 0;
     gpu_peak_mib(&device, true);
+    let profile = mvsplat360_refiner::prof::is_enabled();
+    if profile {
+        mvsplat360_refiner::prof::sync_with(&device);
+        let _ = mvsplat360_refiner::prof::take_report();
+    }
     for r in 0..o.runs {
         let req = RenderRequest {
             scene: scene.clone(),
@@ -98,7 +103,7 @@ pub fn run_scene_bench(o: &SceneBenchOpts) -> Result<serde_json::Value> {
         let _ = std::fs::remove_dir_all(dir.join(format!("run{r}")));
     }
     let stages: serde_json::Map<String, serde_json::Value> = per_stage.into_iter().map(|(n, v)| (n, json!(median(v)))).collect();
-    Ok(json!({
+    let mut out = json!({
         "bench": "scene",
         "device": o.device.to_string(),
         "refiner_dtype": o.dtype.as_str(),
@@ -116,7 +121,14 @@ pub fn run_scene_bench(o: &SceneBenchOpts) -> Result<serde_json::Value> {
         "stage_seconds": stages,
         "peak_rss_mib": crate::setup::peak_rss_mib(),
         "gpu_peak_mib": gpu_peak_mib(&device, false),
-    }))
+    });
+    if profile {
+        // Totals over all runs, inclusive of nested scopes (see mvsplat360_refiner::prof).
+        let p: serde_json::Map<String, serde_json::Value> =
+            mvsplat360_refiner::prof::take_report().into_iter().map(|(n, ms, calls)| (n.to_string(), json!({ "ms": ms, "calls": calls }))).collect();
+        out["refiner_profile"] = serde_json::Value::Object(p);
+    }
+    Ok(out)
 }
 
 /// High-water mark (MiB) of GPU memory in use since the last reset: the device's default memory pool, which

@@ -1,6 +1,7 @@
 //! Opt-in wall-clock totals per module type, for finding hot spots in release runs
 //! (`MVSPLAT360_PROFILE=1`; off by default, then a scope costs one atomic load).
-//! Times are inclusive: a scope nested in another is counted in both.
+//! Times are inclusive: a scope nested in another is counted in both. On a GPU, kernels run after their launch
+//! returns: `sync_with` the device, and every scope waits for it at both ends, so a scope's time is its kernels'.
 
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicU8, Ordering};
@@ -9,6 +10,7 @@ use std::time::Instant;
 
 static STATE: AtomicU8 = AtomicU8::new(0); // 0 unknown, 1 off, 2 on
 static TOTALS: Mutex<BTreeMap<&'static str, (f64, u64)>> = Mutex::new(BTreeMap::new());
+static SYNC: Mutex<Option<candle_core::Device>> = Mutex::new(None);
 
 fn enabled() -> bool {
     match STATE.load(Ordering::Relaxed) {
@@ -32,13 +34,36 @@ pub struct Scope {
     start: Instant,
 }
 
+/// Whether profiling is on (the environment variable, or `set_enabled`).
+pub fn is_enabled() -> bool {
+    enabled()
+}
+
+/// Scopes wait for `dev`'s queued work at both ends (while profiling is on); a CPU device clears it.
+pub fn sync_with(dev: &candle_core::Device) {
+    if let Ok(mut d) = SYNC.lock() {
+        *d = (!dev.is_cpu()).then(|| dev.clone());
+    }
+}
+
+fn sync() {
+    if let Some(d) = SYNC.lock().ok().and_then(|d| d.clone()) {
+        // A failed wait shows up at the next real operation on the device; timing must not fail the run.
+        let _ = d.synchronize();
+    }
+}
+
 /// Time the enclosing block under `name` (when profiling is on).
 pub fn scope(name: &'static str) -> Option<Scope> {
-    enabled().then(|| Scope { name, start: Instant::now() })
+    enabled().then(|| {
+        sync();
+        Scope { name, start: Instant::now() }
+    })
 }
 
 impl Drop for Scope {
     fn drop(&mut self) {
+        sync();
         let ms = self.start.elapsed().as_secs_f64() * 1e3;
         if let Ok(mut t) = TOTALS.lock() {
             let e = t.entry(self.name).or_insert((0.0, 0));

@@ -95,7 +95,9 @@ enum What {
     },
     /// The whole `render` pipeline (encoder → rasterizer → refiner → histogram matching) on a synthetic scene
     /// with random weights: per-stage times (median over --runs, no warm-up) and peak memory. Defaults are the
-    /// paper's setting (official DL3DV configs) — hours on a CPU; `--tiny` uses the tests' tiny model.
+    /// paper's setting (official DL3DV configs) — hours on a CPU; `--tiny` uses the tests' tiny model. With
+    /// MVSPLAT360_PROFILE=1 the line also has `refiner_profile`: per-module totals (ms, calls) over all runs,
+    /// nested scopes counted in each; on a GPU every scope waits for the device, so runs get slower.
     Scene {
         /// Where the pipeline runs: `cpu`, `cuda` or `cuda:N` (CUDA needs a `--features cuda` build).
         #[arg(long, default_value = "cpu")]
