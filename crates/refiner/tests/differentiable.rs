@@ -142,6 +142,71 @@ fn tiny_vae_decoder_differentiable_mode_matches_fast_path_and_reaches_every_weig
     assert!(n > 20, "only {n} decoder weights");
 }
 
+/// Training changes a weight by `Var::set` (Adam): the model must then compute with the new values, exactly
+/// as a model loaded from them does, in both modes. A weight rearranged once at load (a copy) would keep its
+/// initial values in the forward while the saved `Var` drifts. The mix factors are left as drawn: they are
+/// read as numbers at load and get no gradient (see the decoder test above).
+#[test]
+fn vae_trainable_weights_follow_their_vars() {
+    let dev = Device::Cpu;
+    let cfg = AutoencoderConfig { ch: 32, ch_mult: vec![1, 2], num_res_blocks: 1, ..AutoencoderConfig::default() };
+    let (model, vars) = AutoencoderKL::random_trainable(&cfg, 5, &dev).unwrap();
+    let mut moved = std::collections::HashMap::new();
+    for (k, v) in &vars {
+        let t = if k.ends_with("mix_factor") {
+            v.as_tensor().copy().unwrap()
+        } else {
+            (v.as_tensor().affine(1.25, 0.01).unwrap() + Tensor::randn(0f32, 0.05, v.dims(), &dev).unwrap()).unwrap()
+        };
+        v.set(&t).unwrap();
+        moved.insert(format!("first_stage_model.{k}"), t);
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("vae.safetensors");
+    candle_core::safetensors::save(&moved, &file).unwrap();
+    let loaded = AutoencoderKL::load(&file, None, &cfg, &dev).unwrap();
+    let img = Tensor::rand(-1f32, 1.0, (2, 3, 32, 40), &dev).unwrap();
+    let z = Tensor::randn(0f32, 1.0, (2, 4, 4, 5), &dev).unwrap();
+    let want = (loaded.encode(&img).unwrap().0, loaded.decode(&z, 1).unwrap());
+    for differentiable in [false, true] {
+        let _g = differentiable.then(kernels::differentiable);
+        let (m, x) = (model.encode(&img).unwrap().0, model.decode(&z, 1).unwrap());
+        let (dm, dx) = (rel_diff(&m, &want.0), rel_diff(&x, &want.1));
+        eprintln!("differentiable {differentiable}: encoder {dm:.2e}, decoder {dx:.2e}");
+        assert!(dm <= 1e-5 && dx <= 1e-5, "differentiable {differentiable}: the model does not follow its Vars (encoder {dm:.2e}, decoder {dx:.2e})");
+    }
+}
+
+/// The UNet twin of [`vae_trainable_weights_follow_their_vars`] (its mix factors are trainable: all move).
+#[test]
+fn unet_trainable_weights_follow_their_vars() {
+    let dev = Device::Cpu;
+    let cfg = tiny_unet_cfg();
+    let (model, vars) = VideoUNet::random_trainable(&cfg, 11, &dev).unwrap();
+    let mut moved = std::collections::HashMap::new();
+    for (k, v) in &vars {
+        let t = (v.as_tensor().affine(1.25, 0.01).unwrap() + Tensor::randn(0f32, 0.05, v.dims(), &dev).unwrap()).unwrap();
+        v.set(&t).unwrap();
+        moved.insert(format!("model.diffusion_model.{k}"), t);
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("unet.safetensors");
+    candle_core::safetensors::save(&moved, &file).unwrap();
+    let loaded = VideoUNet::load(&file, None, &cfg, &dev).unwrap();
+    let f = 3;
+    let x = Tensor::randn(0f32, 1.0, (f, 8, 4, 6), &dev).unwrap();
+    let ctx = Tensor::randn(0f32, 1.0, (f, 2, 32), &dev).unwrap();
+    let y = timestep_embedding(&[0.02; 3], 32, 10000.0, &dev).unwrap();
+    let ts = [0.3f32, -0.2, 0.7];
+    let run = |m: &VideoUNet| m.forward(&UNetInputs { x: &x, timesteps: &ts, context: &ctx, y: Some(&y), num_video_frames: f, num_splits: None }).unwrap();
+    let want = run(&loaded);
+    for differentiable in [false, true] {
+        let _g = differentiable.then(kernels::differentiable);
+        let d = rel_diff(&run(&model), &want);
+        assert!(d <= 1e-5, "differentiable {differentiable}: the UNet does not follow its Vars ({d:.2e})");
+    }
+}
+
 #[test]
 fn differentiable_switch_is_per_thread_and_restored() {
     assert!(!kernels::is_differentiable());

@@ -147,6 +147,7 @@ pub struct TrainSection {
     pub init: Option<PathBuf>,
     /// Refiner weights (with `[model.refiner]`): svd.safetensors, a converted MVSplat360 checkpoint, a model
     /// folder or a diffusers SVD folder (`unet/`, `vae/`, `image_encoder/`); absent = seeded random weights.
+    /// Stage `vae`: the autoencoder to continue from (its keys only; e.g. an earlier `vae` run's model folder).
     #[serde(default)]
     pub refiner_init: Option<PathBuf>,
     /// Weight of the refiner's losses (diffusion + 0.01·latent alignment; official 1).

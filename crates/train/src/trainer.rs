@@ -124,7 +124,7 @@ impl Model {
         }
         let vae_stage = cfg.train.stage == crate::config::Stage::Vae;
         let vae = match &cfg.model.refiner {
-            Some(r) if vae_stage => Some(crate::vae_stage::TrainVae::new(&r.vae, cfg.train.seed, dev)?),
+            Some(r) if vae_stage => Some(crate::vae_stage::TrainVae::new(&r.vae, cfg.train.refiner_init.as_deref(), cfg.train.seed, dev)?),
             _ => None,
         };
         let refiner = match &cfg.model.refiner {

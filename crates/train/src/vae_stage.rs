@@ -5,10 +5,12 @@
 //! discriminator: mean |x̂ − x| + `lpips_weight`·LPIPS + `kl_weight`·KL, on the views as the refiner sees them
 //! (bilinear ×2, align_corners, in [−1, 1]); decoded one frame per call, as MVSplat360 decodes.
 
+use std::path::Path;
+
 use candle_core::{Device, Tensor, Var};
 use mvsplat360_refiner::kernels;
 use mvsplat360_refiner::state_dict::VAE_PREFIX;
-use mvsplat360_refiner::vae::{prepare_encoder_input, AutoencoderConfig, AutoencoderKL};
+use mvsplat360_refiner::vae::{prepare_encoder_input, AutoencoderConfig, AutoencoderKL, VaeLayout};
 use rand::Rng;
 use rand_distr::StandardNormal;
 
@@ -32,8 +34,28 @@ pub struct VaeLosses {
 }
 
 impl TrainVae {
-    pub fn new(cfg: &AutoencoderConfig, seed: u64, dev: &Device) -> Result<Self> {
-        let (model, vars) = AutoencoderKL::random_trainable(cfg, seed, dev).map_err(|e| TrainError::Config { path: "model.refiner.vae".into(), msg: e.to_string() })?;
+    /// From `init` (`train.refiner_init`: a model folder, e.g. an earlier `vae` run's, a safetensors file with the
+    /// VAE's keys, or a diffusers SVD folder's `vae/`), else seeded random weights.
+    pub fn new(cfg: &AutoencoderConfig, init: Option<&Path>, seed: u64, dev: &Device) -> Result<Self> {
+        let (model, vars) = match init {
+            None => AutoencoderKL::random_trainable(cfg, seed, dev).map_err(|e| TrainError::Config { path: "model.refiner.vae".into(), msg: e.to_string() })?,
+            Some(p) => {
+                let (file, layout) = if p.join("vae").is_dir() {
+                    let d = p.join("vae");
+                    let f = ["diffusion_pytorch_model.safetensors", "diffusion_pytorch_model.fp16.safetensors"].iter().map(|n| d.join(n)).find(|f| f.is_file());
+                    (f.unwrap_or_else(|| d.join("diffusion_pytorch_model.safetensors")), Some(VaeLayout::Diffusers))
+                } else if p.is_dir() {
+                    (p.join(mvsplat360_pipeline::model::MODEL_WEIGHTS), None)
+                } else {
+                    (p.to_path_buf(), None)
+                };
+                let bad = |msg: String| TrainError::Config { path: file.clone(), msg: format!("train.refiner_init (stage vae): {msg}") };
+                if !file.is_file() {
+                    return Err(bad("no such file (a model folder, a safetensors file with the VAE's keys or a diffusers SVD folder)".into()));
+                }
+                AutoencoderKL::load_trainable(&file, layout, cfg, dev).map_err(|e| bad(e.to_string()))?
+            }
+        };
         Ok(Self { model, vars: vars.into_iter().map(|(k, v)| (format!("{VAE_PREFIX}{k}"), v)).collect() })
     }
 

@@ -192,6 +192,21 @@ fn vae_stage_learns_and_initialises_a_refiner_run() {
         assert_eq!(max_abs_diff(t, &before[k]), 0.0, "{k}: the encoder must not train in stage vae");
     }
 
+    // A second `vae` run continues from that folder (`refiner_init`): it starts from the trained autoencoder
+    // exactly, so its first step (the same example as the first run's first step) has the trained L1.
+    let out_c = dir.path().join("vae-continued");
+    let mut cc = cfg.clone();
+    cc.train.out = out_c.clone();
+    cc.train.steps = 2;
+    cc.train.refiner_init = Some(s.model_dir.clone());
+    mvsplat360_train::run(&cc, &RunOptions::default(), &Quiet).unwrap();
+    let start_c = load(&out_c.join("model-step0/model.safetensors"));
+    for k in &vae_keys {
+        assert_eq!(max_abs_diff(&start_c[k.as_str()], &after[k.as_str()]), 0.0, "{k}: not continued from the init");
+    }
+    let l1_c = log::read(&out_c.join("log.jsonl")).unwrap()[0].l1.unwrap();
+    assert!(l1_c < 0.85 * l1[0], "continued run's first L1 {l1_c:.4} vs the first run's {:.4}", l1[0]);
+
     // A refiner-only run (encoder frozen) from that folder holds the trained autoencoder, unchanged (it is
     // frozen there), and trains the UNet alone.
     let out2 = dir.path().join("refiner");

@@ -245,8 +245,10 @@ pub struct SpatialVideoTransformer {
     time_stack: Vec<VideoTransformerBlock>,
     time_pos_embed: (Linear, Linear),
     alpha: f64,
-    /// `time_mixer.mix_factor`: alpha as a tensor in differentiable mode.
+    /// `time_mixer.mix_factor`: alpha as a tensor in differentiable mode; read at every call for trainable
+    /// weights (so that the fast path sees the `Var`'s updates).
     mix: Tensor,
+    trainable: bool,
     channels: usize,
     max_period: f32,
 }
@@ -270,7 +272,7 @@ impl SpatialVideoTransformer {
             linear(w, &format!("{p}.time_pos_embed.2"), ch * 4, ch, true)?,
         );
         let mix = w.get(&format!("{p}.time_mixer.mix_factor"), &[1])?;
-        Ok(Self { norm, proj_in, proj_out, blocks, time_stack, time_pos_embed, alpha: sigmoid_scalar(&mix)?, mix, channels: ch, max_period })
+        Ok(Self { norm, proj_in, proj_out, blocks, time_stack, time_pos_embed, alpha: sigmoid_scalar(&mix)?, mix, trainable: w.is_trainable(), channels: ch, max_period })
     }
 
     /// x: (B·T, C, H, W); context: (B·T, Lc, D).
@@ -286,6 +288,7 @@ impl SpatialVideoTransformer {
         let idx: Vec<f32> = (0..n).map(|i| (i % frames) as f32).collect();
         let t_emb = timestep_embedding(&idx, self.channels, self.max_period, x.device())?.to_dtype(x.dtype())?;
         let emb = self.time_pos_embed.1.forward(&self.time_pos_embed.0.forward(&t_emb)?.silu()?)?.unsqueeze(1)?;
+        let alpha = if self.trainable && !is_differentiable() { sigmoid_scalar(&self.mix)? } else { self.alpha };
         for (block, mix) in self.blocks.iter().zip(&self.time_stack) {
             h = block.forward(&h, context, max_elems)?;
             let hm = h.broadcast_add(&emb)?;
@@ -295,7 +298,7 @@ impl SpatialVideoTransformer {
                 continue;
             }
             // AlphaBlender: alpha·spatial + (1 − alpha)·temporal, folded into the temporal block's last gemm.
-            h = mix.forward(&hm, &time_context, frames, splits, max_elems, (&h, self.alpha as f32))?;
+            h = mix.forward(&hm, &time_context, frames, splits, max_elems, (&h, alpha as f32))?;
         }
         let out = linear_to_channels_first(&h, &self.proj_out.weight, bout, &x.reshape((n, c, hh * ww))?)?;
         out.reshape((n, c, hh, ww))

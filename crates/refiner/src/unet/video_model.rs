@@ -142,8 +142,10 @@ pub struct VideoResBlock {
     spatial: ResBlock,
     time_stack: ResBlock,
     alpha: f64,
-    /// `time_mixer.mix_factor` (1 element): alpha = sigmoid(mix) is recomputed from it in differentiable mode.
+    /// `time_mixer.mix_factor` (1 element): alpha = sigmoid(mix) is recomputed from it in differentiable mode,
+    /// and at every call for trainable weights (so that the fast path sees the `Var`'s updates).
     mix: Tensor,
+    trainable: bool,
 }
 
 impl VideoResBlock {
@@ -153,7 +155,7 @@ impl VideoResBlock {
         let spatial = ResBlock::load(w, p, i, o, emb, eps, None)?;
         let time_stack = ResBlock::load(w, &format!("{p}.time_stack"), o, o, emb, eps, Some(cfg.video_kernel_size[0]))?;
         let mix = w.get(&format!("{p}.time_mixer.mix_factor"), &[1])?;
-        Ok(Self { spatial, time_stack, alpha: sigmoid_scalar(&mix)?, mix })
+        Ok(Self { spatial, time_stack, alpha: sigmoid_scalar(&mix)?, mix, trainable: w.is_trainable() })
     }
 
     /// alpha·xs + (1−alpha)·(xs + h_t) = xs + (1−alpha)·h_t, folded into the temporal block's last conv.
@@ -164,7 +166,8 @@ impl VideoResBlock {
             let xt = self.time_stack.forward(&xs, emb_act, frames, None)?;
             return blend_learned(&xs, &xt, &self.mix);
         }
-        self.time_stack.forward(&xs, emb_act, frames, Some((1.0 - self.alpha) as f32))
+        let alpha = if self.trainable { sigmoid_scalar(&self.mix)? } else { self.alpha };
+        self.time_stack.forward(&xs, emb_act, frames, Some((1.0 - alpha) as f32))
     }
 }
 

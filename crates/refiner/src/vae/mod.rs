@@ -196,6 +196,22 @@ impl AutoencoderKL {
 
     /// [`Self::load`] computing in `dtype` (f16/bf16); encode/decode outputs come back as f32.
     pub fn load_as(path: &Path, layout: Option<VaeLayout>, cfg: &AutoencoderConfig, device: &Device, dtype: DType) -> Result<Self, VaeError> {
+        let w = Self::open_weights(path, layout, cfg, device)?.with_dtype(dtype);
+        let model = Self::build(&w, cfg)?;
+        w.finish()?;
+        Ok(model)
+    }
+
+    /// [`Self::load`] with the weights handed out as `Var`s by model name (to continue training an autoencoder).
+    pub fn load_trainable(path: &Path, layout: Option<VaeLayout>, cfg: &AutoencoderConfig, device: &Device) -> Result<(Self, Vec<(String, candle_core::Var)>), VaeError> {
+        let w = Self::open_weights(path, layout, cfg, device)?.trainable();
+        let model = Self::build(&w, cfg)?;
+        let vars = w.take_vars();
+        w.finish()?;
+        Ok((model, vars))
+    }
+
+    fn open_weights(path: &Path, layout: Option<VaeLayout>, cfg: &AutoencoderConfig, device: &Device) -> Result<StrictWeights, VaeError> {
         cfg.validate().map_err(|msg| VaeError::Config { path: path.to_path_buf(), msg })?;
         let st = weights::open_safetensors(path)?;
         let layout = match layout {
@@ -223,10 +239,7 @@ impl AutoencoderKL {
         if w.is_empty() {
             return Err(WeightsError::UnknownLayout { path: path.to_path_buf(), what: "VAE".into(), expected: format!("layout {layout:?}") }.into());
         }
-        let w = w.with_dtype(dtype);
-        let model = Self::build(&w, cfg)?;
-        w.finish()?;
-        Ok(model)
+        Ok(w)
     }
 
     /// Load a diffusers folder (`config.json` + `diffusion_pytorch_model[.fp16].safetensors`).

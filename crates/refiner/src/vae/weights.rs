@@ -169,6 +169,11 @@ impl StrictWeights {
         self
     }
 
+    /// Whether tensors are handed out as `Var`s ([`Self::trainable`]).
+    pub fn is_trainable(&self) -> bool {
+        self.trainable
+    }
+
     /// The `Var`s handed out so far in trainable mode, by model name.
     pub fn take_vars(&self) -> Vec<(String, Var)> {
         std::mem::take(&mut *self.vars.borrow_mut())
