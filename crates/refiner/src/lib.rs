@@ -12,3 +12,11 @@ pub mod sampling;
 pub mod state_dict;
 pub mod unet;
 pub mod vae;
+
+/// A diffusers component folder's weights (`unet/`, `vae/`): the full-precision file first, else the fp16 one.
+pub const DIFFUSERS_WEIGHTS: [&str; 2] = ["diffusion_pytorch_model.safetensors", "diffusion_pytorch_model.fp16.safetensors"];
+
+/// The first of [`DIFFUSERS_WEIGHTS`] present in `dir`.
+pub fn diffusers_weights_file(dir: &std::path::Path) -> Option<std::path::PathBuf> {
+    DIFFUSERS_WEIGHTS.iter().map(|f| dir.join(f)).find(|p| p.is_file())
+}

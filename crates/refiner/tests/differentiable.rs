@@ -20,6 +20,34 @@ fn tiny_unet_cfg() -> VideoUNetConfig {
     VideoUNetConfig::tiny()
 }
 
+/// Moves every `Var` but those `keep` names (×1.25 + 0.01 + noise) by `Var::set`, and saves the new values
+/// under `prefix` + name to `file` (what a model loaded after training would read).
+fn move_vars_and_save(vars: &[(String, Var)], prefix: &str, keep: impl Fn(&str) -> bool, file: &std::path::Path) {
+    let dev = Device::Cpu;
+    let mut moved = std::collections::HashMap::new();
+    for (k, v) in vars {
+        let t = if keep(k) {
+            v.as_tensor().copy().unwrap()
+        } else {
+            (v.as_tensor().affine(1.25, 0.01).unwrap() + Tensor::randn(0f32, 0.05, v.dims(), &dev).unwrap()).unwrap()
+        };
+        v.set(&t).unwrap();
+        moved.insert(format!("{prefix}{k}"), t);
+    }
+    candle_core::safetensors::save(&moved, file).unwrap();
+}
+
+/// Inputs of the tiny UNet: 3 frames (the temporal convs see both borders and an interior frame) and two
+/// context tokens (one token makes the cross-attention queries/keys inert).
+fn tiny_unet_inputs() -> (usize, Tensor, Tensor, Tensor, [f32; 3]) {
+    let dev = Device::Cpu;
+    let f = 3;
+    let x = Tensor::randn(0f32, 1.0, (f, 8, 4, 6), &dev).unwrap();
+    let ctx = Tensor::randn(0f32, 1.0, (f, 2, 32), &dev).unwrap();
+    let y = timestep_embedding(&[0.02; 3], 32, 10000.0, &dev).unwrap();
+    (f, x, ctx, y, [0.3f32, -0.2, 0.7])
+}
+
 /// Every `Var` gets a gradient with a non-zero entry; returns how many were checked.
 fn assert_all_grads_nonzero(grads: &candle_core::backprop::GradStore, vars: &[(String, Var)], filter: impl Fn(&str) -> bool) -> usize {
     let mut n = 0;
@@ -40,12 +68,7 @@ fn assert_all_grads_nonzero(grads: &candle_core::backprop::GradStore, vars: &[(S
 fn tiny_unet_differentiable_mode_matches_fast_path_and_reaches_every_weight() {
     let dev = Device::Cpu;
     let cfg = tiny_unet_cfg();
-    let f = 3; // 3 frames: the temporal convs see both borders and an interior frame
-    let x = Tensor::randn(0f32, 1.0, (f, 8, 4, 6), &dev).unwrap();
-    // Two context tokens, so the cross-attention queries/keys matter (one token makes them inert).
-    let ctx = Tensor::randn(0f32, 1.0, (f, 2, 32), &dev).unwrap();
-    let y = timestep_embedding(&[0.02; 3], 32, 10000.0, &dev).unwrap();
-    let ts = [0.3f32, -0.2, 0.7];
+    let (f, x, ctx, y, ts) = tiny_unet_inputs();
 
     assert!(!kernels::is_differentiable(), "the fast path must be the default");
     let fast_model = VideoUNet::random(&cfg, 11, &dev).unwrap();
@@ -151,19 +174,9 @@ fn vae_trainable_weights_follow_their_vars() {
     let dev = Device::Cpu;
     let cfg = AutoencoderConfig { ch: 32, ch_mult: vec![1, 2], num_res_blocks: 1, ..AutoencoderConfig::default() };
     let (model, vars) = AutoencoderKL::random_trainable(&cfg, 5, &dev).unwrap();
-    let mut moved = std::collections::HashMap::new();
-    for (k, v) in &vars {
-        let t = if k.ends_with("mix_factor") {
-            v.as_tensor().copy().unwrap()
-        } else {
-            (v.as_tensor().affine(1.25, 0.01).unwrap() + Tensor::randn(0f32, 0.05, v.dims(), &dev).unwrap()).unwrap()
-        };
-        v.set(&t).unwrap();
-        moved.insert(format!("first_stage_model.{k}"), t);
-    }
     let dir = tempfile::tempdir().unwrap();
     let file = dir.path().join("vae.safetensors");
-    candle_core::safetensors::save(&moved, &file).unwrap();
+    move_vars_and_save(&vars, "first_stage_model.", |k| k.ends_with("mix_factor"), &file);
     let loaded = AutoencoderKL::load(&file, None, &cfg, &dev).unwrap();
     let img = Tensor::rand(-1f32, 1.0, (2, 3, 32, 40), &dev).unwrap();
     let z = Tensor::randn(0f32, 1.0, (2, 4, 4, 5), &dev).unwrap();
@@ -183,21 +196,11 @@ fn unet_trainable_weights_follow_their_vars() {
     let dev = Device::Cpu;
     let cfg = tiny_unet_cfg();
     let (model, vars) = VideoUNet::random_trainable(&cfg, 11, &dev).unwrap();
-    let mut moved = std::collections::HashMap::new();
-    for (k, v) in &vars {
-        let t = (v.as_tensor().affine(1.25, 0.01).unwrap() + Tensor::randn(0f32, 0.05, v.dims(), &dev).unwrap()).unwrap();
-        v.set(&t).unwrap();
-        moved.insert(format!("model.diffusion_model.{k}"), t);
-    }
     let dir = tempfile::tempdir().unwrap();
     let file = dir.path().join("unet.safetensors");
-    candle_core::safetensors::save(&moved, &file).unwrap();
+    move_vars_and_save(&vars, "model.diffusion_model.", |_| false, &file);
     let loaded = VideoUNet::load(&file, None, &cfg, &dev).unwrap();
-    let f = 3;
-    let x = Tensor::randn(0f32, 1.0, (f, 8, 4, 6), &dev).unwrap();
-    let ctx = Tensor::randn(0f32, 1.0, (f, 2, 32), &dev).unwrap();
-    let y = timestep_embedding(&[0.02; 3], 32, 10000.0, &dev).unwrap();
-    let ts = [0.3f32, -0.2, 0.7];
+    let (f, x, ctx, y, ts) = tiny_unet_inputs();
     let run = |m: &VideoUNet| m.forward(&UNetInputs { x: &x, timesteps: &ts, context: &ctx, y: Some(&y), num_video_frames: f, num_splits: None }).unwrap();
     let want = run(&loaded);
     for differentiable in [false, true] {

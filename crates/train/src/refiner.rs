@@ -77,8 +77,8 @@ impl TrainRefiner {
             let d = dir.join(sub);
             names.iter().map(|n| d.join(n)).find(|p| p.is_file()).ok_or_else(|| bad(&d, format!("no {} here", names.join(" or "))))
         };
-        let unet = find("unet", &["diffusion_pytorch_model.safetensors", "diffusion_pytorch_model.fp16.safetensors"])?;
-        let vae = find("vae", &["diffusion_pytorch_model.safetensors", "diffusion_pytorch_model.fp16.safetensors"])?;
+        let unet = find("unet", &mvsplat360_refiner::DIFFUSERS_WEIGHTS)?;
+        let vae = find("vae", &mvsplat360_refiner::DIFFUSERS_WEIGHTS)?;
         let clip = find("image_encoder", &["model.safetensors", "model.fp16.safetensors"])?;
         let mut frozen = renamed(&vae, VAE_PREFIX, |k| keymap::vae::diffusers_to_sgm(k, cfg.vae.ch_mult.len()).map(Some)).map_err(|e| bad(&vae, e))?;
         frozen.extend(renamed(&clip, CLIP_PREFIX, keymap::clip::transformers_to_open_clip).map_err(|e| bad(&clip, e))?);

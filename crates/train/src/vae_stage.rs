@@ -42,8 +42,7 @@ impl TrainVae {
             Some(p) => {
                 let (file, layout) = if p.join("vae").is_dir() {
                     let d = p.join("vae");
-                    let f = ["diffusion_pytorch_model.safetensors", "diffusion_pytorch_model.fp16.safetensors"].iter().map(|n| d.join(n)).find(|f| f.is_file());
-                    (f.unwrap_or_else(|| d.join("diffusion_pytorch_model.safetensors")), Some(VaeLayout::Diffusers))
+                    (mvsplat360_refiner::diffusers_weights_file(&d).unwrap_or_else(|| d.join(mvsplat360_refiner::DIFFUSERS_WEIGHTS[0])), Some(VaeLayout::Diffusers))
                 } else if p.is_dir() {
                     (p.join(mvsplat360_pipeline::model::MODEL_WEIGHTS), None)
                 } else {

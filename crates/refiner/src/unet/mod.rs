@@ -221,10 +221,7 @@ impl VideoUNet {
     /// Load a diffusers folder (`config.json` + `diffusion_pytorch_model[.fp16].safetensors`).
     pub fn load_diffusers_dir(dir: &Path, device: &Device) -> Result<Self, UNetError> {
         let cfg = VideoUNetConfig::from_diffusers_json(&dir.join("config.json"))?;
-        let file = ["diffusion_pytorch_model.safetensors", "diffusion_pytorch_model.fp16.safetensors"]
-            .iter()
-            .map(|f| dir.join(f))
-            .find(|p| p.is_file())
+        let file = crate::diffusers_weights_file(dir)
             .ok_or_else(|| UNetError::Open { path: dir.to_path_buf(), msg: "no diffusion_pytorch_model[.fp16].safetensors in folder".into() })?;
         Self::load(&file, Some(UNetLayout::Diffusers), &cfg, device)
     }

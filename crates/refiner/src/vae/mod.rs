@@ -245,10 +245,7 @@ impl AutoencoderKL {
     /// Load a diffusers folder (`config.json` + `diffusion_pytorch_model[.fp16].safetensors`).
     pub fn load_diffusers_dir(dir: &Path, device: &Device) -> Result<Self, VaeError> {
         let cfg = AutoencoderConfig::from_diffusers_json(&dir.join("config.json"))?;
-        let file = ["diffusion_pytorch_model.safetensors", "diffusion_pytorch_model.fp16.safetensors"]
-            .iter()
-            .map(|f| dir.join(f))
-            .find(|p| p.is_file())
+        let file = crate::diffusers_weights_file(dir)
             .ok_or_else(|| WeightsError::Open { path: dir.to_path_buf(), msg: "no diffusion_pytorch_model[.fp16].safetensors in folder".into() })?;
         Self::load(&file, Some(VaeLayout::Diffusers), &cfg, device)
     }
