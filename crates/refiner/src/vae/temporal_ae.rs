@@ -6,7 +6,7 @@ use candle_core::{Result, Tensor};
 use super::model::{AttnBlock, Conv, GroupNorm, ResnetBlock, Upsample, NORM_EPS};
 use super::weights::StrictWeights;
 use super::AutoencoderConfig;
-use crate::unet::util::sigmoid_scalar;
+use crate::unet::util::{blend_learned, sigmoid_scalar};
 
 /// GroupNorm eps of the temporal `time_stack` (openaimodel `normalization` = GroupNorm32 default 1e-5).
 const TIME_NORM_EPS: f64 = 1e-5;
@@ -91,14 +91,19 @@ pub(crate) struct VideoResBlock {
     spatial: ResnetBlock,
     time_stack: TimeStack,
     alpha: f64,
+    /// Trainable weights: the stored `mix_factor` `Var`, blended as a tensor per call so that it gets a gradient
+    /// and its updates are seen.
+    mix: Option<Tensor>,
 }
 
 impl VideoResBlock {
     pub fn load(w: &StrictWeights, p: &str, i: usize, o: usize, kt: usize) -> Result<Self> {
+        let mix = w.get(&format!("{p}.mix_factor"), &[1])?;
         Ok(Self {
             spatial: ResnetBlock::load(w, p, i, o)?,
             time_stack: TimeStack::load(w, &format!("{p}.time_stack"), o, kt)?,
-            alpha: sigmoid_scalar(&w.get(&format!("{p}.mix_factor"), &[1])?)?,
+            alpha: sigmoid_scalar(&mix)?,
+            mix: w.is_trainable().then_some(mix),
         })
     }
 
@@ -108,6 +113,10 @@ impl VideoResBlock {
             self.spatial.forward(x)?
         };
         let _p = crate::prof::scope("vae.resblock_temporal+blend");
+        if let Some(mix) = &self.mix {
+            let temporal = self.time_stack.forward(&spatial, frames, 1.0)?;
+            return blend_learned(&temporal, &spatial, mix);
+        }
         // alpha·(xs + h) + (1 − alpha)·xs = xs + alpha·h
         self.time_stack.forward(&spatial, frames, self.alpha as f32)
     }
