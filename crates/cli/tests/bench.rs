@@ -132,6 +132,15 @@ fn scene_runs_the_whole_pipeline() {
         assert!(e["calls"].as_u64().is_some_and(|n| n > 0), "{k}: {e}");
         time_field(e, "ms");
     }
+    // A warm-up run is left out of the profile (and of the timings): the same calls as one run alone.
+    let w = bench_env(
+        &["scene", "--tiny", "--views", "3", "--height", "64", "--width", "128", "--frames", "2", "--steps", "1", "--threads", "1", "--warmup", "1"],
+        &[("MVSPLAT360_PROFILE", "1")],
+    );
+    assert_eq!((w["warmup"].as_u64(), w["runs"].as_u64()), (Some(1), Some(1)), "{w}");
+    for (k, e) in prof {
+        assert_eq!(w["refiner_profile"][k]["calls"], e["calls"], "{k}: warm-up counted in {w}");
+    }
     // 3DGS only: no refiner stage.
     let v = bench(&["scene", "--tiny", "--no-refiner", "--views", "2", "--height", "64", "--width", "64", "--frames", "1", "--threads", "1"]);
     assert!(!v["stage_seconds"].as_object().unwrap().keys().any(|k| k.contains("refin")), "{v}");

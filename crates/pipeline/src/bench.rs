@@ -23,6 +23,8 @@ pub struct SceneBenchOpts {
     pub width: u32,
     pub frames: usize,
     pub steps: usize,
+    /// Untimed runs first (a GPU's first run also loads kernels and creates handles).
+    pub warmup: usize,
     pub runs: usize,
     pub threads: usize,
     /// The tiny model of the tests instead of the official configs.
@@ -71,9 +73,12 @@ pub fn run_scene_bench(o: &SceneBenchOpts) -> Result<serde_json::Value> {
     let profile = mvsplat360_refiner::prof::is_enabled();
     if profile {
         mvsplat360_refiner::prof::sync_with(&device);
-        let _ = mvsplat360_refiner::prof::take_report();
     }
-    for r in 0..o.runs {
+    for r in 0..o.warmup + o.runs {
+        if r == o.warmup && profile {
+            // Only the timed runs are profiled.
+            let _ = mvsplat360_refiner::prof::take_report();
+        }
         let req = RenderRequest {
             scene: scene.clone(),
             scene_key: None,
@@ -92,6 +97,10 @@ pub fn run_scene_bench(o: &SceneBenchOpts) -> Result<serde_json::Value> {
         };
         let t = std::time::Instant::now();
         let s = pool.install(|| render::run(&req, &Silent))?;
+        let _ = std::fs::remove_dir_all(dir.join(format!("run{r}")));
+        if r < o.warmup {
+            continue;
+        }
         totals.push(t.elapsed().as_secs_f64());
         gaussians = s.gaussians;
         for (name, secs) in s.stage_seconds {
@@ -100,7 +109,6 @@ pub fn run_scene_bench(o: &SceneBenchOpts) -> Result<serde_json::Value> {
                 None => per_stage.push((name, vec![secs])),
             }
         }
-        let _ = std::fs::remove_dir_all(dir.join(format!("run{r}")));
     }
     let stages: serde_json::Map<String, serde_json::Value> = per_stage.into_iter().map(|(n, v)| (n, json!(median(v)))).collect();
     let mut out = json!({
@@ -114,6 +122,7 @@ pub fn run_scene_bench(o: &SceneBenchOpts) -> Result<serde_json::Value> {
         "width": o.width,
         "frames": o.frames,
         "steps": if o.no_refiner { 0 } else { o.steps },
+        "warmup": o.warmup,
         "runs": o.runs,
         "threads": o.threads,
         "gaussians": gaussians,
