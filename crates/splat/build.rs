@@ -15,16 +15,11 @@ fn main() {
     let out = PathBuf::from(std::env::var("OUT_DIR").expect("cargo sets OUT_DIR")).join("rasterize.ptx");
     let nvcc = std::env::var("NVCC").unwrap_or_else(|_| "nvcc".into());
     let arch = std::env::var("MVSPLAT360_CUDA_ARCH").unwrap_or_else(|_| "sm_80".into());
-    let status = Command::new(&nvcc)
-        .args(["--ptx", &format!("-arch={arch}"), "-O3", "-o"])
-        .arg(&out)
-        .arg(src)
-        .status()
-        .unwrap_or_else(|e| {
-            panic!(
-                "cannot run `{nvcc}` ({e}): the `cuda-raster` feature compiles {src} with nvcc; install the CUDA \
+    let status = Command::new(&nvcc).args(["--ptx", &format!("-arch={arch}"), "-O3", "-o"]).arg(&out).arg(src).status().unwrap_or_else(|e| {
+        panic!(
+            "cannot run `{nvcc}` ({e}): the `cuda-raster` feature compiles {src} with nvcc; install the CUDA \
                  toolkit or set NVCC (see cuda/check-ptx for a pip-installed nvcc)"
-            )
-        });
+        )
+    });
     assert!(status.success(), "nvcc failed on {src} (arch {arch}); set MVSPLAT360_CUDA_ARCH for older GPUs");
 }

@@ -114,13 +114,7 @@ impl Camera {
             return Err(CameraError::EmptyImage { view: v(), width: self.width, height: self.height });
         }
         if self.cx < 0.0 || self.cy < 0.0 || self.cx > self.width as f64 || self.cy > self.height as f64 {
-            return Err(CameraError::PrincipalPointOutside {
-                view: v(),
-                cx: self.cx,
-                cy: self.cy,
-                width: self.width,
-                height: self.height,
-            });
+            return Err(CameraError::PrincipalPointOutside { view: v(), cx: self.cx, cy: self.cy, width: self.width, height: self.height });
         }
         for row in &self.c2w {
             for &value in row {
@@ -151,26 +145,12 @@ impl Camera {
     pub fn rescaled(&self, new_width: u32, new_height: u32) -> Camera {
         let sx = new_width as f64 / self.width as f64;
         let sy = new_height as f64 / self.height as f64;
-        Camera {
-            fx: self.fx * sx,
-            fy: self.fy * sy,
-            cx: self.cx * sx,
-            cy: self.cy * sy,
-            width: new_width,
-            height: new_height,
-            c2w: self.c2w,
-        }
+        Camera { fx: self.fx * sx, fy: self.fy * sy, cx: self.cx * sx, cy: self.cy * sy, width: new_width, height: new_height, c2w: self.c2w }
     }
 
     /// Crop to `rect`; focal lengths are unchanged, the principal point moves with the origin.
     pub fn cropped(&self, rect: CropRect) -> Camera {
-        Camera {
-            cx: self.cx - rect.x0 as f64,
-            cy: self.cy - rect.y0 as f64,
-            width: rect.width,
-            height: rect.height,
-            ..self.clone()
-        }
+        Camera { cx: self.cx - rect.x0 as f64, cy: self.cy - rect.y0 as f64, width: rect.width, height: rect.height, ..self.clone() }
     }
 
     /// The official "patch shim": centre-crop H and W down to a multiple of `multiple` (64 for the encoder).

@@ -96,9 +96,7 @@ mod tests {
             assert_eq!(sel.len(), 8);
             // Brute force: each pick maximises the min distance to all earlier picks over all views.
             for step in 1..sel.len() {
-                let score = |i: usize| {
-                    sel[..step].iter().map(|&j| (cams[i].center() - cams[j].center()).norm()).fold(f64::INFINITY, f64::min)
-                };
+                let score = |i: usize| sel[..step].iter().map(|&j| (cams[i].center() - cams[j].center()).norm()).fold(f64::INFINITY, f64::min);
                 let best = (0..cams.len()).map(score).fold(0.0, f64::max);
                 assert!((score(sel[step]) - best).abs() < 1e-12, "seed {seed} step {step}");
             }

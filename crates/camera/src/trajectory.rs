@@ -77,9 +77,7 @@ pub fn look_at_point(cameras: &[Camera]) -> Vector3<f64> {
         a += p;
         b += p * c.center();
     }
-    a.try_inverse().map(|ai| ai * b).unwrap_or_else(|| {
-        cameras.iter().map(|c| c.center()).sum::<Vector3<f64>>() / cameras.len().max(1) as f64
-    })
+    a.try_inverse().map(|ai| ai * b).unwrap_or_else(|| cameras.iter().map(|c| c.center()).sum::<Vector3<f64>>() / cameras.len().max(1) as f64)
 }
 
 /// A camera at `eye` looking at `target`, with `up` the world up direction (OpenCV: image y points down-world).

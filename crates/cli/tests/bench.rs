@@ -45,7 +45,11 @@ fn raster_fields_and_threads() {
     for (threads, want) in [("0", cores()), ("1", 1), ("2", 2)] {
         let v = bench(&["raster", "--gaussians", "3000", "--width", "48", "--height", "32", "--features", "3", "--runs", "1", "--threads", threads]);
         assert_eq!(v["bench"], "raster");
-        assert_eq!((v["gaussians"].as_u64(), v["width"].as_u64(), v["height"].as_u64(), v["features"].as_u64()), (Some(3000), Some(48), Some(32), Some(3)), "{v}");
+        assert_eq!(
+            (v["gaussians"].as_u64(), v["width"].as_u64(), v["height"].as_u64(), v["features"].as_u64()),
+            (Some(3000), Some(48), Some(32), Some(3)),
+            "{v}"
+        );
         time_field(&v, "forward_ms");
         time_field(&v, "forward_backward_ms");
         assert!(v["pairs"].as_u64().is_some_and(|p| p > 0), "{v}");
@@ -125,7 +129,10 @@ fn scene_runs_the_whole_pipeline() {
     assert!(v["gpu_peak_mib"].is_null(), "no GPU memory on the CPU: {v}");
     assert!(v.get("refiner_profile").is_none(), "profile without MVSPLAT360_PROFILE: {v}");
     // Profiled: per-module totals of the refiner (one 2-frame window, 1 guided step: UNet, VAE, CLIP scopes).
-    let p = bench_env(&["scene", "--tiny", "--views", "3", "--height", "64", "--width", "128", "--frames", "2", "--steps", "1", "--threads", "1"], &[("MVSPLAT360_PROFILE", "1")]);
+    let p = bench_env(
+        &["scene", "--tiny", "--views", "3", "--height", "64", "--width", "128", "--frames", "2", "--steps", "1", "--threads", "1"],
+        &[("MVSPLAT360_PROFILE", "1")],
+    );
     let prof = p["refiner_profile"].as_object().unwrap_or_else(|| panic!("no refiner_profile in {p}"));
     for k in ["unet.conv", "group_norm", "attention_core", "vae.decoder_total", "clip.block"] {
         let e = &prof.get(k).unwrap_or_else(|| panic!("no `{k}` in {p}"));

@@ -115,8 +115,22 @@ fn eval_bad_inputs_fail_before_any_work() {
     let cases: Vec<(Command, &str)> = vec![
         (eval_cmd(&empty, &tmp.path().join("nope"), &index, &m, &out), "--data"),
         (eval_cmd(&empty, &data, &tmp.path().join("nope.json"), &m, &out), "nope.json"),
-        ({ let mut c = eval_cmd(&empty, &data, &index, &m, &out); c.args(["--scenes", "woodbox_z"]); c }, "--scenes"),
-        ({ let mut c = eval_cmd(&empty, &data, &index, &m, &out); c.args(["--vae-chunk", "0"]); c }, "--vae-chunk"),
+        (
+            {
+                let mut c = eval_cmd(&empty, &data, &index, &m, &out);
+                c.args(["--scenes", "woodbox_z"]);
+                c
+            },
+            "--scenes",
+        ),
+        (
+            {
+                let mut c = eval_cmd(&empty, &data, &index, &m, &out);
+                c.args(["--vae-chunk", "0"]);
+                c
+            },
+            "--vae-chunk",
+        ),
     ];
     for (mut c, what) in cases {
         let o = c.output().unwrap();

@@ -43,10 +43,7 @@ fn errors_are_one_line_and_exit_nonzero() {
     let tmp = tempfile::tempdir().unwrap();
     let bad = tmp.path().join("transforms.json");
     std::fs::write(&bad, "{ broken").unwrap();
-    for (arg, needle) in [
-        (tmp.path().join("missing"), "no such file or folder"),
-        (bad.clone(), "invalid JSON"),
-    ] {
+    for (arg, needle) in [(tmp.path().join("missing"), "no such file or folder"), (bad.clone(), "invalid JSON")] {
         let out = bin().arg("inspect").arg(&arg).output().unwrap();
         assert_eq!(out.status.code(), Some(1));
         let err = String::from_utf8_lossy(&out.stderr);

@@ -126,7 +126,8 @@ fn view_page_in_headless_chromium() {
     render(&out);
     assert!(!out.join("frames/refined").exists(), "--refiner none render has no refined frames");
     // metrics.json as `render --metrics` / `metrics --out` write it (the real one needs the metric networks).
-    std::fs::write(out.join("metrics.json"), r#"{"psnr": 12.5, "ssim": 0.41, "lpips": null, "dists": null, "fid": null, "per_image": [], "warnings": []}"#).unwrap();
+    std::fs::write(out.join("metrics.json"), r#"{"psnr": 12.5, "ssim": 0.41, "lpips": null, "dists": null, "fid": null, "per_image": [], "warnings": []}"#)
+        .unwrap();
     let (_server, url) = serve(&out);
     let shots = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("view-test");
     std::fs::create_dir_all(&shots).unwrap();
@@ -171,14 +172,18 @@ fn view_page_in_headless_chromium() {
         tab.add_event_listener(Arc::new(move |ev: &Event| {
             let (level, text) = match ev {
                 Event::RuntimeConsoleAPICalled(e) => {
-                    let text: Vec<String> = e.params.args.iter().map(|a| a.value.as_ref().map(|v| v.to_string()).or(a.description.clone()).unwrap_or_default()).collect();
+                    let text: Vec<String> =
+                        e.params.args.iter().map(|a| a.value.as_ref().map(|v| v.to_string()).or(a.description.clone()).unwrap_or_default()).collect();
                     (format!("{:?}", e.params.Type).to_lowercase(), text.join(" "))
                 }
                 Event::RuntimeExceptionThrown(e) => {
                     let d = &e.params.exception_details;
                     ("exception".to_string(), format!("{} {}", d.text, d.exception.as_ref().and_then(|x| x.description.clone()).unwrap_or_default()))
                 }
-                Event::LogEntryAdded(e) => (format!("{:?}", e.params.entry.level).to_lowercase(), format!("{} {}", e.params.entry.text, e.params.entry.url.clone().unwrap_or_default())),
+                Event::LogEntryAdded(e) => (
+                    format!("{:?}", e.params.entry.level).to_lowercase(),
+                    format!("{} {}", e.params.entry.text, e.params.entry.url.clone().unwrap_or_default()),
+                ),
                 _ => return,
             };
             log.lock().unwrap().push(format!("[{level}] {text}"));

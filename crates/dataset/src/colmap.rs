@@ -13,9 +13,7 @@ use crate::{DatasetError, ImageSource, Scene};
 
 /// The folder holding `cameras.{bin,txt}`: `<root>/sparse/0`, `<root>/sparse` or `<root>` itself.
 pub fn find_model_dir(root: &Path) -> Option<PathBuf> {
-    [root.join("sparse/0"), root.join("sparse"), root.to_path_buf()]
-        .into_iter()
-        .find(|d| d.join("cameras.bin").is_file() || d.join("cameras.txt").is_file())
+    [root.join("sparse/0"), root.join("sparse"), root.to_path_buf()].into_iter().find(|d| d.join("cameras.bin").is_file() || d.join("cameras.txt").is_file())
 }
 
 #[derive(Debug, Clone, PartialEq)]
@@ -140,8 +138,7 @@ pub fn read_cameras_bin(path: &Path) -> Result<HashMap<u32, ColmapCamera>, Datas
     for _ in 0..n {
         let id = b.i32()?;
         let model_id = b.i32()?;
-        let (model, np) =
-            model_by_id(model_id).ok_or_else(|| malformed(path, format!("camera {id}: unknown model id {model_id}")))?;
+        let (model, np) = model_by_id(model_id).ok_or_else(|| malformed(path, format!("camera {id}: unknown model id {model_id}")))?;
         let (w, h) = (b.u64()?, b.u64()?);
         let params = (0..np).map(|_| b.f64()).collect::<Result<Vec<_>, _>>()?;
         out.insert(id as u32, make_camera(path, model, w as u32, h as u32, &params)?);
@@ -172,9 +169,7 @@ fn data_lines(text: &str) -> impl Iterator<Item = (usize, &str)> {
 }
 
 fn parse_nums<T: std::str::FromStr>(path: &Path, line: usize, toks: &[&str]) -> Result<Vec<T>, DatasetError> {
-    toks.iter()
-        .map(|t| t.parse::<T>().map_err(|_| malformed(path, format!("line {line}: `{t}` is not a number"))))
-        .collect()
+    toks.iter().map(|t| t.parse::<T>().map_err(|_| malformed(path, format!("line {line}: `{t}` is not a number")))).collect()
 }
 
 pub fn read_cameras_txt(path: &Path) -> Result<HashMap<u32, ColmapCamera>, DatasetError> {
@@ -211,12 +206,7 @@ pub fn read_images_txt(path: &Path) -> Result<Vec<ColmapImage>, DatasetError> {
         }
         let v: Vec<f64> = parse_nums(path, ln, &t[1..8])?;
         let cam: Vec<u32> = parse_nums(path, ln, &t[8..9])?;
-        out.push(ColmapImage {
-            qvec: [v[0], v[1], v[2], v[3]],
-            tvec: [v[4], v[5], v[6]],
-            camera_id: cam[0],
-            name: t[9..].join(" "),
-        });
+        out.push(ColmapImage { qvec: [v[0], v[1], v[2], v[3]], tvec: [v[4], v[5], v[6]], camera_id: cam[0], name: t[9..].join(" ") });
         expect_points = true;
     }
     Ok(out)
@@ -240,23 +230,15 @@ pub fn read(root: &Path) -> Result<Scene, DatasetError> {
     };
     let mut warned = false;
     for im in imgs {
-        let c = cams.get(&im.camera_id).ok_or_else(|| {
-            malformed(&model, format!("image {} refers to camera {} which is not in the cameras file", im.name, im.camera_id))
-        })?;
+        let c = cams
+            .get(&im.camera_id)
+            .ok_or_else(|| malformed(&model, format!("image {} refers to camera {} which is not in the cameras file", im.name, im.camera_id)))?;
         if c.distorted && !warned {
             tracing::warn!("{}: camera model {} has distortion; it is ignored (undistort for best results)", model.display(), c.model);
             warned = true;
         }
         let [fx, fy, cx, cy] = c.pinhole;
-        scene.cameras.push(Camera {
-            fx,
-            fy,
-            cx,
-            cy,
-            width: c.width,
-            height: c.height,
-            c2w: to_array(&colmap_to_c2w(im.qvec, im.tvec)),
-        });
+        scene.cameras.push(Camera { fx, fy, cx, cy, width: c.width, height: c.height, c2w: to_array(&colmap_to_c2w(im.qvec, im.tvec)) });
         let p = image_dir.join(&im.name);
         if !p.is_file() {
             return Err(DatasetError::Colmap { path: model.clone(), msg: format!("image {} not found at {}", im.name, p.display()) });

@@ -80,7 +80,10 @@ impl ImageF32 {
 pub enum ImageSource {
     File(PathBuf),
     /// Encoded PNG/JPEG bytes (from a `.torch` chunk), with a label for error messages.
-    Encoded { label: String, bytes: Arc<Vec<u8>> },
+    Encoded {
+        label: String,
+        bytes: Arc<Vec<u8>>,
+    },
 }
 
 impl ImageSource {

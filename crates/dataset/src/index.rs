@@ -21,8 +21,7 @@ pub struct EvaluationEntry {
 /// Read an evaluation index; entries that are `null` map to `None`.
 pub fn read_evaluation_index(path: &Path) -> Result<BTreeMap<String, Option<EvaluationEntry>>, DatasetError> {
     let text = std::fs::read_to_string(path).map_err(|e| io(path, e))?;
-    let raw: BTreeMap<String, serde_json::Value> =
-        serde_json::from_str(&text).map_err(|source| DatasetError::Json { path: path.to_path_buf(), source })?;
+    let raw: BTreeMap<String, serde_json::Value> = serde_json::from_str(&text).map_err(|source| DatasetError::Json { path: path.to_path_buf(), source })?;
     raw.into_iter()
         .map(|(k, v)| {
             // The official sampler also accepts a one-entry list (`[{...}]`) and treats `[]` like null.
@@ -36,8 +35,8 @@ pub fn read_evaluation_index(path: &Path) -> Result<BTreeMap<String, Option<Eval
             if v.is_null() {
                 return Ok((k, None));
             }
-            let e: EvaluationEntry = serde_json::from_value(v)
-                .map_err(|e| field(path, &k, format!("expected {{\"context\": [..], \"target\": [..]}}: {e}")))?;
+            let e: EvaluationEntry =
+                serde_json::from_value(v).map_err(|e| field(path, &k, format!("expected {{\"context\": [..], \"target\": [..]}}: {e}")))?;
             if e.context.is_empty() {
                 return Err(field(path, format!("{k}.context"), "is empty; at least one context view is needed"));
             }
@@ -64,8 +63,12 @@ mod tests {
     fn list_and_empty_entries_as_the_official_sampler() {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("index.json");
-        std::fs::write(&p, r#"{"a": [{"context": [1, 5], "target": [2, 3], "target_quantify": [3]}], "b": [], "c": null,
-            "d": {"context": [0, 9], "target": [4]}}"#).unwrap();
+        std::fs::write(
+            &p,
+            r#"{"a": [{"context": [1, 5], "target": [2, 3], "target_quantify": [3]}], "b": [], "c": null,
+            "d": {"context": [0, 9], "target": [4]}}"#,
+        )
+        .unwrap();
         let idx = read_evaluation_index(&p).unwrap();
         let a = idx["a"].as_ref().unwrap();
         assert_eq!((a.context.clone(), a.target.clone(), a.target_quantify.clone()), (vec![1, 5], vec![2, 3], Some(vec![3])));

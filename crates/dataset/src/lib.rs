@@ -40,11 +40,7 @@ impl Scene {
         let img = self.images[i].decode()?;
         let cam = &self.cameras[i];
         if img.width != cam.width || img.height != cam.height {
-            return Err(DatasetError::ImageSize {
-                view: self.view_names[i].clone(),
-                expected: (cam.width, cam.height),
-                found: (img.width, img.height),
-            });
+            return Err(DatasetError::ImageSize { view: self.view_names[i].clone(), expected: (cam.width, cam.height), found: (img.width, img.height) });
         }
         Ok(img)
     }
@@ -58,11 +54,7 @@ impl Scene {
         for (cam, name) in self.cameras.iter().zip(&self.view_names) {
             cam.validate(name)?;
             if (cam.width, cam.height) != (w0, h0) {
-                return Err(DatasetError::InconsistentSize {
-                    view: name.clone(),
-                    first: (w0, h0),
-                    found: (cam.width, cam.height),
-                });
+                return Err(DatasetError::InconsistentSize { view: name.clone(), first: (w0, h0), found: (cam.width, cam.height) });
             }
         }
         Ok(())

@@ -49,10 +49,7 @@ impl Archive<'_> {
             return Err(bad(self.path, format!("{what}: non-contiguous tensor; re-save it with .contiguous()")));
         }
         if !self.cache.contains_key(&info.path) {
-            let mut entry = self
-                .zip
-                .by_name(&info.path)
-                .map_err(|e| bad(self.path, format!("{what}: storage {} missing: {e}", info.path)))?;
+            let mut entry = self.zip.by_name(&info.path).map_err(|e| bad(self.path, format!("{what}: storage {} missing: {e}", info.path)))?;
             let mut buf = Vec::with_capacity(entry.size() as usize);
             entry.read_to_end(&mut buf).map_err(|e| io(self.path, e))?;
             self.cache.insert(info.path.clone(), buf);
@@ -60,9 +57,7 @@ impl Archive<'_> {
         let storage = &self.cache[&info.path];
         let start = info.layout.start_offset();
         let len = info.layout.shape().elem_count() * info.dtype.size_in_bytes();
-        let bytes = storage
-            .get(start..start + len)
-            .ok_or_else(|| bad(self.path, format!("{what}: storage {} is shorter than the tensor", info.path)))?;
+        let bytes = storage.get(start..start + len).ok_or_else(|| bad(self.path, format!("{what}: storage {} is shorter than the tensor", info.path)))?;
         Ok((info.dtype, info.layout.dims().to_vec(), bytes.to_vec()))
     }
 }
@@ -114,8 +109,7 @@ pub fn read_chunk(path: &Path) -> Result<Vec<ChunkScene>, DatasetError> {
             return Err(bad(path, format!("{} must be float32 [N,18], found {dt:?} {dims:?}", field("cameras"))));
         }
         let floats: Vec<f32> = bytes.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
-        let cameras: Vec<[f32; 18]> =
-            floats.chunks_exact(18).map(|r| std::array::from_fn(|i| r[i])).collect();
+        let cameras: Vec<[f32; 18]> = floats.chunks_exact(18).map(|r| std::array::from_fn(|i| r[i])).collect();
         let timestamps = match dict_get(&mut d, "timestamps") {
             Some(obj) => {
                 let (dt, _, bytes) = ar.tensor_bytes(obj, &field("timestamps"))?;
@@ -169,10 +163,7 @@ pub fn read_scene(path: &Path, key: Option<&str>) -> Result<Scene, DatasetError>
     let scenes = read_chunk(path)?;
     let available = || scenes.iter().map(|s| s.key.clone()).collect::<Vec<_>>().join(", ");
     let chosen = match key {
-        Some(k) => scenes
-            .iter()
-            .position(|s| s.key == k)
-            .ok_or_else(|| bad(path, format!("no scene `{k}` (available: {})", available())))?,
+        Some(k) => scenes.iter().position(|s| s.key == k).ok_or_else(|| bad(path, format!("no scene `{k}` (available: {})", available())))?,
         None if scenes.is_empty() => return Err(bad(path, "the chunk holds no scenes")),
         None => 0,
     };

@@ -43,10 +43,7 @@ fn resolve_image(path: &Path, base: &Path, rel: &str, frame: usize) -> Result<Pa
 pub fn read(path: &Path) -> Result<Scene, DatasetError> {
     let text = std::fs::read_to_string(path).map_err(|e| io(path, e))?;
     let top: Value = serde_json::from_str(&text).map_err(|source| DatasetError::Json { path: path.into(), source })?;
-    let frames = top
-        .get("frames")
-        .and_then(Value::as_array)
-        .ok_or_else(|| field(path, "frames", "missing or not a list of frames"))?;
+    let frames = top.get("frames").and_then(Value::as_array).ok_or_else(|| field(path, "frames", "missing or not a list of frames"))?;
     if frames.is_empty() {
         return Err(field(path, "frames", "the list is empty; a scene needs at least one view"));
     }
@@ -58,10 +55,7 @@ pub fn read(path: &Path) -> Result<Scene, DatasetError> {
         images: vec![],
     };
     for (i, f) in frames.iter().enumerate() {
-        let rel = f
-            .get("file_path")
-            .and_then(Value::as_str)
-            .ok_or_else(|| field(path, format!("frames[{i}].file_path"), "missing or not a string"))?;
+        let rel = f.get("file_path").and_then(Value::as_str).ok_or_else(|| field(path, format!("frames[{i}].file_path"), "missing or not a string"))?;
         let img_path = resolve_image(path, base, rel, i)?;
         let m = f
             .get("transform_matrix")
@@ -88,9 +82,7 @@ pub fn read(path: &Path) -> Result<Scene, DatasetError> {
         let fx = match (num(path, f, &top, "fl_x", i)?, num(path, f, &top, "camera_angle_x", i)?) {
             (Some(fx), _) => fx,
             (None, Some(a)) => 0.5 * wf / (0.5 * a).tan(),
-            (None, None) => {
-                return Err(field(path, format!("frames[{i}]"), "no focal length: give fl_x or camera_angle_x"))
-            }
+            (None, None) => return Err(field(path, format!("frames[{i}]"), "no focal length: give fl_x or camera_angle_x")),
         };
         let fy = match (num(path, f, &top, "fl_y", i)?, num(path, f, &top, "camera_angle_y", i)?) {
             (Some(fy), _) => fy,

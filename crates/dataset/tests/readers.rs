@@ -262,15 +262,9 @@ fn bad_inputs_name_the_problem() {
         (write(d, "t1.json", "{ not json"), "invalid JSON"),
         (write(d, "t2.json", r#"{"fl_x": 5}"#), "frames: missing"),
         (write(d, "t3.json", r#"{"fl_x": 5, "frames": []}"#), "frames: the list is empty"),
-        (
-            write(d, "t4.json", r#"{"fl_x": 5, "frames": [{"file_path": "a.png", "transform_matrix": [[1,0],[0,1]]}]}"#),
-            "frames[0].transform_matrix",
-        ),
+        (write(d, "t4.json", r#"{"fl_x": 5, "frames": [{"file_path": "a.png", "transform_matrix": [[1,0],[0,1]]}]}"#), "frames[0].transform_matrix"),
         (write(d, "t5.json", &format!(r#"{{"frames": [{{"file_path": "a.png", "transform_matrix": {IDENT}}}]}}"#)), "no focal length"),
-        (
-            write(d, "t6.json", &format!(r#"{{"fl_x": 5, "frames": [{{"file_path": "nope.png", "transform_matrix": {IDENT}}}]}}"#)),
-            "nope.png does not exist",
-        ),
+        (write(d, "t6.json", &format!(r#"{{"fl_x": 5, "frames": [{{"file_path": "nope.png", "transform_matrix": {IDENT}}}]}}"#)), "nope.png does not exist"),
         (
             write(d, "t7.json", &format!(r#"{{"fl_x": "big", "frames": [{{"file_path": "a.png", "transform_matrix": {IDENT}}}]}}"#)),
             "fl_x: expected a finite number",
@@ -290,11 +284,7 @@ fn bad_inputs_name_the_problem() {
             "view a.png: focal length fx = -5",
         ),
         (
-            write(
-                d,
-                "t10.json",
-                r#"{"fl_x": 5, "frames": [{"file_path": "a.png", "transform_matrix": [[2,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}]}"#,
-            ),
+            write(d, "t10.json", r#"{"fl_x": 5, "frames": [{"file_path": "a.png", "transform_matrix": [[2,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}]}"#),
             "not orthonormal",
         ),
         (write(d, "c.torch", "not a zip"), "not a torch zip archive"),

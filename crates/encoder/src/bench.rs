@@ -23,9 +23,7 @@ pub enum BenchError {
 pub fn peak_rss_mib() -> f64 {
     std::fs::read_to_string("/proc/self/status")
         .ok()
-        .and_then(|s| {
-            s.lines().find(|l| l.starts_with("VmHWM:")).and_then(|l| l.split_whitespace().nth(1)?.parse::<f64>().ok())
-        })
+        .and_then(|s| s.lines().find(|l| l.starts_with("VmHWM:")).and_then(|l| l.split_whitespace().nth(1)?.parse::<f64>().ok()))
         .map(|kb| kb / 1024.0)
         .unwrap_or(0.0)
 }
@@ -42,10 +40,8 @@ pub fn set_threads(threads: usize) -> Result<(), BenchError> {
 
 /// Run `f` on a pool of `threads` worker threads (0 = all cores), which candle's CPU kernels and rayon use.
 fn on_threads<T: Send>(threads: usize, f: impl FnOnce() -> Result<T, BenchError> + Send) -> Result<T, BenchError> {
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .build()
-        .map_err(|e| BenchError::Setup(format!("cannot build a {threads}-thread pool: {e}")))?;
+    let pool =
+        rayon::ThreadPoolBuilder::new().num_threads(threads).build().map_err(|e| BenchError::Setup(format!("cannot build a {threads}-thread pool: {e}")))?;
     pool.install(f)
 }
 
@@ -88,7 +84,6 @@ pub fn synthetic_context(b: usize, v: usize, h: usize, w: usize, device: &Device
     let far = (Tensor::ones((b, v), DType::F32, device)? * 100.0)?;
     Ok([images, intrinsics, extrinsics, near, far])
 }
-
 
 /// Backbone only (CNN + transformer), for a breakdown of the encoder time.
 pub fn run_backbone_bench(views: usize, height: usize, width: usize, threads: usize, runs: usize) -> Result<serde_json::Value, BenchError> {

@@ -48,8 +48,7 @@ pub struct EncoderOutput {
 impl EncoderCostVolume {
     /// `vb` = the encoder's root (`root.pp("encoder")`), keys as in the official state dict.
     pub fn new(vb: VarBuilder, cfg: &EncoderCostVolumeCfg) -> Result<Self> {
-        let backbone =
-            BackboneMultiview::new(vb.pp("backbone"), cfg.d_feature, cfg.num_transformer_layers, cfg.ffn_dim_expansion)?;
+        let backbone = BackboneMultiview::new(vb.pp("backbone"), cfg.d_feature, cfg.num_transformer_layers, cfg.ffn_dim_expansion)?;
         let depth_predictor = DepthPredictorMultiView::new(vb.pp("depth_predictor"), cfg)?;
         Ok(Self { cfg: cfg.clone(), backbone, depth_predictor })
     }
@@ -70,21 +69,15 @@ impl EncoderCostVolume {
             candle_core::bail!("the encoder needs at least 2 context views, got {v}");
         }
         if v != self.cfg.num_views {
-            candle_core::bail!(
-                "the encoder was built for {} context views (num_views), got {v}; build it with num_views = {v}",
-                self.cfg.num_views
-            );
+            candle_core::bail!("the encoder was built for {} context views (num_views), got {v}; build it with num_views = {v}", self.cfg.num_views);
         }
         let m = self.required_multiple();
         if h % m != 0 || w % m != 0 {
             candle_core::bail!("image size {h}x{w} must be a multiple of {m} (crop to a multiple of {})", self.cfg.image_multiple());
         }
-        for (t, name, dims) in [
-            (intrinsics, "intrinsics", vec![b, v, 3, 3]),
-            (extrinsics, "extrinsics", vec![b, v, 4, 4]),
-            (near, "near", vec![b, v]),
-            (far, "far", vec![b, v]),
-        ] {
+        for (t, name, dims) in
+            [(intrinsics, "intrinsics", vec![b, v, 3, 3]), (extrinsics, "extrinsics", vec![b, v, 4, 4]), (near, "near", vec![b, v]), (far, "far", vec![b, v])]
+        {
             if t.dims() != dims.as_slice() {
                 candle_core::bail!("{name} must have shape {dims:?}, got {:?}", t.dims());
             }
@@ -139,11 +132,7 @@ impl EncoderCostVolume {
             far,
             cameras_dist_index: &nn_cv,
         };
-        let depth = if intermediates {
-            self.depth_predictor.forward_with_intermediates(&inp)?
-        } else {
-            self.depth_predictor.forward(&inp)?
-        };
+        let depth = if intermediates { self.depth_predictor.forward_with_intermediates(&inp)? } else { self.depth_predictor.forward(&inp)? };
         let mut t = std::time::Instant::now();
         let gaussians = gaussians_from_prediction(&self.cfg, &depth, extrinsics, intrinsics, (h, w))?;
         crate::prof("gaussian adapter", &mut t);

@@ -9,9 +9,9 @@ pub mod costvolume;
 pub mod encoder_costvolume;
 pub mod weights;
 
+pub use common::gaussian_adapter::EncoderGaussians;
 pub use config::EncoderCostVolumeCfg;
 pub use encoder_costvolume::{to_splat_gaussians, EncoderCostVolume, ENCODER_PREFIX};
-pub use common::gaussian_adapter::EncoderGaussians;
 pub use weights::{load_strict, Checkpoint, StrictLoader, WeightsError};
 
 /// Stage timer for profiling: with `MVSPLAT360_PROFILE` set, prints the time since `t` under `label` to stderr.

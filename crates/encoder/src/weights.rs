@@ -88,11 +88,8 @@ impl Checkpoint {
                 let st = unsafe { MmapedSafetensors::new(&path) }.map_err(fmt_err)?;
                 let mut shapes = HashMap::new();
                 for (name, view) in st.tensors() {
-                    let dtype = DType::try_from(view.dtype()).map_err(|e| WeightsError::Tensor {
-                        path: path.clone(),
-                        key: name.clone(),
-                        msg: e.to_string(),
-                    })?;
+                    let dtype =
+                        DType::try_from(view.dtype()).map_err(|e| WeightsError::Tensor { path: path.clone(), key: name.clone(), msg: e.to_string() })?;
                     shapes.insert(name, (view.shape().to_vec(), dtype));
                 }
                 Ok(Self { path, store: Store::Safetensors(st), shapes })
@@ -103,11 +100,7 @@ impl Checkpoint {
                     Ok(p) if !p.tensor_infos().is_empty() => p,
                     _ => candle_core::pickle::PthTensors::new(&path, None).map_err(fmt_err)?,
                 };
-                let shapes = pth
-                    .tensor_infos()
-                    .iter()
-                    .map(|(k, ti)| (k.clone(), (ti.layout.dims().to_vec(), ti.dtype)))
-                    .collect();
+                let shapes = pth.tensor_infos().iter().map(|(k, ti)| (k.clone(), (ti.layout.dims().to_vec(), ti.dtype))).collect();
                 Ok(Self { path, store: Store::Torch(pth), shapes })
             }
         }
@@ -229,20 +222,14 @@ impl StrictLoader {
     /// Root VarBuilder (no prefix pushed: the model asks for full names such as `encoder.backbone…`, so push the
     /// prefix's components with `pp` before handing it to the model).
     pub fn var_builder(&self, dtype: DType, device: &Device) -> VarBuilder<'static> {
-        let backend: Box<dyn candle_nn::var_builder::SimpleBackend> =
-            Box::new(TrackingBackend { ckpt: self.ckpt.clone(), log: self.log.clone() });
+        let backend: Box<dyn candle_nn::var_builder::SimpleBackend> = Box::new(TrackingBackend { ckpt: self.ckpt.clone(), log: self.log.clone() });
         VarBuilder::from_backend(backend, dtype, device.clone())
     }
 
     /// Compare the requested keys with the file's keys under the prefix.
     pub fn finish(self) -> Result<(), WeightsError> {
         let log = self.log.lock().map_err(|_| WeightsError::Format { path: self.ckpt.path.clone(), msg: "poisoned".into() })?;
-        let unexpected: Vec<String> = self
-            .ckpt
-            .keys()
-            .into_iter()
-            .filter(|k| k.starts_with(&self.prefix) && !log.requested.contains(k))
-            .collect();
+        let unexpected: Vec<String> = self.ckpt.keys().into_iter().filter(|k| k.starts_with(&self.prefix) && !log.requested.contains(k)).collect();
         let missing: Vec<String> = log.missing.iter().cloned().collect();
         if missing.is_empty() && unexpected.is_empty() && log.mismatched.is_empty() {
             Ok(())
@@ -304,11 +291,7 @@ pub fn convert_to_safetensors(input: &Path, output: &Path, prefix: &str) -> Resu
 /// Random weights for any model built through a VarBuilder (benchmarks, gradient tests): every tensor the model
 /// requests gets PyTorch-like values — matrices/kernels U(−1/√fan_in, 1/√fan_in), 1-D `weight`s (norm scales)
 /// 1 + 0.1·N(0,1), biases 0.05·N(0,1). Deterministic in `seed` and the key order of the model.
-pub fn random_tensors<T>(
-    seed: u64,
-    device: &Device,
-    build: impl FnOnce(VarBuilder) -> candle_core::Result<T>,
-) -> candle_core::Result<HashMap<String, Tensor>> {
+pub fn random_tensors<T>(seed: u64, device: &Device, build: impl FnOnce(VarBuilder) -> candle_core::Result<T>) -> candle_core::Result<HashMap<String, Tensor>> {
     use rand::{Rng, SeedableRng};
     let varmap = candle_nn::VarMap::new();
     build(VarBuilder::from_varmap(&varmap, DType::F32, device))?;

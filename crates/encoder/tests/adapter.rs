@@ -46,8 +46,20 @@ fn gaussian_adapter_matches_official_outputs() {
 
     let p = h * w;
     let mut fails = Vec::new();
-    fails.extend(tk::allclose("adapter.in.coordinates", &it.coordinates, &tk::get(&inter, "adapter.in.coordinates").reshape((b, v, p, 2)).unwrap(), COORD.0, COORD.1));
-    fails.extend(tk::allclose("adapter.in.opacities", &it.opacities, &tk::get(&inter, "adapter.in.opacities").reshape((b, v, p)).unwrap(), OPACITY.0, OPACITY.1));
+    fails.extend(tk::allclose(
+        "adapter.in.coordinates",
+        &it.coordinates,
+        &tk::get(&inter, "adapter.in.coordinates").reshape((b, v, p, 2)).unwrap(),
+        COORD.0,
+        COORD.1,
+    ));
+    fails.extend(tk::allclose(
+        "adapter.in.opacities",
+        &it.opacities,
+        &tk::get(&inter, "adapter.in.opacities").reshape((b, v, p)).unwrap(),
+        OPACITY.0,
+        OPACITY.1,
+    ));
     fails.extend(tk::allclose(
         "adapter.covariance_camera",
         &it.covariance_camera,

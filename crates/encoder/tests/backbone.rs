@@ -27,8 +27,7 @@ fn backbone_matches_official_intermediates() {
     let (dist, index) = camera_distances(extrinsics).unwrap();
     report("encoder.camera_distances", &dist, tk::get(&inter, "encoder.camera_distances"));
     let want: Vec<Vec<Vec<i64>>> = tk::get(&inter, "encoder.cameras_dist_index").to_dtype(DType::I64).unwrap().to_vec3().unwrap();
-    let got: Vec<Vec<Vec<i64>>> =
-        index.iter().map(|b| b.iter().map(|r| r.iter().map(|&x| x as i64).collect()).collect()).collect();
+    let got: Vec<Vec<Vec<i64>>> = index.iter().map(|b| b.iter().map(|r| r.iter().map(|&x| x as i64).collect()).collect()).collect();
     assert_eq!(got, want, "cameras_dist_index");
 
     let model = load_strict(tk::fixture("encoder/state_dict.safetensors"), "encoder.backbone.", &Device::Cpu, |vb| {

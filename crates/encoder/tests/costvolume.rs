@@ -33,10 +33,9 @@ fn depth_predictor_matches_official_intermediates() {
     let outputs = tk::load("encoder/outputs.safetensors");
     let images = tk::get(&inputs, "context.image");
     let cfg = EncoderCostVolumeCfg { num_views: images.dim(1).unwrap(), ..Default::default() };
-    let model = load_strict(tk::fixture("encoder/state_dict.safetensors"), "encoder.depth_predictor.", &Device::Cpu, |vb| {
-        DepthPredictorMultiView::new(vb, &cfg)
-    })
-    .unwrap();
+    let model =
+        load_strict(tk::fixture("encoder/state_dict.safetensors"), "encoder.depth_predictor.", &Device::Cpu, |vb| DepthPredictorMultiView::new(vb, &cfg))
+            .unwrap();
     let index = tk::get(&inter, "encoder.cameras_dist_index").to_dtype(DType::U32).unwrap();
     let inp = DepthPredictorInput {
         features_cnn: tk::get(&inter, "backbone.cnn_features"),
@@ -175,16 +174,10 @@ fn depth_predictor_and_adapter_backpropagate_to_every_parameter() {
         let r = Tensor::randn(0f32, 1.0, t.shape(), &dev).unwrap();
         t.mul(&r).unwrap().sum_all().unwrap()
     };
-    let loss = [
-        weighted(&g.means),
-        weighted(&g.covariances),
-        weighted(&g.harmonics),
-        weighted(&g.feature_harmonics),
-        weighted(&g.opacities),
-    ]
-    .into_iter()
-    .reduce(|a, b| (a + b).unwrap())
-    .unwrap();
+    let loss = [weighted(&g.means), weighted(&g.covariances), weighted(&g.harmonics), weighted(&g.feature_harmonics), weighted(&g.opacities)]
+        .into_iter()
+        .reduce(|a, b| (a + b).unwrap())
+        .unwrap();
     let grads = loss.backward().unwrap();
     let data = varmap.data().lock().unwrap();
     let mut missing = Vec::new();

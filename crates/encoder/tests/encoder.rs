@@ -31,8 +31,7 @@ fn encoder_matches_official_outputs() {
     let (_, v, _, _, _) = images.dims5().unwrap();
     let cfg = EncoderCostVolumeCfg { num_views: v, ..Default::default() };
     // Strict: zero missing and zero unexpected `encoder.*` keys, or this fails with the key list.
-    let enc = EncoderCostVolume::load(tk::fixture("encoder/state_dict.safetensors"), &cfg, &Device::Cpu)
-        .unwrap_or_else(|e| panic!("{e}"));
+    let enc = EncoderCostVolume::load(tk::fixture("encoder/state_dict.safetensors"), &cfg, &Device::Cpu).unwrap_or_else(|e| panic!("{e}"));
     let g = enc
         .forward(
             images,
@@ -136,10 +135,7 @@ fn tiny_encoder_shapes_and_gradients() {
     let data = varmap.data().lock().unwrap();
     let mut zero = Vec::new();
     for (name, var) in data.iter() {
-        let gmax = grads
-            .get(var.as_tensor())
-            .map(|g| g.abs().unwrap().flatten_all().unwrap().max(0).unwrap().to_scalar::<f32>().unwrap())
-            .unwrap_or(0.0);
+        let gmax = grads.get(var.as_tensor()).map(|g| g.abs().unwrap().flatten_all().unwrap().max(0).unwrap().to_scalar::<f32>().unwrap()).unwrap_or(0.0);
         if name.contains("backbone.backbone.") && name.contains("downsample.0.bias") {
             assert!(gmax < 1e-3, "{name}: InstanceNorm should cancel this bias, |grad| {gmax}");
         } else if !(gmax > 0.0 && gmax.is_finite()) {
@@ -184,17 +180,10 @@ fn tiny_encoder_gradients_match_finite_differences() {
         outs(g)
             .iter()
             .zip(&weights)
-            .map(|(t, w)| {
-                (t.to_dtype(DType::F64).unwrap() * w.to_dtype(DType::F64).unwrap()).unwrap().sum_all().unwrap().to_scalar::<f64>().unwrap()
-            })
+            .map(|(t, w)| (t.to_dtype(DType::F64).unwrap() * w.to_dtype(DType::F64).unwrap()).unwrap().sum_all().unwrap().to_scalar::<f64>().unwrap())
             .sum()
     };
-    let loss32 = outs(&g0)
-        .iter()
-        .zip(&weights)
-        .map(|(t, w)| (t * w).unwrap().sum_all().unwrap())
-        .reduce(|a, b| (a + b).unwrap())
-        .unwrap();
+    let loss32 = outs(&g0).iter().zip(&weights).map(|(t, w)| (t * w).unwrap().sum_all().unwrap()).reduce(|a, b| (a + b).unwrap()).unwrap();
     let grads = loss32.backward().unwrap();
 
     let data = varmap.data().lock().unwrap();

@@ -53,9 +53,7 @@ fn strict_errors_name_the_keys() {
     t.insert("refiner.other".into(), Tensor::zeros(3, DType::F32, &Device::Cpu).unwrap());
     let p = dir.path().join("bad.safetensors");
     candle_core::safetensors::save(&t, &p).unwrap();
-    let err = load_strict(&p, "encoder.", &Device::Cpu, |vb| MultiViewFeatureTransformer::new(vb.pp("t"), 1, 8, 2))
-        .err()
-        .expect("must fail");
+    let err = load_strict(&p, "encoder.", &Device::Cpu, |vb| MultiViewFeatureTransformer::new(vb.pp("t"), 1, 8, 2)).err().expect("must fail");
     let msg = err.to_string();
     match err {
         WeightsError::Strict { missing, unexpected, mismatched, .. } => {
@@ -156,8 +154,7 @@ fn write_torch_zip(path: &std::path::Path, tensors: &[(&str, Vec<usize>, Stored)
 
     let f = std::fs::File::create(path).unwrap();
     let mut z = zip::ZipWriter::new(f);
-    let opts: zip::write::SimpleFileOptions =
-        zip::write::SimpleFileOptions::default().compression_method(zip::CompressionMethod::Stored);
+    let opts: zip::write::SimpleFileOptions = zip::write::SimpleFileOptions::default().compression_method(zip::CompressionMethod::Stored);
     z.start_file("archive/data.pkl", opts).unwrap();
     z.write_all(&p.0).unwrap();
     for (i, (_, _, data)) in tensors.iter().enumerate() {

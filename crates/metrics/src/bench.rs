@@ -37,7 +37,6 @@ pub struct MetricsBenchOpts {
     pub weights_dir: Option<PathBuf>,
 }
 
-
 /// Deterministic values in [0, 1) (xorshift), so runs are comparable without a random-number crate.
 fn pseudo_random(n: usize, seed: u64) -> Vec<f32> {
     let mut s = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
@@ -111,12 +110,7 @@ fn bench_inner(opts: &MetricsBenchOpts) -> Value {
     });
     let psnr = ips(psnr, "psnr", &mut notes);
     let ssim = time(runs, || {
-        let v = pred
-            .par_iter()
-            .zip(&gt)
-            .map(|(a, b)| crate::ssim::ssim(a, b, 3, h, w))
-            .collect::<Result<Vec<_>, _>>()
-            .map_err(|e| e.to_string())?;
+        let v = pred.par_iter().zip(&gt).map(|(a, b)| crate::ssim::ssim(a, b, 3, h, w)).collect::<Result<Vec<_>, _>>().map_err(|e| e.to_string())?;
         std::hint::black_box(v);
         Ok(())
     });
@@ -138,13 +132,7 @@ fn bench_inner(opts: &MetricsBenchOpts) -> Value {
         Err(e) => ips(Err(e.to_string()), "dists", &mut notes),
     };
     let fid = match FidInception::load(wd, &dev) {
-        Ok(net) => ips(
-            time(runs, || {
-                net.features(&tp).and_then(|_| net.features(&tg)).map(|_| ()).map_err(|e| e.to_string())
-            }),
-            "fid",
-            &mut notes,
-        ),
+        Ok(net) => ips(time(runs, || net.features(&tp).and_then(|_| net.features(&tg)).map(|_| ()).map_err(|e| e.to_string())), "fid", &mut notes),
         Err(e) => ips(Err(e.to_string()), "fid", &mut notes),
     };
 

@@ -66,11 +66,7 @@ pub fn preprocess(x: &Tensor) -> Result<Tensor> {
     if (h, w) != (SIZE, SIZE) {
         // round(255·x), resample, /255 — in f32 like the package.
         let q = (x * 255.0)?.to_dtype(DType::F32)?;
-        let q = Tensor::from_vec(
-            q.flatten_all()?.to_vec1::<f32>()?.into_iter().map(f32::round_ties_even).collect::<Vec<_>>(),
-            q.dims(),
-            q.device(),
-        )?;
+        let q = Tensor::from_vec(q.flatten_all()?.to_vec1::<f32>()?.into_iter().map(f32::round_ties_even).collect::<Vec<_>>(), q.dims(), q.device())?;
         x = (nv_bilinear(&q, SIZE, SIZE)? / 255.0)?;
     }
     let (lo, hi) = INPUT_RANGE;

@@ -50,11 +50,7 @@ pub struct Lpips {
 
 impl Lpips {
     /// Loads the weights located through [`weights::locate`] (`weights_dir` = `--weights-dir`).
-    pub fn load(
-        weights_dir: Option<&Path>,
-        net: Net,
-        device: &Device,
-    ) -> std::result::Result<Self, MetricsWeightsError> {
+    pub fn load(weights_dir: Option<&Path>, net: Net, device: &Device) -> std::result::Result<Self, MetricsWeightsError> {
         let trunk_file = match net {
             Net::Vgg => files::VGG16,
             Net::Alex => files::ALEXNET,

@@ -137,12 +137,7 @@ fn list_names(names: &[String], max: usize) -> String {
 fn mismatch_message(pred: &Path, gt: &Path, only_pred: &[String], only_gt: &[String]) -> String {
     let mut parts = Vec::new();
     if !only_pred.is_empty() {
-        parts.push(format!(
-            "{} file(s) only in {} (predictions): {}",
-            only_pred.len(),
-            pred.display(),
-            list_names(only_pred, 10)
-        ));
+        parts.push(format!("{} file(s) only in {} (predictions): {}", only_pred.len(), pred.display(), list_names(only_pred, 10)));
     }
     if !only_gt.is_empty() {
         parts.push(format!("{} file(s) only in {} (ground truth): {}", only_gt.len(), gt.display(), list_names(only_gt, 10)));
@@ -272,10 +267,7 @@ pub fn score_dirs(pred: &Path, gt: &Path, opts: &ScoreOptions) -> Result<Report,
     let mut dists_vals = Vec::with_capacity(total);
     let (mut feats_pred, mut feats_gt): (Vec<f64>, Vec<f64>) = (Vec::new(), Vec::new());
     for chunk in names.chunks(batch) {
-        let pairs = chunk
-            .par_iter()
-            .map(|n| Ok((load_rgb(&pred.join(n))?, load_rgb(&gt.join(n))?)))
-            .collect::<Result<Vec<_>, ScoreError>>()?;
+        let pairs = chunk.par_iter().map(|n| Ok((load_rgb(&pred.join(n))?, load_rgb(&gt.join(n))?))).collect::<Result<Vec<_>, ScoreError>>()?;
         let closed: Vec<(f64, f64)> = pairs
             .par_iter()
             .map(|(p, g)| {
@@ -333,9 +325,7 @@ pub fn score_dirs(pred: &Path, gt: &Path, opts: &ScoreOptions) -> Result<Report,
 
     let infinite = per_image.iter().filter(|p| p.psnr.is_infinite()).count();
     if infinite > 0 {
-        warnings.push(format!(
-            "{infinite} pair(s) are identical: their PSNR is +inf (null in JSON), and so is the mean PSNR"
-        ));
+        warnings.push(format!("{infinite} pair(s) are identical: their PSNR is +inf (null in JSON), and so is the mean PSNR"));
     }
     let fid = match &inception {
         Some(_) if total < 2 => {

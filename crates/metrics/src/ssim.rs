@@ -80,10 +80,7 @@ pub fn ssim(a: &[f32], b: &[f32], c: usize, h: usize, w: usize) -> std::result::
     }
     let plane = h * w;
     let g = gaussian_kernel();
-    let sum: f64 = (0..c)
-        .into_par_iter()
-        .map(|ch| ssim_plane(&a[ch * plane..(ch + 1) * plane], &b[ch * plane..(ch + 1) * plane], h, w, &g))
-        .sum();
+    let sum: f64 = (0..c).into_par_iter().map(|ch| ssim_plane(&a[ch * plane..(ch + 1) * plane], &b[ch * plane..(ch + 1) * plane], h, w, &g)).sum();
     Ok(sum / c as f64)
 }
 

@@ -62,9 +62,7 @@ pub enum MetricsWeightsError {
 /// `.cache/mvsplat360/metric-weights` (relative).
 pub fn default_dir() -> PathBuf {
     let nonempty = |k: &str| std::env::var_os(k).filter(|v| !v.is_empty()).map(PathBuf::from);
-    let base = nonempty("XDG_CACHE_HOME")
-        .or_else(|| nonempty("HOME").map(|h| h.join(".cache")))
-        .unwrap_or_else(|| PathBuf::from(".cache"));
+    let base = nonempty("XDG_CACHE_HOME").or_else(|| nonempty("HOME").map(|h| h.join(".cache"))).unwrap_or_else(|| PathBuf::from(".cache"));
     base.join("mvsplat360").join("metric-weights")
 }
 
@@ -97,8 +95,7 @@ pub fn locate(explicit: Option<&Path>, file: &str) -> Result<PathBuf, MetricsWei
 /// Loads a located safetensors file (all tensors, on `device`).
 pub(crate) fn load_file(explicit: Option<&Path>, file: &str, device: &Device) -> Result<Weights, MetricsWeightsError> {
     let path = locate(explicit, file)?;
-    let tensors = candle_core::safetensors::load(&path, device)
-        .map_err(|e| MetricsWeightsError::Invalid { path: path.clone(), msg: e.to_string() })?;
+    let tensors = candle_core::safetensors::load(&path, device).map_err(|e| MetricsWeightsError::Invalid { path: path.clone(), msg: e.to_string() })?;
     Ok(Weights { path, tensors })
 }
 

@@ -272,9 +272,7 @@ fn ssim_matches_skimage_fixture() {
         let offset = case["offset"].as_i64().unwrap();
         let scale = case["scale"].as_f64().unwrap() as f32;
         // float32(q − offset) / float32(scale): one IEEE division, as numpy did.
-        let decode = |k: &str| -> Vec<f32> {
-            case[k].as_array().unwrap().iter().map(|q| (q.as_i64().unwrap() - offset) as f32 / scale).collect()
-        };
+        let decode = |k: &str| -> Vec<f32> { case[k].as_array().unwrap().iter().map(|q| (q.as_i64().unwrap() - offset) as f32 / scale).collect() };
         let (a, b) = (decode("a"), decode("b"));
         assert_eq!(a.len(), c * h * w);
         let got = ssim(&a, &b, c, h, w).unwrap();
@@ -471,11 +469,8 @@ fn frechet_routes_agree_and_match_denman_beavers() {
     let g2 = Gaussian::from_features(&y, n + 17, d).unwrap();
     let tr = g1.cov.trace() + g2.cov.trace();
     let want_t = denman_beavers_trace_sqrt(&(&g1.cov * &g2.cov));
-    for t in [
-        frechet::trace_sqrt_product(&g1.cov, &g2.cov),
-        frechet::trace_sqrt_product(&g2.cov, &g1.cov),
-        frechet::trace_sqrt_product_eigen(&g1.cov, &g2.cov),
-    ] {
+    for t in [frechet::trace_sqrt_product(&g1.cov, &g2.cov), frechet::trace_sqrt_product(&g2.cov, &g1.cov), frechet::trace_sqrt_product_eigen(&g1.cov, &g2.cov)]
+    {
         assert!(rel_close(t, want_t, tr, 1e-6), "{t} != {want_t}");
     }
     let want = (&g1.mean - &g2.mean).norm_squared() + tr - 2.0 * want_t;
@@ -511,4 +506,3 @@ fn frechet_2048_dims_few_samples_is_fast() {
     assert!(f.is_finite() && f > 0.0, "{f}");
     assert!(secs < 20.0, "{secs} s");
 }
-

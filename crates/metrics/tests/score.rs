@@ -24,9 +24,7 @@ fn make_dirs(root: &Path, names: &[&str]) -> (PathBuf, PathBuf) {
         save_png(&g.join(n), 24, 20, base);
         let mut rng = StdRng::seed_from_u64(i as u64);
         let noise: Vec<i32> = (0..24 * 20 * 3).map(|_| rng.gen_range(-20..=20)).collect();
-        save_png(&p.join(n), 24, 20, |x, y, c| {
-            (base(x, y, c) as i32 + noise[((y * 24 + x) * 3) as usize + c]).clamp(0, 255) as u8
-        });
+        save_png(&p.join(n), 24, 20, |x, y, c| (base(x, y, c) as i32 + noise[((y * 24 + x) * 3) as usize + c]).clamp(0, 255) as u8);
     }
     (p, g)
 }
@@ -85,10 +83,7 @@ fn report_json_has_exactly_the_table_fields() {
         warnings: vec!["not serialised".into()],
     };
     let s = serde_json::to_string(&r).unwrap();
-    assert_eq!(
-        s,
-        r#"{"psnr":25.5,"ssim":0.75,"lpips":null,"dists":0.125,"fid":null,"per_image":[{"name":"a.png","psnr":25.5,"ssim":0.75,"lpips":0.25}]}"#
-    );
+    assert_eq!(s, r#"{"psnr":25.5,"ssim":0.75,"lpips":null,"dists":0.125,"fid":null,"per_image":[{"name":"a.png","psnr":25.5,"ssim":0.75,"lpips":0.25}]}"#);
     // Infinite PSNR (identical images) becomes null.
     let inf = Report { psnr: f64::INFINITY, ..r };
     let v: serde_json::Value = serde_json::to_value(&inf).unwrap();

@@ -18,9 +18,7 @@ fn expected() -> Value {
 fn check(ck: &Checkpoint, want: &Value, what: &str) {
     let want = want.as_object().unwrap();
     for (name, arr) in want {
-        let got = ck.array(name).unwrap_or_else(|| {
-            panic!("{what}: no `{name}` in {:?}", ck.arrays.iter().map(|a| &a.0).collect::<Vec<_>>())
-        });
+        let got = ck.array(name).unwrap_or_else(|| panic!("{what}: no `{name}` in {:?}", ck.arrays.iter().map(|a| &a.0).collect::<Vec<_>>()));
         let shape: Vec<usize> = arr["shape"].as_array().unwrap().iter().map(|d| d.as_u64().unwrap() as usize).collect();
         let data: Vec<f32> = arr["data"].as_array().unwrap().iter().map(|d| d.as_f64().unwrap() as f32).collect();
         assert_eq!(got.shape, shape, "{what}: `{name}` shape");
@@ -77,11 +75,7 @@ fn convert_all_names_the_missing_package_file() {
 }
 
 fn tempdir() -> PathBuf {
-    let d = std::env::temp_dir().join(format!(
-        "mvsplat360-metrics-weights-test-{}-{:?}",
-        std::process::id(),
-        std::thread::current().id()
-    ));
+    let d = std::env::temp_dir().join(format!("mvsplat360-metrics-weights-test-{}-{:?}", std::process::id(), std::thread::current().id()));
     std::fs::create_dir_all(&d).unwrap();
     d
 }
@@ -104,15 +98,9 @@ fn locate_order_and_missing_message() {
     assert!(matches!(err, MetricsWeightsError::Missing { .. }));
     let msg = err.to_string();
     assert!(!msg.contains('\n'), "{msg}");
-    for part in [
-        files::VGG16,
-        "--weights-dir",
-        &explicit.display().to_string(),
-        weights::ENV_VAR,
-        "(unset)",
-        &default.display().to_string(),
-        weights::FETCH_COMMAND,
-    ] {
+    for part in
+        [files::VGG16, "--weights-dir", &explicit.display().to_string(), weights::ENV_VAR, "(unset)", &default.display().to_string(), weights::FETCH_COMMAND]
+    {
         assert!(msg.contains(part), "`{part}` missing from: {msg}");
     }
     let msg = weights::locate(None, files::VGG16).unwrap_err().to_string();
@@ -138,4 +126,3 @@ fn locate_order_and_missing_message() {
     std::env::remove_var(weights::ENV_VAR);
     std::fs::remove_dir_all(&root).ok();
 }
-

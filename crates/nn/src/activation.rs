@@ -37,7 +37,12 @@ fn map_chunk<F: Fn(f32) -> f32>(d: &mut [f32], s: &[f32], f: F) {
     map_chunk_impl(d, s, f)
 }
 
-fn map_par(storage: &candle_core::CpuStorage, layout: &candle_core::Layout, f: impl Fn(f32) -> f32 + Sync, name: &str) -> Result<(candle_core::CpuStorage, candle_core::Shape)> {
+fn map_par(
+    storage: &candle_core::CpuStorage,
+    layout: &candle_core::Layout,
+    f: impl Fn(f32) -> f32 + Sync,
+    name: &str,
+) -> Result<(candle_core::CpuStorage, candle_core::Shape)> {
     let src = crate::mode::f32_slice(storage, layout, name)?;
     let mut dst = vec![0f32; src.len()];
     dst.par_chunks_mut(1 << 14).zip(src.par_chunks(1 << 14)).for_each(|(d, s)| map_chunk(d, s, &f));
@@ -103,9 +108,7 @@ pub fn axpby(a: &Tensor, ca: f32, b: &Tensor, cb: f32) -> Result<Tensor> {
     let mut out = vec![0f32; a.elem_count()];
     with_f32(a, |ad| {
         with_f32(b, |bd| {
-            out.par_chunks_mut(1 << 14).zip(ad.par_chunks(1 << 14)).zip(bd.par_chunks(1 << 14)).for_each(|((o, x), y)| {
-                axpby_chunk(o, x, ca, y, cb)
-            })
+            out.par_chunks_mut(1 << 14).zip(ad.par_chunks(1 << 14)).zip(bd.par_chunks(1 << 14)).for_each(|((o, x), y)| axpby_chunk(o, x, ca, y, cb))
         })
     })??;
     Tensor::from_vec(out, a.dims(), a.device())

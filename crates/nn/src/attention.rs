@@ -72,11 +72,25 @@ impl CustomOp3 for FusedAttention<'_> {
                 // column stride c; v is s × cv; the output rows (bi, r0..r0+nr) belong to this task only.
                 unsafe {
                     gemm::gemm(
-                        nr, s, c,
-                        buf.as_mut_ptr(), 1, s as isize, false,
-                        qb.as_ptr(), 1, c as isize,
-                        kb.as_ptr(), c as isize, 1,
-                        0.0, 1.0, false, false, false, gemm::Parallelism::None,
+                        nr,
+                        s,
+                        c,
+                        buf.as_mut_ptr(),
+                        1,
+                        s as isize,
+                        false,
+                        qb.as_ptr(),
+                        1,
+                        c as isize,
+                        kb.as_ptr(),
+                        c as isize,
+                        1,
+                        0.0,
+                        1.0,
+                        false,
+                        false,
+                        false,
+                        gemm::Parallelism::None,
                     );
                 }
                 let labels = self.mask.map(|m| {
@@ -86,11 +100,25 @@ impl CustomOp3 for FusedAttention<'_> {
                 masked_softmax_rows(&mut buf[..nr * s], s, labels);
                 unsafe {
                     gemm::gemm(
-                        nr, cv, s,
-                        optr.0.add((bi * lq + r0) * cv), 1, cv as isize, false,
-                        buf.as_ptr(), 1, s as isize,
-                        vb.as_ptr(), 1, cv as isize,
-                        0.0, 1.0, false, false, false, gemm::Parallelism::None,
+                        nr,
+                        cv,
+                        s,
+                        optr.0.add((bi * lq + r0) * cv),
+                        1,
+                        cv as isize,
+                        false,
+                        buf.as_ptr(),
+                        1,
+                        s as isize,
+                        vb.as_ptr(),
+                        1,
+                        cv as isize,
+                        0.0,
+                        1.0,
+                        false,
+                        false,
+                        false,
+                        gemm::Parallelism::None,
                     );
                 }
             },
@@ -395,10 +423,27 @@ pub(crate) fn attention_raw(
             for pair in task * group..((task + 1) * group).min(pairs) {
                 let (g, h) = (pair / heads, pair % heads);
                 attend_small(
-                    q.data, ql.row(g, 0) * q.row_len + q.col_offset + h * d, q.row_len, ql.pos * q.row_len, lq,
-                    k.data, kl.row(g, 0) * k.row_len + k.col_offset + h * d, k.row_len, kl.pos * k.row_len, lk,
-                    v.data, kl.row(g, 0) * v.row_len + v.col_offset + h * d, v.row_len, kl.pos * v.row_len,
-                    optr, ql.row(g, 0) * out_row_len + h * d, out_row_len, ql.pos * out_row_len, d, scale, s,
+                    q.data,
+                    ql.row(g, 0) * q.row_len + q.col_offset + h * d,
+                    q.row_len,
+                    ql.pos * q.row_len,
+                    lq,
+                    k.data,
+                    kl.row(g, 0) * k.row_len + k.col_offset + h * d,
+                    k.row_len,
+                    kl.pos * k.row_len,
+                    lk,
+                    v.data,
+                    kl.row(g, 0) * v.row_len + v.col_offset + h * d,
+                    v.row_len,
+                    kl.pos * v.row_len,
+                    optr,
+                    ql.row(g, 0) * out_row_len + h * d,
+                    out_row_len,
+                    ql.pos * out_row_len,
+                    d,
+                    scale,
+                    s,
                 );
             }
             return;
@@ -417,21 +462,49 @@ pub(crate) fn attention_raw(
         // block (rows q0..q0+m of sequence g, head h's columns) is written by this task only.
         unsafe {
             gemm::gemm(
-                m, lk, d,
-                scores.as_mut_ptr(), 1, lk as isize, false,
-                q.data.as_ptr().add(qoff), 1, (ql.pos * q.row_len) as isize,
-                k.data.as_ptr().add(koff), (kl.pos * k.row_len) as isize, 1,
-                0.0, scale, false, false, false, gemm::Parallelism::None,
+                m,
+                lk,
+                d,
+                scores.as_mut_ptr(),
+                1,
+                lk as isize,
+                false,
+                q.data.as_ptr().add(qoff),
+                1,
+                (ql.pos * q.row_len) as isize,
+                k.data.as_ptr().add(koff),
+                (kl.pos * k.row_len) as isize,
+                1,
+                0.0,
+                scale,
+                false,
+                false,
+                false,
+                gemm::Parallelism::None,
             );
         }
         softmax_rows_unnormalised(scores, lk, sums);
         unsafe {
             gemm::gemm(
-                m, d, lk,
-                optr.0.add(ooff), 1, (ql.pos * out_row_len) as isize, false,
-                scores.as_ptr(), 1, lk as isize,
-                v.data.as_ptr().add(voff), 1, (kl.pos * v.row_len) as isize,
-                0.0, 1.0, false, false, false, gemm::Parallelism::None,
+                m,
+                d,
+                lk,
+                optr.0.add(ooff),
+                1,
+                (ql.pos * out_row_len) as isize,
+                false,
+                scores.as_ptr(),
+                1,
+                lk as isize,
+                v.data.as_ptr().add(voff),
+                1,
+                (kl.pos * v.row_len) as isize,
+                0.0,
+                1.0,
+                false,
+                false,
+                false,
+                gemm::Parallelism::None,
             );
         }
         scale_rows(unsafe { optr.0.add(ooff) }, m, d, ql.pos * out_row_len, sums);
@@ -491,9 +564,7 @@ pub(crate) fn multi_head_attention_composed(q: &Tensor, k: &Tensor, v: &Tensor, 
     let (n, lq, inner) = q.dims3()?;
     let lk = k.dim(1)?;
     let d = inner / heads;
-    let split = |t: &Tensor, l: usize| -> Result<Tensor> {
-        t.reshape((n, l, heads, d))?.transpose(1, 2)?.reshape((n * heads, l, d))?.contiguous()
-    };
+    let split = |t: &Tensor, l: usize| -> Result<Tensor> { t.reshape((n, l, heads, d))?.transpose(1, 2)?.reshape((n * heads, l, d))?.contiguous() };
     let scale = 1.0 / (d as f64).sqrt();
     let q = (split(q, lq)? * scale)?;
     let k = split(k, lk)?;
@@ -565,7 +636,14 @@ pub fn multi_head_attention_seqs(q: &Tensor, k: &Tensor, v: &Tensor, layout: Seq
 }
 
 /// [`multi_head_attention_seqs`] for other devices: gather the sequences, attend, scatter back.
-pub(crate) fn multi_head_attention_seqs_composed(q: &Tensor, k: &Tensor, v: &Tensor, layout: SeqLayout, heads: usize, max_score_elems: usize) -> Result<Tensor> {
+pub(crate) fn multi_head_attention_seqs_composed(
+    q: &Tensor,
+    k: &Tensor,
+    v: &Tensor,
+    layout: SeqLayout,
+    heads: usize,
+    max_score_elems: usize,
+) -> Result<Tensor> {
     let inner = *q.dims().last().unwrap_or(&1);
     let rows = q.elem_count() / inner.max(1);
     let idx: Vec<u32> = (0..layout.count).flat_map(|g| (0..layout.len).map(move |p| layout.row(g, p) as u32)).collect();

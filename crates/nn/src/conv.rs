@@ -180,10 +180,7 @@ impl CustomOp2 for ShiftConv {
         }
         // Stride 1: the transposed convolution needs no output padding.
         let grad_x = grad.conv_transpose2d(w, self.padding, 0, 1, self.dilation)?;
-        let grad_w = x
-            .transpose(0, 1)?
-            .conv2d(&grad.transpose(0, 1)?, self.padding, self.dilation, 1, 1)?
-            .transpose(0, 1)?;
+        let grad_w = x.transpose(0, 1)?.conv2d(&grad.transpose(0, 1)?, self.padding, self.dilation, 1, 1)?.transpose(0, 1)?;
         let (_, _, kh, kw) = w.dims4()?;
         let grad_w = grad_w.narrow(2, 0, kh)?.narrow(3, 0, kw)?;
         Ok((Some(grad_x), Some(grad_w)))
@@ -248,11 +245,25 @@ fn shift_conv_backward(x: &Tensor, w: &Tensor, grad: &Tensor, pad: usize, dil: u
                 // covered by `extra`, and it multiplies only the zero columns (x ≥ wo) of gpad.
                 unsafe {
                     gemm::gemm(
-                        co, c, l,
-                        dst.as_mut_ptr(), 1, c as isize, b > 0,
-                        gpad.as_ptr(), 1, l as isize,
-                        xpad.as_ptr().add(off), plane as isize, 1,
-                        1.0, 1.0, false, false, false, gemm::Parallelism::Rayon(threads),
+                        co,
+                        c,
+                        l,
+                        dst.as_mut_ptr(),
+                        1,
+                        c as isize,
+                        b > 0,
+                        gpad.as_ptr(),
+                        1,
+                        l as isize,
+                        xpad.as_ptr().add(off),
+                        plane as isize,
+                        1,
+                        1.0,
+                        1.0,
+                        false,
+                        false,
+                        false,
+                        gemm::Parallelism::Rayon(threads),
                     );
                 }
             }
@@ -378,11 +389,25 @@ fn shift_conv_budget(x: &[f32], w: &[f32], g: &ShiftGeometry, epi: &RawEpilogue,
                 // rhs reads padded[ci·row_len + shift + j] for j < ncols and shift + ncols ≤ np·slot.
                 unsafe {
                     gemm::gemm(
-                        co, ncols, c,
-                        wide.as_mut_ptr(), 1, row_len as isize, !(ky == 0 && kx == 0),
-                        w.as_ptr().add(ky * kw + kx), (kh * kw) as isize, (c * kh * kw) as isize,
-                        padded.as_ptr().add(shift), 1, row_len as isize,
-                        1.0, 1.0, false, false, false, gemm::Parallelism::Rayon(threads),
+                        co,
+                        ncols,
+                        c,
+                        wide.as_mut_ptr(),
+                        1,
+                        row_len as isize,
+                        !(ky == 0 && kx == 0),
+                        w.as_ptr().add(ky * kw + kx),
+                        (kh * kw) as isize,
+                        (c * kh * kw) as isize,
+                        padded.as_ptr().add(shift),
+                        1,
+                        row_len as isize,
+                        1.0,
+                        1.0,
+                        false,
+                        false,
+                        false,
+                        gemm::Parallelism::Rayon(threads),
                     );
                 }
             }
@@ -687,11 +712,25 @@ pub fn temporal_conv(
                 // contiguous ((k1−k0)·c × s); dst = this item's (co × s) output.
                 unsafe {
                     gemm::gemm(
-                        co, s, (k1 - k0) * c,
-                        d.as_mut_ptr(), 1, s as isize, true,
-                        wd.as_ptr().add(k0 * c), 1, (kt * c) as isize,
-                        xd.as_ptr().add(first * c * s), 1, s as isize,
-                        1.0, scale, false, false, false, par,
+                        co,
+                        s,
+                        (k1 - k0) * c,
+                        d.as_mut_ptr(),
+                        1,
+                        s as isize,
+                        true,
+                        wd.as_ptr().add(k0 * c),
+                        1,
+                        (kt * c) as isize,
+                        xd.as_ptr().add(first * c * s),
+                        1,
+                        s as isize,
+                        1.0,
+                        scale,
+                        false,
+                        false,
+                        false,
+                        par,
                     );
                 }
             };

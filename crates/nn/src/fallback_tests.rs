@@ -48,11 +48,7 @@ fn conv_compositions_match_kernels() {
     let res = randn(&[2, 7, 18, 22], 1.0);
     let cfg = conv::Conv2dConfig { padding: 1, stride: 1, dilation: 1 };
     let epi = conv::ConvEpilogue { residual: Some(&res), ..up };
-    close(
-        "conv2d_fused",
-        &conv::conv2d_fused_composed(&x, &w, Some(&b), cfg, epi, true).unwrap(),
-        &conv::conv2d_fused(&x, &w, Some(&b), cfg, epi).unwrap(),
-    );
+    close("conv2d_fused", &conv::conv2d_fused_composed(&x, &w, Some(&b), cfg, epi, true).unwrap(), &conv::conv2d_fused(&x, &w, Some(&b), cfg, epi).unwrap());
     // Temporal conv over 2 items of 3 frames.
     let xt = randn(&[6, 4, 5, 3], 1.0);
     let wt = randn(&[6, 3 * 4], 0.3);
@@ -78,11 +74,8 @@ fn attention_compositions_match_kernels() {
     let q = randn(&[b, lq, c], 0.5);
     let k = randn(&[b, s, c], 0.5);
     let v = randn(&[b, s, 12], 1.0);
-    let mask = attention::RegionMask {
-        q_labels: (0..p * lq).map(|i| ((i * 7) % 3) as u8).collect(),
-        k_labels: (0..p * s).map(|i| ((i * 5) % 3) as u8).collect(),
-        p,
-    };
+    let mask =
+        attention::RegionMask { q_labels: (0..p * lq).map(|i| ((i * 7) % 3) as u8).collect(), k_labels: (0..p * s).map(|i| ((i * 5) % 3) as u8).collect(), p };
     for m in [None, Some(&mask)] {
         let kernel = attention::fused_attention(&q, &k, &v, m).unwrap();
         close("fused_attention", &attention::fused_attention_composed(&q, &k, &v, m).unwrap(), &kernel);
@@ -146,11 +139,7 @@ fn softmax_and_norm_compositions_match_kernels() {
         );
     }
     for act in [norm::Act::None, norm::Act::Silu, norm::Act::Gelu] {
-        close(
-            "group_norm_act",
-            &norm::group_norm_act_composed(&x, &w, &b, 8, 1e-5, act).unwrap(),
-            &norm::group_norm_act(&x, &w, &b, 8, 1e-5, act).unwrap(),
-        );
+        close("group_norm_act", &norm::group_norm_act_composed(&x, &w, &b, 8, 1e-5, act).unwrap(), &norm::group_norm_act(&x, &w, &b, 8, 1e-5, act).unwrap());
     }
 }
 

@@ -100,10 +100,7 @@ impl CustomOp2 for GridSample {
             let src = &input[nc * plane_in..(nc + 1) * plane_in];
             let tp = &taps[ni * p..(ni + 1) * p];
             for (y, t) in o.iter_mut().zip(tp) {
-                *y = t.w[0] * src[t.idx[0] as usize]
-                    + t.w[1] * src[t.idx[1] as usize]
-                    + t.w[2] * src[t.idx[2] as usize]
-                    + t.w[3] * src[t.idx[3] as usize];
+                *y = t.w[0] * src[t.idx[0] as usize] + t.w[1] * src[t.idx[1] as usize] + t.w[2] * src[t.idx[2] as usize] + t.w[3] * src[t.idx[3] as usize];
             }
         });
         Ok((CpuStorage::F32(out), Shape::from((n, c, ho, wo))))

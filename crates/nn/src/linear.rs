@@ -19,11 +19,25 @@ pub(crate) fn gemm_xwt(x: &[f32], rows: usize, k: usize, w: &[f32], o: usize, ds
     // SAFETY: the asserted lengths cover every index gemm touches.
     unsafe {
         gemm::gemm(
-            rows, o, k,
-            dst.as_mut_ptr(), 1, o as isize, accumulate,
-            x.as_ptr(), 1, k as isize,
-            w.as_ptr(), k as isize, 1,
-            1.0, beta, false, false, false, par,
+            rows,
+            o,
+            k,
+            dst.as_mut_ptr(),
+            1,
+            o as isize,
+            accumulate,
+            x.as_ptr(),
+            1,
+            k as isize,
+            w.as_ptr(),
+            k as isize,
+            1,
+            1.0,
+            beta,
+            false,
+            false,
+            false,
+            par,
         );
     }
 }
@@ -229,11 +243,25 @@ pub fn linear_from_channels_first(x: &Tensor, w: &Tensor, b: &Tensor) -> Result<
                 // SAFETY: lhs (s × c) element (j, k) = x[i, k, j]; all indices inside item i.
                 unsafe {
                     gemm::gemm(
-                        s, o, c,
-                        d.as_mut_ptr(), 1, o as isize, true,
-                        xd.as_ptr().add(i * c * s), s as isize, 1,
-                        wd.as_ptr(), c as isize, 1,
-                        1.0, 1.0, false, false, false, gemm::Parallelism::Rayon(threads),
+                        s,
+                        o,
+                        c,
+                        d.as_mut_ptr(),
+                        1,
+                        o as isize,
+                        true,
+                        xd.as_ptr().add(i * c * s),
+                        s as isize,
+                        1,
+                        wd.as_ptr(),
+                        c as isize,
+                        1,
+                        1.0,
+                        1.0,
+                        false,
+                        false,
+                        false,
+                        gemm::Parallelism::Rayon(threads),
                     );
                 }
             }
@@ -267,11 +295,25 @@ pub fn linear_to_channels_first(h: &Tensor, w: &Tensor, b: &Tensor, residual: &T
                 // SAFETY: rhs (k × s) element (kk, j) = h[i, j, kk]; all indices inside item i.
                 unsafe {
                     gemm::gemm(
-                        o, s, k,
-                        d.as_mut_ptr(), 1, s as isize, true,
-                        wd.as_ptr(), 1, k as isize,
-                        hd.as_ptr().add(i * s * k), k as isize, 1,
-                        1.0, 1.0, false, false, false, gemm::Parallelism::Rayon(threads),
+                        o,
+                        s,
+                        k,
+                        d.as_mut_ptr(),
+                        1,
+                        s as isize,
+                        true,
+                        wd.as_ptr(),
+                        1,
+                        k as isize,
+                        hd.as_ptr().add(i * s * k),
+                        k as isize,
+                        1,
+                        1.0,
+                        1.0,
+                        false,
+                        false,
+                        false,
+                        gemm::Parallelism::Rayon(threads),
                     );
                 }
             }
@@ -331,13 +373,37 @@ mod tests {
         let w = Tensor::randn(0f32, 0.3, (10, 6), &dev).unwrap();
         let b = Tensor::randn(0f32, 0.3, 10, &dev).unwrap();
         let tok = linear_from_channels_first(&x, &w, &b).unwrap();
-        let want = x.transpose(1, 2).unwrap().contiguous().unwrap().reshape((105, 6)).unwrap().matmul(&w.t().unwrap()).unwrap().broadcast_add(&b).unwrap().reshape((3, 35, 10)).unwrap();
+        let want = x
+            .transpose(1, 2)
+            .unwrap()
+            .contiguous()
+            .unwrap()
+            .reshape((105, 6))
+            .unwrap()
+            .matmul(&w.t().unwrap())
+            .unwrap()
+            .broadcast_add(&b)
+            .unwrap()
+            .reshape((3, 35, 10))
+            .unwrap();
         let d = (&tok - &want).unwrap().abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap();
         assert!(d < 1e-5, "to tokens: {d}");
         let w2 = Tensor::randn(0f32, 0.3, (6, 10), &dev).unwrap();
         let b2 = Tensor::randn(0f32, 0.3, 6, &dev).unwrap();
         let back = linear_to_channels_first(&tok, &w2, &b2, &x).unwrap();
-        let want = (tok.reshape((105, 10)).unwrap().matmul(&w2.t().unwrap()).unwrap().broadcast_add(&b2).unwrap().reshape((3, 35, 6)).unwrap().transpose(1, 2).unwrap() + &x).unwrap();
+        let want = (tok
+            .reshape((105, 10))
+            .unwrap()
+            .matmul(&w2.t().unwrap())
+            .unwrap()
+            .broadcast_add(&b2)
+            .unwrap()
+            .reshape((3, 35, 6))
+            .unwrap()
+            .transpose(1, 2)
+            .unwrap()
+            + &x)
+            .unwrap();
         let d = (back - want).unwrap().abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap();
         assert!(d < 1e-5, "to channels-first: {d}");
     }

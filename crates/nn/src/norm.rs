@@ -36,15 +36,7 @@ pub(crate) fn layer_norm_composed(x: &Tensor, weight: &Tensor, bias: &Tensor, ep
 
 /// GroupNorm on (N, C, ...) with statistics pooled over `frames` consecutive items (frames > 1: a GroupNorm
 /// of the (B, C, T, H, W) tensor of a temporal ResBlock), optionally followed by SiLU. CPU f32 fast path (one stats pass, one write pass), composed ops elsewhere.
-pub fn group_norm(
-    x: &Tensor,
-    groups: usize,
-    frames: usize,
-    weight: &Tensor,
-    bias: &Tensor,
-    eps: f64,
-    silu: bool,
-) -> Result<Tensor> {
+pub fn group_norm(x: &Tensor, groups: usize, frames: usize, weight: &Tensor, bias: &Tensor, eps: f64, silu: bool) -> Result<Tensor> {
     let dims = x.dims().to_vec();
     let (n, c) = (dims[0], dims[1]);
     let s: usize = dims[2..].iter().product();
@@ -82,7 +74,15 @@ pub(crate) fn group_norm_composed(x: &Tensor, groups: usize, frames: usize, weig
 /// CPU GroupNorm(+SiLU): statistics per (item, group, pooled over frames) in f64, then one fused
 /// scale/shift(/SiLU) pass.
 #[allow(clippy::too_many_arguments)]
-fn group_norm_cpu(data: &[f32], out: &mut [f32], (bn, frames, groups, cg, c, s): (usize, usize, usize, usize, usize, usize), w: &[f32], b: &[f32], eps: f64, silu: bool) {
+fn group_norm_cpu(
+    data: &[f32],
+    out: &mut [f32],
+    (bn, frames, groups, cg, c, s): (usize, usize, usize, usize, usize, usize),
+    w: &[f32],
+    b: &[f32],
+    eps: f64,
+    silu: bool,
+) {
     let stats: Vec<(f32, f32)> = (0..bn * groups)
         .into_par_iter()
         .map(|idx| {

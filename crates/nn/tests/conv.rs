@@ -38,12 +38,7 @@ fn check(conv: ConvFn, strided: bool) {
         let b = Tensor::randn(0f32, 1.0, co, &d).unwrap();
         let cfg = Conv2dConfig { padding, stride, dilation };
         let ours = conv(x.as_tensor(), wt.as_tensor(), Some(&b), cfg).unwrap();
-        let theirs = x
-            .as_tensor()
-            .conv2d(wt.as_tensor(), padding, stride, dilation, 1)
-            .unwrap()
-            .broadcast_add(&b.reshape((1, co, 1, 1)).unwrap())
-            .unwrap();
+        let theirs = x.as_tensor().conv2d(wt.as_tensor(), padding, stride, dilation, 1).unwrap().broadcast_add(&b.reshape((1, co, 1, 1)).unwrap()).unwrap();
         assert_eq!(ours.dims(), theirs.dims());
         let tol = 1e-4 * (c * k * k) as f32;
         assert!(max_diff(&ours, &theirs) < tol, "forward {:?}", (n, c, h, w, k, padding, stride, dilation));
@@ -67,7 +62,11 @@ fn check(conv: ConvFn, strided: bool) {
                     let mut v = base.clone();
                     v[i] += delta;
                     let t = Tensor::from_vec(v, dims.clone(), &d).unwrap();
-                    if is_x { loss(&t, wt.as_tensor()) } else { loss(x.as_tensor(), &t) }
+                    if is_x {
+                        loss(&t, wt.as_tensor())
+                    } else {
+                        loss(x.as_tensor(), &t)
+                    }
                 };
                 let fd = (at(step) - at(-step)) / (2.0 * step as f64);
                 assert!(
@@ -104,13 +103,9 @@ fn dispatcher_matches_both_paths() {
 #[test]
 fn shift_conv_backward_matches_candle_everywhere() {
     let d = Device::Cpu;
-    for &(n, c, h, w, co, k, padding, dilation) in &[
-        (2, 3, 9, 11, 4, 3, 1, 1),
-        (3, 5, 8, 12, 6, 3, 0, 1),
-        (1, 4, 10, 9, 3, 3, 2, 2),
-        (2, 6, 7, 13, 5, 5, 2, 1),
-        (1, 2, 12, 6, 3, 5, 4, 1),
-    ] {
+    for &(n, c, h, w, co, k, padding, dilation) in
+        &[(2, 3, 9, 11, 4, 3, 1, 1), (3, 5, 8, 12, 6, 3, 0, 1), (1, 4, 10, 9, 3, 3, 2, 2), (2, 6, 7, 13, 5, 5, 2, 1), (1, 2, 12, 6, 3, 5, 4, 1)]
+    {
         let x = Var::from_tensor(&Tensor::randn(0f32, 1.0, (n, c, h, w), &d).unwrap()).unwrap();
         let wt = Var::from_tensor(&Tensor::randn(0f32, 1.0, (co, c, k, k), &d).unwrap()).unwrap();
         let cfg = Conv2dConfig { padding, stride: 1, dilation };

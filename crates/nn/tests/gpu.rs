@@ -73,13 +73,14 @@ fn attention_softmax_norms_linear() {
     let d = gpu();
     let (b, lq, s, c, p) = (4, 37, 53, 16, 2);
     let (q, k, v) = (randn(&[b, lq, c], 0.5), randn(&[b, s, c], 0.5), randn(&[b, s, 12], 1.0));
-    let mask = attention::RegionMask {
-        q_labels: (0..p * lq).map(|i| ((i * 7) % 3) as u8).collect(),
-        k_labels: (0..p * s).map(|i| ((i * 5) % 3) as u8).collect(),
-        p,
-    };
+    let mask =
+        attention::RegionMask { q_labels: (0..p * lq).map(|i| ((i * 7) % 3) as u8).collect(), k_labels: (0..p * s).map(|i| ((i * 5) % 3) as u8).collect(), p };
     for m in [None, Some(&mask)] {
-        close("fused_attention", &attention::fused_attention(&on(&q, &d), &on(&k, &d), &on(&v, &d), m).unwrap(), &attention::fused_attention(&q, &k, &v, m).unwrap());
+        close(
+            "fused_attention",
+            &attention::fused_attention(&on(&q, &d), &on(&k, &d), &on(&v, &d), m).unwrap(),
+            &attention::fused_attention(&q, &k, &v, m).unwrap(),
+        );
     }
     for (n, lq, lk, heads, dh, max) in [(3, 14, 14, 2, 16, usize::MAX), (2, 70, 300, 2, 8, 70 * 40)] {
         let (q, k, v) = (randn(&[n, lq, heads * dh], 1.0), randn(&[n, lk, heads * dh], 1.0), randn(&[n, lk, heads * dh], 1.0));

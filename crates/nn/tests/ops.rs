@@ -97,9 +97,7 @@ fn grid_sample_backward_matches_finite_differences() {
         }
     }
     let wgt = r.vec(n * c * ho * wo, -1.0, 1.0);
-    let loss = |x: &[f64], g: &[f64]| -> f64 {
-        grid_sample_ref(x, g, n, c, hi, wi, ho, wo).iter().zip(&wgt).map(|(a, b)| a * b).sum()
-    };
+    let loss = |x: &[f64], g: &[f64]| -> f64 { grid_sample_ref(x, g, n, c, hi, wi, ho, wo).iter().zip(&wgt).map(|(a, b)| a * b).sum() };
 
     let xv = Var::from_vec(to_f32(&x), (n, c, hi, wi), &Device::Cpu).unwrap();
     let gv = Var::from_vec(to_f32(&g), (n, ho, wo, 2), &Device::Cpu).unwrap();
@@ -152,8 +150,7 @@ fn upsample_ref(x: &[f64], n: usize, c: usize, hi: usize, wi: usize, ho: usize, 
                 let x1 = (x0 + 1).min(wi - 1);
                 let fx = xx - x0 as f64;
                 let p = |yy: usize, xx: usize| x[(nc * hi + yy) * wi + xx];
-                out[(nc * ho + yo) * wo + xo] = (1.0 - fy) * ((1.0 - fx) * p(y0, x0) + fx * p(y0, x1))
-                    + fy * ((1.0 - fx) * p(y1, x0) + fx * p(y1, x1));
+                out[(nc * ho + yo) * wo + xo] = (1.0 - fy) * ((1.0 - fx) * p(y0, x0) + fx * p(y0, x1)) + fy * ((1.0 - fx) * p(y1, x0) + fx * p(y1, x1));
             }
         }
     }

@@ -173,7 +173,6 @@ fn gpu_peak_mib(_: &candle_core::Device, _: bool) -> Option<f64> {
     None
 }
 
-
 fn bench_model_config(o: &SceneBenchOpts) -> ModelConfig {
     let mut cfg = if o.tiny {
         model::tiny_config(true)

@@ -342,12 +342,8 @@ fn chunk_map(data: &Path, progress: &dyn Progress) -> Result<(PathBuf, HashMap<S
 /// The `.torch` file names of a folder, sorted (the official `sorted(glob("*.torch"))`).
 fn list_chunks(data: &Path) -> Result<Vec<String>> {
     let rd = std::fs::read_dir(data).map_err(|e| flag("--data", format!("{}: {e}", data.display())))?;
-    let mut v: Vec<String> = rd
-        .flatten()
-        .filter(|e| e.path().is_file())
-        .map(|e| e.file_name().to_string_lossy().into_owned())
-        .filter(|n| n.ends_with(".torch"))
-        .collect();
+    let mut v: Vec<String> =
+        rd.flatten().filter(|e| e.path().is_file()).map(|e| e.file_name().to_string_lossy().into_owned()).filter(|n| n.ends_with(".torch")).collect();
     v.sort();
     if v.is_empty() {
         return Err(flag("--data", format!("{}: no .torch chunks", data.display())));
@@ -515,7 +511,10 @@ fn score_scene(out: &Path, plan: &ScenePlan, methods: &[Method], nets: &Nets) ->
         let mut scores = Vec::with_capacity(pred.len());
         for (k, (p, g)) in pred.iter().zip(&gt).enumerate() {
             if (p.width, p.height) != (g.width, g.height) {
-                return Err(PipelineError::Compute { stage: "metrics", msg: format!("{}: size differs from its ground truth", image_name(&plan.key, plan.scored[k])) });
+                return Err(PipelineError::Compute {
+                    stage: "metrics",
+                    msg: format!("{}: size differs from its ground truth", image_name(&plan.key, plan.scored[k])),
+                });
             }
             let ssim = mvsplat360_metrics::ssim::ssim(&p.data, &g.data, 3, p.height, p.width).map_err(compute("SSIM"))?;
             let psnr = mvsplat360_metrics::psnr::psnr(&p.data, &g.data);
@@ -719,7 +718,8 @@ fn set_fid(out: &Path, records: &[&SceneRecord], m: Method, warnings: &mut Vec<S
     let (mut pred, mut gt, mut n) = (Vec::<f64>::new(), Vec::<f64>::new(), 0usize);
     for r in records {
         let path = features_file(out, &r.scene);
-        let t = candle_core::safetensors::load(&path, &Device::Cpu).map_err(|e| PipelineError::Compute { stage: "FID", msg: format!("{}: {e}", path.display()) })?;
+        let t = candle_core::safetensors::load(&path, &Device::Cpu)
+            .map_err(|e| PipelineError::Compute { stage: "FID", msg: format!("{}: {e}", path.display()) })?;
         let rows = |k: &str| -> Result<Vec<f32>> {
             let x = t.get(k).ok_or_else(|| PipelineError::Compute { stage: "FID", msg: format!("{}: no `{k}` features", path.display()) })?;
             x.flatten_all().and_then(|x| x.to_vec1::<f32>()).map_err(compute("FID"))
@@ -893,11 +893,21 @@ pub fn run(req: &EvalRequest, progress: &dyn Progress) -> Result<EvalSummary> {
             let plan = &plans[i];
             done += 1;
             let Some(cs) = scenes.remove(&plan.key) else {
-                warnings.push(format!("scene {} is listed in {} under {chunk} but that chunk does not hold it", plan.key, data_dir.join("index.json").display()));
+                warnings.push(format!(
+                    "scene {} is listed in {} under {chunk} but that chunk does not hold it",
+                    plan.key,
+                    data_dir.join("index.json").display()
+                ));
                 missing.push(plan.key.clone());
                 continue;
             };
-            progress.note(&format!("[{done}/{total_render}] scene {} ({} context, {} targets, {} scored)", plan.key, plan.context.len(), plan.targets.len(), plan.scored.len()));
+            progress.note(&format!(
+                "[{done}/{total_render}] scene {} ({} context, {} targets, {} scored)",
+                plan.key,
+                plan.context.len(),
+                plan.targets.len(),
+                plan.scored.len()
+            ));
             let scene = cs.into_scene(&path)?;
             scene.validate()?;
             let rec = render_scene(&cx, scene, plan, &mut warnings)?;
@@ -973,20 +983,7 @@ pub fn run(req: &EvalRequest, progress: &dyn Progress) -> Result<EvalSummary> {
         images
     );
     output::write_bytes(&out.join(METRICS_MD), markdown(&line, &table, &per_scene_primary, primary).as_bytes())?;
-    Ok(EvalSummary {
-        out: out.clone(),
-        selected,
-        null_entries,
-        rendered,
-        rescored,
-        resumed,
-        missing,
-        skipped_fov,
-        images,
-        methods: table,
-        warnings,
-        seconds,
-    })
+    Ok(EvalSummary { out: out.clone(), selected, null_entries, rendered, rescored, resumed, missing, skipped_fov, images, methods: table, warnings, seconds })
 }
 
 // ------------------------------------------------------------------------------------------------------------
@@ -1092,9 +1089,8 @@ pub fn index_entry(centres: &[[f64; 3]], opts: &IndexOptions) -> std::result::Re
     let mut context = farthest_point_sample(&centres[..n_views], opts.num_context);
     context.sort_unstable();
     let rest: Vec<usize> = (0..n_views).filter(|x| !context.contains(x)).collect();
-    let sel = partition_list(&rest, opts.num_target).ok_or_else(|| {
-        format!("{} non-context views (of {n_views} used) are fewer than the {} target views", rest.len(), opts.num_target)
-    })?;
+    let sel = partition_list(&rest, opts.num_target)
+        .ok_or_else(|| format!("{} non-context views (of {n_views} used) are fewer than the {} target views", rest.len(), opts.num_target))?;
     Ok(EvaluationEntry { context, target: sel[..opts.num_target].to_vec(), target_quantify: None })
 }
 
@@ -1103,7 +1099,15 @@ pub fn chunk_centres(s: &ChunkScene) -> Vec<[f64; 3]> {
     s.cameras
         .iter()
         .map(|r| {
-            let w2c = nalgebra::Matrix4::from_fn(|i, j| if i < 3 { r[6 + i * 4 + j] as f64 } else if j == 3 { 1.0 } else { 0.0 });
+            let w2c = nalgebra::Matrix4::from_fn(|i, j| {
+                if i < 3 {
+                    r[6 + i * 4 + j] as f64
+                } else if j == 3 {
+                    1.0
+                } else {
+                    0.0
+                }
+            });
             let c2w = w2c.try_inverse().unwrap_or_else(|| mvsplat360_camera::convert::invert_rigid(&w2c));
             [c2w[(0, 3)], c2w[(1, 3)], c2w[(2, 3)]]
         })
@@ -1213,7 +1217,15 @@ mod tests {
 
     #[test]
     fn fov_of_a_square_90_degree_camera() {
-        let c = Camera { fx: 50.0, fy: 50.0, cx: 50.0, cy: 50.0, width: 100, height: 100, c2w: [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]] };
+        let c = Camera {
+            fx: 50.0,
+            fy: 50.0,
+            cx: 50.0,
+            cy: 50.0,
+            width: 100,
+            height: 100,
+            c2w: [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]],
+        };
         let (x, y) = official_fov_deg(&c);
         assert!((x - 90.0).abs() < 1e-9 && (y - 90.0).abs() < 1e-9);
     }

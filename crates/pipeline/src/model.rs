@@ -197,8 +197,7 @@ pub fn resolve(args: &ModelArgs) -> Result<ModelSpec> {
     }
     let Some(dir) = default_model_dir() else {
         return Err(PipelineError::NoModel(
-            "no model given and assets/models/default/ is absent: pass --ckpt <official .ckpt or model folder>, or --encoder FILE --refiner none|FILE"
-                .into(),
+            "no model given and assets/models/default/ is absent: pass --ckpt <official .ckpt or model folder>, or --encoder FILE --refiner none|FILE".into(),
         ));
     };
     let mut spec = read_model_dir(&dir)?;
@@ -231,10 +230,10 @@ fn official_ckpt(path: &Path, experiment: Option<&str>) -> Result<ModelSpec> {
 /// Read a model folder (`config.json` + `model.safetensors`).
 pub fn read_model_dir(dir: &Path) -> Result<ModelSpec> {
     let cfg_path = dir.join(MODEL_CONFIG);
-    let text = std::fs::read_to_string(&cfg_path)
-        .map_err(|e| PipelineError::Model { path: cfg_path.clone(), msg: format!("cannot read the model config: {e}") })?;
-    let cfg: ModelConfig = serde_json::from_str(&text)
-        .map_err(|e| PipelineError::Model { path: cfg_path.clone(), msg: format!("invalid model config: {e}") })?;
+    let text =
+        std::fs::read_to_string(&cfg_path).map_err(|e| PipelineError::Model { path: cfg_path.clone(), msg: format!("cannot read the model config: {e}") })?;
+    let cfg: ModelConfig =
+        serde_json::from_str(&text).map_err(|e| PipelineError::Model { path: cfg_path.clone(), msg: format!("invalid model config: {e}") })?;
     if cfg.format != MODEL_FORMAT {
         return Err(PipelineError::Model { path: cfg_path, msg: format!("format is `{}`, expected `{MODEL_FORMAT}`", cfg.format) });
     }

@@ -96,11 +96,7 @@ pub fn tensor_image(t: &candle_core::Tensor) -> Result<ImageF32> {
     if c != 3 {
         return Err(PipelineError::Compute { stage: "image", msg: format!("expected 3 channels, got {c}") });
     }
-    let data = t
-        .to_dtype(candle_core::DType::F32)
-        .and_then(|t| t.flatten_all())
-        .and_then(|t| t.to_vec1::<f32>())
-        .map_err(crate::error::compute("image"))?;
+    let data = t.to_dtype(candle_core::DType::F32).and_then(|t| t.flatten_all()).and_then(|t| t.to_vec1::<f32>()).map_err(crate::error::compute("image"))?;
     Ok(ImageF32 { width: w as u32, height: h as u32, data })
 }
 

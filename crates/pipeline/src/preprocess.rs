@@ -63,11 +63,7 @@ impl Preprocess {
         let m = self.multiple.max(1);
         let (cw, ch) = (target.0 / m * m, target.1 / m * m);
         if cw == 0 || ch == 0 {
-            return Err(PipelineError::Camera(mvsplat360_camera::CameraError::CropTooSmall {
-                width: target.0,
-                height: target.1,
-                multiple: m,
-            }));
+            return Err(PipelineError::Camera(mvsplat360_camera::CameraError::CropTooSmall { width: target.0, height: target.1, multiple: m }));
         }
         let crop = mvsplat360_camera::CropRect { x0: (scaled.0 - cw) / 2, y0: (scaled.1 - ch) / 2, width: cw, height: ch };
         Ok(Plan { scaled, crop })

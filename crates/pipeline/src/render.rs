@@ -440,11 +440,14 @@ pub fn run(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSummary
     for (k, c) in p.target_cameras.iter().enumerate() {
         cams.push(camera_json(c, "target", p.choice.targets[k].view, &p.scene));
     }
-    write_json(&out.join("cameras.json"), &json!({
-        "convention": "OpenCV camera-to-world (x right, y down, z forward), K in pixels",
-        "scene_to_model": p.transform.to_json(),
-        "cameras": cams,
-    }))?;
+    write_json(
+        &out.join("cameras.json"),
+        &json!({
+            "convention": "OpenCV camera-to-world (x right, y down, z forward), K in pixels",
+            "scene_to_model": p.transform.to_json(),
+            "cameras": cams,
+        }),
+    )?;
 
     let t = Instant::now();
     let g = encode(&p, progress)?;

@@ -100,7 +100,15 @@ mod tests {
     fn ring(r: f64) -> Vec<Camera> {
         // Four cameras on a circle of radius r around the origin, each looking at it.
         let up = nalgebra::Vector3::new(0.0, -1.0, 0.0);
-        let t = Camera { fx: 100.0, fy: 100.0, cx: 50.0, cy: 50.0, width: 100, height: 100, c2w: [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]] };
+        let t = Camera {
+            fx: 100.0,
+            fy: 100.0,
+            cx: 50.0,
+            cy: 50.0,
+            width: 100,
+            height: 100,
+            c2w: [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]],
+        };
         (0..4)
             .map(|i| {
                 let a = std::f64::consts::FRAC_PI_2 * i as f64;

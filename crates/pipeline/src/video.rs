@@ -9,10 +9,7 @@ use std::fmt;
 use std::io::Cursor;
 use std::path::{Path, PathBuf};
 
-use openh264::encoder::{
-    ColorPrimaries, Encoder, EncoderConfig, FrameRate, IntraFramePeriod, QpRange, RateControlMode,
-    TransferCharacteristics, VuiConfig,
-};
+use openh264::encoder::{ColorPrimaries, Encoder, EncoderConfig, FrameRate, IntraFramePeriod, QpRange, RateControlMode, TransferCharacteristics, VuiConfig};
 use openh264::formats::YUVBuffer;
 use openh264::OpenH264API;
 
@@ -111,10 +108,7 @@ pub fn side_by_side(frames: &[&Frame]) -> Frame {
     for f in frames {
         let row = f.width as usize * 3;
         for y in 0..f.height as usize {
-            let (Some(src), Some(dst)) = (
-                f.rgb.get(y * row..(y + 1) * row),
-                out.rgb.get_mut(y * out_row + x0 * 3..y * out_row + x0 * 3 + row),
-            ) else {
+            let (Some(src), Some(dst)) = (f.rgb.get(y * row..(y + 1) * row), out.rgb.get_mut(y * out_row + x0 * 3..y * out_row + x0 * 3 + row)) else {
                 break;
             };
             dst.copy_from_slice(src);
@@ -144,14 +138,7 @@ pub fn encode_mp4(path: &Path, frames: &[Frame], fps: u32) -> Result<Vec<u8>, Vi
             return Err(VideoError::BadFrame { path: p(), index, width: f.width, height: f.height, len: f.rgb.len() });
         }
         if (f.width, f.height) != (first.width, first.height) {
-            return Err(VideoError::SizeMismatch {
-                path: p(),
-                index,
-                want_w: first.width,
-                want_h: first.height,
-                got_w: f.width,
-                got_h: f.height,
-            });
+            return Err(VideoError::SizeMismatch { path: p(), index, want_w: first.width, want_h: first.height, got_w: f.width, got_h: f.height });
         }
     }
     let pw = first.width as usize + (first.width as usize & 1);
@@ -176,13 +163,9 @@ pub fn encode_mp4(path: &Path, frames: &[Frame], fps: u32) -> Result<Vec<u8>, Vi
         .num_threads(1)
         // IDRs exactly every IDR_INTERVAL_S; a scene-cut IDR buys nothing at a fixed QP on smooth camera paths.
         .scene_change_detect(false)
-        .vui(
-            VuiConfig::bt601()
-                .color_primaries(ColorPrimaries::Bt709)
-                .transfer_characteristics(TransferCharacteristics::Srgb),
-        );
-    let mut encoder = Encoder::with_api_config(OpenH264API::from_source(), config)
-        .map_err(|e| VideoError::Encode { path: p(), index: 0, msg: e.to_string() })?;
+        .vui(VuiConfig::bt601().color_primaries(ColorPrimaries::Bt709).transfer_characteristics(TransferCharacteristics::Srgb));
+    let mut encoder =
+        Encoder::with_api_config(OpenH264API::from_source(), config).map_err(|e| VideoError::Encode { path: p(), index: 0, msg: e.to_string() })?;
 
     let mut sps: Option<Vec<u8>> = None;
     let mut pps: Option<Vec<u8>> = None;
@@ -306,23 +289,12 @@ fn mux(samples: Vec<Sample>, sps: Vec<u8>, pps: Vec<u8>, width: u16, height: u16
         track_type: mp4::TrackType::Video,
         timescale,
         language: "und".into(),
-        media_conf: mp4::MediaConfig::AvcConfig(mp4::AvcConfig {
-            width,
-            height,
-            seq_param_set: sps,
-            pic_param_set: pps,
-        }),
+        media_conf: mp4::MediaConfig::AvcConfig(mp4::AvcConfig { width, height, seq_param_set: sps, pic_param_set: pps }),
     })
     .map_err(|e| e.to_string())?;
     let mut t = 0u64;
     for s in samples {
-        let sample = mp4::Mp4Sample {
-            start_time: t,
-            duration: s.ticks,
-            rendering_offset: 0,
-            is_sync: s.sync,
-            bytes: s.data.into(),
-        };
+        let sample = mp4::Mp4Sample { start_time: t, duration: s.ticks, rendering_offset: 0, is_sync: s.sync, bytes: s.data.into() };
         w.write_sample(1, &sample).map_err(|e| e.to_string())?;
         t += sample.duration as u64;
     }

@@ -62,7 +62,10 @@ pub fn parse_list(s: &str) -> std::result::Result<Vec<usize>, String> {
 fn check_indices(which: &'static str, list: &[usize], scene: &Scene) -> Result<()> {
     for &i in list {
         if i >= scene.len() {
-            return Err(flag(which, format!("view {i} is out of range: scene {} has {} views (0..{})", scene.name, scene.len(), scene.len().saturating_sub(1))));
+            return Err(flag(
+                which,
+                format!("view {i} is out of range: scene {} has {} views (0..{})", scene.name, scene.len(), scene.len().saturating_sub(1)),
+            ));
         }
     }
     let mut seen = std::collections::BTreeSet::new();
@@ -82,7 +85,10 @@ pub fn index_entry(file: &Path, scene_key: Option<&str>, scene: &Scene) -> Resul
         None if index.contains_key(&scene.name) => scene.name.clone(),
         None if index.len() == 1 => index.keys().next().cloned().unwrap_or_default(),
         None => {
-            return Err(flag("--scene-key", format!("{} has {} scenes and none is named {}; pick one with --scene-key", file.display(), index.len(), scene.name)))
+            return Err(flag(
+                "--scene-key",
+                format!("{} has {} scenes and none is named {}; pick one with --scene-key", file.display(), index.len(), scene.name),
+            ))
         }
     };
     match index.get(&key) {
@@ -162,11 +168,7 @@ pub fn choose(scene: &Scene, context: &ContextSpec, targets: &TargetSpec) -> Res
 /// sequence (all views when there are fewer), poses smoothed by the official stabilisation (kernel 15).
 pub fn stable_path(cameras: &[Camera], frames: usize) -> Vec<Camera> {
     let n = cameras.len();
-    let picked: Vec<Camera> = if frames >= n {
-        cameras.to_vec()
-    } else {
-        (0..frames).map(|i| cameras[(i * n) / frames].clone()).collect()
-    };
+    let picked: Vec<Camera> = if frames >= n { cameras.to_vec() } else { (0..frames).map(|i| cameras[(i * n) / frames].clone()).collect() };
     trajectory::stabilize_official(&picked, STABLE_K_SIZE)
 }
 

@@ -275,10 +275,7 @@ fn eval_rescores_saved_images_with_metric_networks() {
     assert!(s.methods[0].1.lpips.is_none() && s.methods[0].1.fid.is_none());
     assert!(!out.join("ImagesRefined0").exists());
 
-    let images: Vec<PathBuf> = ["ImagesGT", "ImagesGSplat"]
-        .iter()
-        .flat_map(|d| std::fs::read_dir(out.join(d)).unwrap().flatten().map(|e| e.path()))
-        .collect();
+    let images: Vec<PathBuf> = ["ImagesGT", "ImagesGSplat"].iter().flat_map(|d| std::fs::read_dir(out.join(d)).unwrap().flatten().map(|e| e.path())).collect();
     let stamp = |ps: &[PathBuf]| ps.iter().map(|p| std::fs::metadata(p).unwrap().modified().unwrap()).collect::<Vec<_>>();
     let before = stamp(&images);
     (req.lpips, req.dists, req.fid) = (true, true, true);
@@ -309,7 +306,8 @@ fn eval_rescores_saved_images_with_metric_networks() {
     assert!((lp - mean(&lpips)).abs() < 1e-5, "{lp} vs {lpips:?}");
     assert!((di - mean(&dists)).abs() < 1e-5, "{di} vs {dists:?}");
     let inc = mvsplat360_metrics::inception::FidInception::load(None, &dev).unwrap();
-    let feats = |t: &candle_core::Tensor| inc.features(t).unwrap().flatten_all().unwrap().to_vec1::<f32>().unwrap().into_iter().map(f64::from).collect::<Vec<_>>();
+    let feats =
+        |t: &candle_core::Tensor| inc.features(t).unwrap().flatten_all().unwrap().to_vec1::<f32>().unwrap().into_iter().map(f64::from).collect::<Vec<_>>();
     let d = mvsplat360_metrics::inception::DIM;
     let expect = mvsplat360_metrics::frechet::frechet_from_features(&feats(&pred), 4, &feats(&gt), 4, d).unwrap();
     assert!((fid - expect).abs() <= 1e-6 * expect.abs().max(1.0), "FID {fid} vs {expect}");

@@ -141,7 +141,8 @@ fn tiny_model_render_writes_every_output() {
     let req = request(&m, &out, TargetSpec::Views(vec![sorted[0]]));
     let p = render::prepare(&req, &Silent).unwrap();
     let gm = render::encode(&p, &Silent).unwrap();
-    let mem = mvsplat360_splat::op::render(&gm, &render::raster_camera(&p.target_cameras[0], spec.encoder.near, spec.encoder.far), &Default::default()).unwrap();
+    let mem =
+        mvsplat360_splat::op::render(&gm, &render::raster_camera(&p.target_cameras[0], spec.encoder.near, spec.encoder.far), &Default::default()).unwrap();
     let d = (&from_ply.rgb - &mem.rgb).unwrap().abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap();
     assert!(d <= 1e-5, ".ply render differs from the in-memory render by {d}");
     let any: f32 = mem.rgb.abs().unwrap().max_all().unwrap().to_scalar().unwrap();

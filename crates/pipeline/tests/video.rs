@@ -162,9 +162,7 @@ fn roundtrip(w: u32, h: u32, n: u32, fps: u32) -> ReadBack {
         let p = psnr(&frames[k], *dw, *dh, rgb);
         assert!(p > 30.0, "{w}x{h} frame {k}: PSNR {p:.1} dB");
         // Frame order: each decoded picture matches its own input best.
-        let best = (0..frames.len())
-            .max_by(|&a, &b| psnr(&frames[a], *dw, *dh, rgb).total_cmp(&psnr(&frames[b], *dw, *dh, rgb)))
-            .unwrap();
+        let best = (0..frames.len()).max_by(|&a, &b| psnr(&frames[a], *dw, *dh, rgb).total_cmp(&psnr(&frames[b], *dw, *dh, rgb))).unwrap();
         assert_eq!(best, k, "{w}x{h}: decoded frame {k} looks most like input {best}");
     }
     rb
@@ -271,7 +269,6 @@ fn side_by_side_places_frames_and_pads_with_black() {
     let empty = side_by_side(&[]);
     assert_eq!((empty.width, empty.height, empty.rgb.len()), (0, 0, 0));
 }
-
 
 #[test]
 fn photo_pan_is_clean_and_compact() {

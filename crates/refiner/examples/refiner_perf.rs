@@ -28,15 +28,42 @@ fn main() -> anyhow::Result<()> {
             args.get(i + 1).ok_or_else(|| anyhow::anyhow!("{} needs a value", args[i]))?.parse().map_err(|e| anyhow::anyhow!("{}: {e}", args[i]))
         };
         match args[i].as_str() {
-            "--frames" => { frames = val(i)?; i += 1 }
-            "--h" => { h = val(i)?; i += 1 }
-            "--w" => { w = val(i)?; i += 1 }
-            "--threads" => { threads = val(i)?; i += 1 }
-            "--runs" => { runs = val(i)?; i += 1 }
-            "--vae-h" => { vae_h = val(i)?; i += 1 }
-            "--vae-w" => { vae_w = val(i)?; i += 1 }
-            "--vae-frames" => { vae_frames = val(i)?; i += 1 }
-            "--clip-views" => { clip_views = val(i)?; i += 1 }
+            "--frames" => {
+                frames = val(i)?;
+                i += 1
+            }
+            "--h" => {
+                h = val(i)?;
+                i += 1
+            }
+            "--w" => {
+                w = val(i)?;
+                i += 1
+            }
+            "--threads" => {
+                threads = val(i)?;
+                i += 1
+            }
+            "--runs" => {
+                runs = val(i)?;
+                i += 1
+            }
+            "--vae-h" => {
+                vae_h = val(i)?;
+                i += 1
+            }
+            "--vae-w" => {
+                vae_w = val(i)?;
+                i += 1
+            }
+            "--vae-frames" => {
+                vae_frames = val(i)?;
+                i += 1
+            }
+            "--clip-views" => {
+                clip_views = val(i)?;
+                i += 1
+            }
             "--no-unet" => unet = false,
             "--no-vae" => vae = false,
             "--no-clip" => clip = false,
@@ -45,8 +72,12 @@ fn main() -> anyhow::Result<()> {
         }
         i += 1;
     }
-    if vae_h == 0 { vae_h = h; }
-    if vae_w == 0 { vae_w = w; }
+    if vae_h == 0 {
+        vae_h = h;
+    }
+    if vae_w == 0 {
+        vae_w = w;
+    }
     prof::set_enabled(profile);
     let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build()?;
     let print_prof = |what: &str| {
@@ -57,7 +88,11 @@ fn main() -> anyhow::Result<()> {
         }
     };
     if unet {
-        let r = if vae { mvsplat360_refiner::bench::run_refiner_bench(frames, h, w, threads, runs)? } else { run_refiner_bench_with(&VideoUNetConfig::default(), frames, h, w, threads, runs, None)? };
+        let r = if vae {
+            mvsplat360_refiner::bench::run_refiner_bench(frames, h, w, threads, runs)?
+        } else {
+            run_refiner_bench_with(&VideoUNetConfig::default(), frames, h, w, threads, runs, None)?
+        };
         println!("{r}");
         print_prof("unet");
     }
@@ -75,7 +110,10 @@ fn main() -> anyhow::Result<()> {
             }
             Ok(())
         })?;
-        println!("{}", serde_json::json!({"bench": "vae_decode", "frames": vae_frames, "latent_h": vae_h, "latent_w": vae_w, "runs_ms": times, "peak_mib": peak_rss_mib()}));
+        println!(
+            "{}",
+            serde_json::json!({"bench": "vae_decode", "frames": vae_frames, "latent_h": vae_h, "latent_w": vae_w, "runs_ms": times, "peak_mib": peak_rss_mib()})
+        );
         print_prof("vae");
     }
     if clip {

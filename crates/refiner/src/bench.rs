@@ -19,7 +19,6 @@ pub fn peak_rss_mib() -> Option<f64> {
     Some(kb / 1024.0)
 }
 
-
 /// Time `runs` guided UNet steps (batch 2·frames: [uncond; cond]) of the MVSplat360 config with random
 /// weights on `threads` threads (0 = all cores; the JSON's `threads` is the pool size that ran); `vae_decode_ms` is measured only when a decoder is given.
 pub fn run_refiner_bench_with(
@@ -32,10 +31,7 @@ pub fn run_refiner_bench_with(
     decoder: Option<&dyn LatentDecoder>,
 ) -> Result<serde_json::Value, UNetError> {
     // 0 = all cores (rayon's default), as `--threads` documents; `threads.max(1)` used to turn it into one.
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .build()
-        .map_err(|e| UNetError::Config { path: "<bench>".into(), msg: e.to_string() })?;
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().map_err(|e| UNetError::Config { path: "<bench>".into(), msg: e.to_string() })?;
     pool.install(|| {
         let dev = Device::Cpu;
         let t0 = Instant::now();
@@ -104,7 +100,6 @@ pub fn run_refiner_bench(frames: usize, latent_h: usize, latent_w: usize, thread
         .map_err(|e| UNetError::Config { path: "<bench VAE>".into(), msg: e.to_string() })?;
     run_refiner_bench_with(&VideoUNetConfig::default(), frames, latent_h, latent_w, threads, runs, Some(&vae))
 }
-
 
 #[cfg(test)]
 mod tests {

@@ -14,12 +14,7 @@ pub const VAE_PREFIX: &str = "refiner.first_stage_model.";
 pub const CLIP_PREFIX: &str = "refiner.conditioner.embedders.0.open_clip.model.visual.";
 
 /// Random UNet, VAE and CLIP vision tower with the given configs, as (official key, tensor) pairs.
-pub fn random_refiner_state_dict(
-    unet: &VideoUNetConfig,
-    vae: &AutoencoderConfig,
-    clip: &ClipVisionConfig,
-    seed: u64,
-) -> Result<Vec<(String, Tensor)>, String> {
+pub fn random_refiner_state_dict(unet: &VideoUNetConfig, vae: &AutoencoderConfig, clip: &ClipVisionConfig, seed: u64) -> Result<Vec<(String, Tensor)>, String> {
     let dev = Device::Cpu;
     let mut out = Vec::new();
     let w = Weights::random(seed, &dev);

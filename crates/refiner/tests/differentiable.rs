@@ -72,17 +72,13 @@ fn tiny_unet_differentiable_mode_matches_fast_path_and_reaches_every_weight() {
 
     assert!(!kernels::is_differentiable(), "the fast path must be the default");
     let fast_model = VideoUNet::random(&cfg, 11, &dev).unwrap();
-    let fast = fast_model
-        .forward(&UNetInputs { x: &x, timesteps: &ts, context: &ctx, y: Some(&y), num_video_frames: f, num_splits: None })
-        .unwrap();
+    let fast = fast_model.forward(&UNetInputs { x: &x, timesteps: &ts, context: &ctx, y: Some(&y), num_video_frames: f, num_splits: None }).unwrap();
 
     let (model, vars) = VideoUNet::random_trainable(&cfg, 11, &dev).unwrap();
     let xv = Var::from_tensor(&x).unwrap();
     let out = {
         let _g = kernels::differentiable();
-        model
-            .forward(&UNetInputs { x: xv.as_tensor(), timesteps: &ts, context: &ctx, y: Some(&y), num_video_frames: f, num_splits: None })
-            .unwrap()
+        model.forward(&UNetInputs { x: xv.as_tensor(), timesteps: &ts, context: &ctx, y: Some(&y), num_video_frames: f, num_splits: None }).unwrap()
     };
     assert!(!kernels::is_differentiable(), "the guard must restore the fast path");
     let d = rel_diff(&out, &fast);
@@ -90,9 +86,7 @@ fn tiny_unet_differentiable_mode_matches_fast_path_and_reaches_every_weight() {
     assert!(d <= 1e-4, "UNet: differentiable path differs from the fast path by {d:.2e}");
 
     // Trainable weights in fast mode give the same model as plain random weights.
-    let same = model
-        .forward(&UNetInputs { x: &x, timesteps: &ts, context: &ctx, y: Some(&y), num_video_frames: f, num_splits: None })
-        .unwrap();
+    let same = model.forward(&UNetInputs { x: &x, timesteps: &ts, context: &ctx, y: Some(&y), num_video_frames: f, num_splits: None }).unwrap();
     assert_eq!(max_abs(&(&same - &fast).unwrap()), 0.0);
 
     let r = Tensor::randn(0f32, 1.0, out.dims(), &dev).unwrap();

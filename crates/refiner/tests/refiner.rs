@@ -4,10 +4,10 @@
 use std::sync::Mutex;
 
 use candle_core::{Device, Tensor};
+use mvsplat360_refiner::clip::{ClipImageEmbedder, ClipVisionConfig};
 use mvsplat360_refiner::refiner::{ImageEmbedder, LatentDecoder, RefineInputs, Refiner, RefinerConfig};
 use mvsplat360_refiner::sampling::SamplerConfig;
 use mvsplat360_refiner::unet::{VideoUNet, VideoUNetConfig};
-use mvsplat360_refiner::clip::{ClipImageEmbedder, ClipVisionConfig};
 use mvsplat360_refiner::vae::{AutoencoderConfig, AutoencoderKL};
 use mvsplat360_testkit::{assert_close, fixture, get, load, max_abs_diff};
 
@@ -96,11 +96,7 @@ fn end_to_end_frames_match_fixture_with_temporal_vae() {
             .refine(
                 clip,
                 &vae,
-                &RefineInputs {
-                    context_views: get(&pipe, "context_views"),
-                    rendered_features: get(&pipe, "gs_rendered_features"),
-                    noise: get(&pipe, "noise"),
-                },
+                &RefineInputs { context_views: get(&pipe, "context_views"), rendered_features: get(&pipe, "gs_rendered_features"), noise: get(&pipe, "noise") },
             )
             .unwrap();
         let (d, _) = max_abs_diff(&out, get(&pipe, name));

@@ -60,13 +60,9 @@ fn euler_edm_sampling_matches_fixture_per_step() {
     let concat = cf.reshape((b * f, c, h, w)).unwrap();
     let mut records: Vec<StepRecord> = Vec::new();
     let mut cb = |r: &StepRecord| records.push(r.clone());
-    let out = sample(
-        &unet,
-        &cfg,
-        &SampleInputs { noise: get(&pipe, "noise"), context: get(&pipe, "clip_embedding"), concat: &concat, num_frames: f },
-        Some(&mut cb),
-    )
-    .unwrap();
+    let out =
+        sample(&unet, &cfg, &SampleInputs { noise: get(&pipe, "noise"), context: get(&pipe, "clip_embedding"), concat: &concat, num_frames: f }, Some(&mut cb))
+            .unwrap();
     assert_eq!(records.len(), cfg.num_steps);
     for r in &records {
         let i = r.index;

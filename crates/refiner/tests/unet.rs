@@ -32,9 +32,7 @@ fn run_step(unet: &VideoUNet, c: &Case, i: usize) -> (Tensor, Tensor) {
     let ctx = Tensor::cat(&[&ctx.zeros_like().unwrap(), &ctx], 0).unwrap();
     let cond_aug = get(&c.pipe, "cond_aug").to_vec1::<f32>().unwrap()[0];
     let y = timestep_embedding(&vec![cond_aug; n], c.cfg.adm_in_channels.unwrap(), 10000.0, &Device::Cpu).unwrap();
-    let out = unet
-        .forward(&UNetInputs { x: &x, timesteps: &vec![t; n], context: &ctx, y: Some(&y), num_video_frames: f, num_splits: None })
-        .unwrap();
+    let out = unet.forward(&UNetInputs { x: &x, timesteps: &vec![t; n], context: &ctx, y: Some(&y), num_video_frames: f, num_splits: None }).unwrap();
     (out.narrow(0, 0, n / 2).unwrap(), out.narrow(0, n / 2, n / 2).unwrap())
 }
 

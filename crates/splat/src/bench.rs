@@ -141,11 +141,7 @@ pub fn synthetic_scene(n: usize, w: usize, h: usize, nf: usize) -> SyntheticScen
             let (sv, p) = (g / hw, g % hw);
             let (px, py) = (p % w, p / w);
             let (r, c) = &srcs[sv];
-            let ray = norm3([
-                (px as f32 + unit(0, gi) - cx) / fx,
-                (py as f32 + unit(1, gi) - cy) / fy,
-                1.0,
-            ]);
+            let ray = norm3([(px as f32 + unit(0, gi) - cx) / fx, (py as f32 + unit(1, gi) - cy) / fy, 1.0]);
             let block = (sv * 1_000_000 + (py / 32) * 1000 + px / 32) as u64;
             let layer = ((5.0 * unit(2, block)) as usize).min(3);
             let d = LAYER_DEPTHS[layer] * (0.95 + 0.1 * unit(3, gi));
@@ -171,8 +167,7 @@ pub fn synthetic_scene(n: usize, w: usize, h: usize, nf: usize) -> SyntheticScen
                 let l = (k as f32).sqrt().floor() as i32;
                 for ch in 0..3 {
                     shc[3 * k + ch] = if k == 0 {
-                        let base = 0.5
-                            + 0.4 * (px as f32 * 0.05 + py as f32 * 0.03 + sv as f32 * 0.7 + ch as f32).sin();
+                        let base = 0.5 + 0.4 * (px as f32 * 0.05 + py as f32 * 0.03 + sv as f32 * 0.7 + ch as f32).sin();
                         (base - 0.5) / crate::sh::C0
                     } else {
                         0.1 * 0.25f32.powi(l) * (2.0 * unit(12, 75 * gi + 3 * k as u64 + ch as u64) - 1.0)
@@ -192,7 +187,6 @@ pub fn synthetic_scene(n: usize, w: usize, h: usize, nf: usize) -> SyntheticScen
     }
     s
 }
-
 
 /// Run the benchmark; returns `{"bench":"raster","gaussians":N,"width":W,"height":H,"features":C,
 /// "forward_ms":…,"forward_backward_ms":…}` (plus `pairs`, the tile-Gaussian pair count, and `threads`).

@@ -76,10 +76,7 @@ impl RasterCamera {
         // Tile rects are packed in 16-bit fields.
         const MAX_SIDE: usize = 16 * u16::MAX as usize;
         if self.width > MAX_SIDE || self.height > MAX_SIDE {
-            return Err(input_err(
-                "camera",
-                format!("image size {}x{} exceeds the rasterizer's {MAX_SIDE} px per side", self.width, self.height),
-            ));
+            return Err(input_err("camera", format!("image size {}x{} exceeds the rasterizer's {MAX_SIDE} px per side", self.width, self.height)));
         }
         let ok = [self.fx, self.fy, self.cx, self.cy].iter().all(|x| x.is_finite())
             && self.fx > 0.0

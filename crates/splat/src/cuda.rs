@@ -7,10 +7,7 @@
 
 use std::sync::Arc;
 
-use cudarc::driver::{
-    CudaContext, CudaFunction, CudaModule, CudaSlice, CudaStream, CudaView, DeviceRepr, LaunchConfig,
-    PushKernelArg, ValidAsZeroBits,
-};
+use cudarc::driver::{CudaContext, CudaFunction, CudaModule, CudaSlice, CudaStream, CudaView, DeviceRepr, LaunchConfig, PushKernelArg, ValidAsZeroBits};
 use cudarc::nvrtc::Ptx;
 
 use crate::cpu::{CovInput, GradMode, Gradients, PixelGrads, RasterInputs, RasterSettings, TILE};
@@ -30,11 +27,7 @@ fn cuda_err(e: impl std::fmt::Display) -> SplatError {
 
 /// 1-D launch over `n` threads.
 fn lin(n: usize) -> LaunchConfig {
-    LaunchConfig {
-        grid_dim: ((n as u32).div_ceil(BLOCK).max(1), 1, 1),
-        block_dim: (BLOCK, 1, 1),
-        shared_mem_bytes: 0,
-    }
+    LaunchConfig { grid_dim: ((n as u32).div_ceil(BLOCK).max(1), 1, 1), block_dim: (BLOCK, 1, 1), shared_mem_bytes: 0 }
 }
 
 /// Camera and background in the kernels' `params` layout (P_* in rasterize.cu).
@@ -61,11 +54,7 @@ const MAX_PAIRS: u64 = 1 << 31;
 /// `.version` and `.target` lines of the PTX, for load errors (a driver older than the nvcc that built the
 /// PTX rejects it).
 fn ptx_header() -> String {
-    PTX.lines()
-        .map(str::trim)
-        .filter(|l| l.starts_with(".version") || l.starts_with(".target"))
-        .collect::<Vec<_>>()
-        .join(", ")
+    PTX.lines().map(str::trim).filter(|l| l.starts_with(".version") || l.starts_with(".target")).collect::<Vec<_>>().join(", ")
 }
 
 struct Kernels {
@@ -183,11 +172,7 @@ impl CudaRasterizer {
             unpack_cols: f("rast_unpack_cols")?,
             pack_cols: f("rast_pack_cols")?,
         };
-        Ok(Self {
-            stream,
-            k,
-            _module: module,
-        })
+        Ok(Self { stream, k, _module: module })
     }
 
     /// The stream the kernels run on (to place inputs for [`Self::forward_packed`]).
@@ -211,11 +196,7 @@ impl CudaRasterizer {
     /// Download `d[..len]`. cudarc 0.19 issues the copy into a `Vec` asynchronously and relies on the driver
     /// treating pageable memory synchronously, which CUDA documents only as "might be" (HMM/ATS systems):
     /// synchronize before the host reads it.
-    fn down<T: DeviceRepr + Default + Clone>(
-        &self,
-        d: &CudaSlice<T>,
-        len: usize,
-    ) -> Result<Vec<T>> {
+    fn down<T: DeviceRepr + Default + Clone>(&self, d: &CudaSlice<T>, len: usize) -> Result<Vec<T>> {
         if len == 0 {
             return Ok(Vec::new());
         }
@@ -225,12 +206,7 @@ impl CudaRasterizer {
     }
 
     /// Exclusive scan of `input[..n]` into `out` (block scans, block sums scanned recursively, added back).
-    fn exclusive_scan(
-        &self,
-        input: &CudaSlice<u32>,
-        out: &mut CudaSlice<u32>,
-        n: usize,
-    ) -> Result<()> {
+    fn exclusive_scan(&self, input: &CudaSlice<u32>, out: &mut CudaSlice<u32>, n: usize) -> Result<()> {
         let nb = n.div_ceil(BLOCK as usize);
         let mut sums = self.zeros::<u32>(nb)?;
         let n_i = n as i32;
@@ -327,18 +303,8 @@ impl CudaRasterizer {
                 None => b.arg(&cov).arg(&null).arg(&null),
                 Some(q) => b.arg(&null).arg(&cov).arg(q),
             };
-            b.arg(&opac)
-                .arg(&sh)
-                .arg(&k_i)
-                .arg(&deg)
-                .arg(&params)
-                .arg(&w_i)
-                .arg(&h_i);
-            b.arg(&mut radii)
-                .arg(&mut means2d)
-                .arg(&mut depths)
-                .arg(&mut cov2d)
-                .arg(&mut conic_opacity);
+            b.arg(&opac).arg(&sh).arg(&k_i).arg(&deg).arg(&params).arg(&w_i).arg(&h_i);
+            b.arg(&mut radii).arg(&mut means2d).arg(&mut depths).arg(&mut cov2d).arg(&mut conic_opacity);
             b.arg(&mut colors).arg(&mut clamped).arg(&mut tiles);
             // SAFETY: argument types and lengths match rast_preprocess.
             unsafe { b.launch(lin(n)) }.map_err(cuda_err)?;
@@ -351,10 +317,7 @@ impl CudaRasterizer {
         drop(params_host);
         let pairs64: u64 = tiles_touched.iter().map(|&t| u64::from(t)).sum();
         if pairs64 > MAX_PAIRS {
-            return Err(input_err(
-                "means",
-                format!("{pairs64} (tile, Gaussian) pairs exceed the CUDA binning's {MAX_PAIRS}"),
-            ));
+            return Err(input_err("means", format!("{pairs64} (tile, Gaussian) pairs exceed the CUDA binning's {MAX_PAIRS}")));
         }
         let pairs = pairs64 as usize;
         let mut offsets = self.zeros::<u32>(n)?;
@@ -367,13 +330,7 @@ impl CudaRasterizer {
         let mut ranges = self.zeros::<u32>(2 * gx * gy)?;
         if pairs > 0 {
             let mut b = self.stream.launch_builder(&self.k.duplicate);
-            b.arg(&n_i)
-                .arg(&radii)
-                .arg(&means2d)
-                .arg(&depths)
-                .arg(&offsets)
-                .arg(&w_i)
-                .arg(&h_i);
+            b.arg(&n_i).arg(&radii).arg(&means2d).arg(&depths).arg(&offsets).arg(&w_i).arg(&h_i);
             b.arg(&mut keys).arg(&mut vals);
             // SAFETY: argument types and lengths match rast_duplicate.
             unsafe { b.launch(lin(n)) }.map_err(cuda_err)?;
@@ -416,20 +373,9 @@ impl CudaRasterizer {
         let mut n_contrib = self.zeros::<u32>(hw)?;
         {
             let mut b = self.stream.launch_builder(&self.k.render_fwd);
-            b.arg(&ranges)
-                .arg(&vals)
-                .arg(&w_i)
-                .arg(&h_i)
-                .arg(&means2d)
-                .arg(&conic_opacity)
-                .arg(&colors);
+            b.arg(&ranges).arg(&vals).arg(&w_i).arg(&h_i).arg(&means2d).arg(&conic_opacity).arg(&colors);
             b.arg(&depths).arg(&features).arg(&nf_i).arg(&params);
-            b.arg(&mut rgb)
-                .arg(&mut feat)
-                .arg(&mut alpha)
-                .arg(&mut depth)
-                .arg(&mut final_t)
-                .arg(&mut n_contrib);
+            b.arg(&mut rgb).arg(&mut feat).arg(&mut alpha).arg(&mut depth).arg(&mut final_t).arg(&mut n_contrib);
             // SAFETY: argument types and lengths match rast_render_fwd.
             unsafe { b.launch(tiles_grid(w, h)) }.map_err(cuda_err)?;
         }
@@ -470,30 +416,19 @@ impl CudaRasterizer {
 
     /// Backward, given the forward of the same inputs and settings. `grads.alpha` / `grads.depth` are used
     /// by [`GradMode::Exact`] only (the official backward ignores them).
-    pub fn backward(
-        &self,
-        fwd: &CudaForward,
-        grads: &PixelGrads,
-        mode: GradMode,
-    ) -> Result<Gradients> {
+    pub fn backward(&self, fwd: &CudaForward, grads: &PixelGrads, mode: GradMode) -> Result<Gradients> {
         let d = &fwd.dev;
         let (n, nf, kc) = (d.n, d.nf, d.k);
         let hw = fwd.width * fwd.height;
         if grads.rgb.len() != 3 * hw || grads.features.len() != nf * hw {
-            return Err(input_err(
-                "pixel gradients",
-                format!("expected 3x{hw} rgb and {nf}x{hw} feature values"),
-            ));
+            return Err(input_err("pixel gradients", format!("expected 3x{hw} rgb and {nf}x{hw} feature values")));
         }
         let exact = mode == GradMode::Exact;
         let extra = |g: Option<&[f32]>| -> Result<Option<CudaSlice<f32>>> {
             match g {
                 Some(v) if exact => {
                     if v.len() != hw {
-                        return Err(input_err(
-                            "pixel gradients",
-                            format!("alpha/depth gradients need {hw} values"),
-                        ));
+                        return Err(input_err("pixel gradients", format!("alpha/depth gradients need {hw} values")));
                     }
                     Ok(Some(self.up(v)?))
                 }
@@ -516,16 +451,8 @@ impl CudaRasterizer {
         Ok(Gradients {
             means: self.down(&g.means, 3 * n)?,
             cov3d: self.down(&g.cov, 6 * n)?,
-            scales: if scale_rot {
-                Some(self.down(&g.scales, 3 * n)?)
-            } else {
-                None
-            },
-            quats: if scale_rot {
-                Some(self.down(&g.quats, 4 * n)?)
-            } else {
-                None
-            },
+            scales: if scale_rot { Some(self.down(&g.scales, 3 * n)?) } else { None },
+            quats: if scale_rot { Some(self.down(&g.quats, 4 * n)?) } else { None },
             opacities: self.down(&g.opacities, n)?,
             sh: self.down(&g.sh, n * kc * 3)?,
             features: self.down(&g.features, n * nf)?,
@@ -555,21 +482,8 @@ impl CudaRasterizer {
         let null = 0u64;
         {
             let mut b = self.stream.launch_builder(&self.k.render_bwd);
-            b.arg(&d.ranges)
-                .arg(&d.point_list)
-                .arg(&w_i)
-                .arg(&h_i)
-                .arg(&d.means2d)
-                .arg(&d.conic_opacity);
-            b.arg(&d.colors)
-                .arg(&d.depths)
-                .arg(&d.features)
-                .arg(&nf_i)
-                .arg(&d.params)
-                .arg(&d.final_t)
-                .arg(&d.n_contrib)
-                .arg(dl_rgb)
-                .arg(dl_feat);
+            b.arg(&d.ranges).arg(&d.point_list).arg(&w_i).arg(&h_i).arg(&d.means2d).arg(&d.conic_opacity);
+            b.arg(&d.colors).arg(&d.depths).arg(&d.features).arg(&nf_i).arg(&d.params).arg(&d.final_t).arg(&d.n_contrib).arg(dl_rgb).arg(dl_feat);
             // dl_alpha, dl_depth: null when absent (the official mode never reads them).
             match (dl_alpha, exact) {
                 (Some(a), 1) => b.arg(a),
@@ -579,13 +493,7 @@ impl CudaRasterizer {
                 (Some(a), 1) => b.arg(a),
                 _ => b.arg(&null),
             };
-            b.arg(&exact)
-                .arg(&mut g_m2)
-                .arg(&mut g_conic)
-                .arg(&mut g_op)
-                .arg(&mut g_col)
-                .arg(&mut g_feat)
-                .arg(&mut g_depth);
+            b.arg(&exact).arg(&mut g_m2).arg(&mut g_conic).arg(&mut g_op).arg(&mut g_col).arg(&mut g_feat).arg(&mut g_depth);
             // SAFETY: argument types and lengths match rast_render_bwd.
             unsafe { b.launch(tiles_grid(d.width, d.height)) }.map_err(cuda_err)?;
         }
@@ -601,35 +509,13 @@ impl CudaRasterizer {
                 None => b.arg(&d.cov).arg(&null).arg(&null),
                 Some(q) => b.arg(&null).arg(&d.cov).arg(q),
             };
-            b.arg(&d.sh)
-                .arg(&k_i)
-                .arg(&d.deg)
-                .arg(&d.params)
-                .arg(&d.radii)
-                .arg(&d.clamped);
-            b.arg(&g_m2)
-                .arg(&g_conic)
-                .arg(&g_col)
-                .arg(&g_depth)
-                .arg(&exact);
-            b.arg(&mut d_means)
-                .arg(&mut d_cov)
-                .arg(&mut d_scales)
-                .arg(&mut d_quats)
-                .arg(&mut d_sh);
+            b.arg(&d.sh).arg(&k_i).arg(&d.deg).arg(&d.params).arg(&d.radii).arg(&d.clamped);
+            b.arg(&g_m2).arg(&g_conic).arg(&g_col).arg(&g_depth).arg(&exact);
+            b.arg(&mut d_means).arg(&mut d_cov).arg(&mut d_scales).arg(&mut d_quats).arg(&mut d_sh);
             // SAFETY: argument types and lengths match rast_preprocess_bwd.
             unsafe { b.launch(lin(n)) }.map_err(cuda_err)?;
         }
-        Ok(DeviceGrads {
-            means: d_means,
-            cov: d_cov,
-            scales: d_scales,
-            quats: d_quats,
-            opacities: g_op,
-            sh: d_sh,
-            features: g_feat,
-            means2d: g_m2,
-        })
+        Ok(DeviceGrads { means: d_means, cov: d_cov, scales: d_scales, quats: d_quats, opacities: g_op, sh: d_sh, features: g_feat, means2d: g_m2 })
     }
 
     /// Columns `[c0, c0 + cw)` of the row-major `n × d` matrix `packed` as a contiguous `n × cw` buffer.
@@ -751,11 +637,7 @@ fn check_limits(n: usize, nf: usize, s: &RasterSettings) -> Result<()> {
 
 /// Grid of 16×16 tiles, one thread per pixel.
 fn tiles_grid(w: usize, h: usize) -> LaunchConfig {
-    LaunchConfig {
-        grid_dim: (w.div_ceil(TILE) as u32, h.div_ceil(TILE) as u32, 1),
-        block_dim: (TILE as u32, TILE as u32, 1),
-        shared_mem_bytes: 0,
-    }
+    LaunchConfig { grid_dim: (w.div_ceil(TILE) as u32, h.div_ceil(TILE) as u32, 1), block_dim: (TILE as u32, TILE as u32, 1), shared_mem_bytes: 0 }
 }
 
 /// Per-Gaussian inputs on the device.

@@ -85,16 +85,7 @@ struct RasterOp {
 }
 
 fn inputs<'a>(p: &Packing, sh_degree: usize, u: &'a [Vec<f32>; 5]) -> RasterInputs<'a> {
-    RasterInputs {
-        means: &u[0],
-        cov: CovInput::Cov3d(&u[1]),
-        opacities: &u[2],
-        sh: &u[3],
-        sh_coeffs: p.k,
-        sh_degree,
-        features: &u[4],
-        num_features: p.nf,
-    }
+    RasterInputs { means: &u[0], cov: CovInput::Cov3d(&u[1]), opacities: &u[2], sh: &u[3], sh_coeffs: p.k, sh_degree, features: &u[4], num_features: p.nf }
 }
 
 fn to_candle(e: crate::error::SplatError) -> candle_core::Error {
@@ -107,12 +98,8 @@ impl CustomOp1 for RasterOp {
     }
 
     fn cpu_fwd(&self, storage: &CpuStorage, layout: &Layout) -> candle_core::Result<(CpuStorage, Shape)> {
-        let CpuStorage::F32(data) = storage else {
-            candle_core::bail!("gaussian-rasterizer: packed input must be f32")
-        };
-        let Some((a, b)) = layout.contiguous_offsets() else {
-            candle_core::bail!("gaussian-rasterizer: packed input must be contiguous")
-        };
+        let CpuStorage::F32(data) = storage else { candle_core::bail!("gaussian-rasterizer: packed input must be f32") };
+        let Some((a, b)) = layout.contiguous_offsets() else { candle_core::bail!("gaussian-rasterizer: packed input must be contiguous") };
         let u = self.packing.unpack(&data[a..b]);
         let inp = inputs(&self.packing, self.sh_degree, &u);
         let fwd = cpu::forward(&inp, &self.settings).map_err(to_candle)?;
@@ -290,9 +277,7 @@ mod gpu {
     }
 
     pub(super) fn forward(op: &RasterOp, storage: &CudaStorage, layout: &Layout) -> candle_core::Result<(CudaStorage, Shape)> {
-        let Some((a, b)) = layout.contiguous_offsets() else {
-            candle_core::bail!("gaussian-rasterizer: packed input must be contiguous")
-        };
+        let Some((a, b)) = layout.contiguous_offsets() else { candle_core::bail!("gaussian-rasterizer: packed input must be contiguous") };
         let packed = storage.as_cuda_slice::<f32>()?.slice(a..b);
         let r = rasterizer(&storage.device)?;
         let p = &op.packing;
@@ -322,14 +307,10 @@ mod gpu {
         }
 
         fn cuda_fwd(&self, _: &CudaStorage, _: &Layout, g: &CudaStorage, lg: &Layout) -> candle_core::Result<(CudaStorage, Shape)> {
-            let Some((a, b)) = lg.contiguous_offsets() else {
-                candle_core::bail!("gaussian-rasterizer-backward: gradient must be contiguous")
-            };
+            let Some((a, b)) = lg.contiguous_offsets() else { candle_core::bail!("gaussian-rasterizer-backward: gradient must be contiguous") };
             let grad = g.as_cuda_slice::<f32>()?.slice(a..b);
             let st = self.state.lock().map_err(|_| candle_core::Error::msg("rasterizer state poisoned"))?;
-            let Some(fwd) = st.as_ref() else {
-                candle_core::bail!("gaussian-rasterizer-backward: no forward state (the forward did not run on this GPU)")
-            };
+            let Some(fwd) = st.as_ref() else { candle_core::bail!("gaussian-rasterizer-backward: no forward state (the forward did not run on this GPU)") };
             let r = rasterizer(&g.device)?;
             let packed = r.backward_packed(&fwd.state, &grad, self.mode).map_err(to_candle)?;
             Ok((CudaStorage::wrap_cuda_slice(packed, g.device.clone()), Shape::from((self.rows, self.width))))

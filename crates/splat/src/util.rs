@@ -147,4 +147,3 @@ impl<T: Copy> Uninit<T> {
         self.v
     }
 }
-

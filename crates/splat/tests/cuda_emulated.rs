@@ -25,7 +25,6 @@ use common::{check_abs, check_close, check_rel, count_diff, max_abs, to_planar, 
 
 const TILE: usize = 16;
 
-
 // ---- the driver's record files (see emulate_main.cpp) ----
 
 enum Arr {
@@ -54,10 +53,7 @@ fn write_records(path: &Path, recs: &[(&str, Arr)]) {
 /// name → (dtype, raw 32-bit words)
 fn read_records(path: &Path) -> HashMap<String, (u32, Vec<u32>)> {
     let mut b = Vec::new();
-    std::fs::File::open(path)
-        .unwrap()
-        .read_to_end(&mut b)
-        .unwrap();
+    std::fs::File::open(path).unwrap().read_to_end(&mut b).unwrap();
     let mut out = HashMap::new();
     let mut p = 0;
     let u32_at = |p: usize| u32::from_le_bytes(b[p..p + 4].try_into().unwrap());
@@ -79,18 +75,12 @@ struct Out(HashMap<String, (u32, Vec<u32>)>);
 
 impl Out {
     fn raw(&self, name: &str, dtype: u32) -> &[u32] {
-        let (d, v) = self
-            .0
-            .get(name)
-            .unwrap_or_else(|| panic!("driver wrote no `{name}`"));
+        let (d, v) = self.0.get(name).unwrap_or_else(|| panic!("driver wrote no `{name}`"));
         assert_eq!(*d, dtype, "{name}: dtype");
         v
     }
     fn f(&self, name: &str) -> Vec<f32> {
-        self.raw(name, 0)
-            .iter()
-            .map(|&w| f32::from_bits(w))
-            .collect()
+        self.raw(name, 0).iter().map(|&w| f32::from_bits(w)).collect()
     }
     fn i(&self, name: &str) -> Vec<i64> {
         self.raw(name, 1).iter().map(|&w| w as i32 as i64).collect()
@@ -122,22 +112,12 @@ fn driver(build: Build) -> &'static Path {
     static FMA: OnceLock<PathBuf> = OnceLock::new();
     let (cell, name, extra): (_, _, &[&str]) = match build {
         Build::Plain => (&PLAIN, "emulate_main", &[]),
-        Build::Fma => (
-            &FMA,
-            "emulate_main_fma",
-            &["-march=native", "-ffp-contract=fast"],
-        ),
+        Build::Fma => (&FMA, "emulate_main_fma", &["-march=native", "-ffp-contract=fast"]),
     };
     cell.get_or_init(|| {
         let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("cuda/emulate_main.cpp");
         let exe = work_dir().join(name);
-        let res = Command::new("g++")
-            .args(["-O2", "-std=c++20", "-pthread", "-Wall", "-Werror"])
-            .args(extra)
-            .arg("-o")
-            .arg(&exe)
-            .arg(&src)
-            .output();
+        let res = Command::new("g++").args(["-O2", "-std=c++20", "-pthread", "-Wall", "-Werror"]).args(extra).arg("-o").arg(&exe).arg(&src).output();
         let out = match res {
             Ok(o) => o,
             Err(e) => panic!(
@@ -145,12 +125,7 @@ fn driver(build: Build) -> &'static Path {
                  install g++ (e.g. apt-get install g++)"
             ),
         };
-        assert!(
-            out.status.success(),
-            "g++ failed to build {}:\n{}",
-            src.display(),
-            String::from_utf8_lossy(&out.stderr)
-        );
+        assert!(out.status.success(), "g++ failed to build {}:\n{}", src.display(), String::from_utf8_lossy(&out.stderr));
         exe
     })
 }
@@ -192,23 +167,9 @@ fn params_of(s: &RasterSettings) -> Vec<f32> {
 }
 
 /// Forward + backward of the emulated CUDA kernels.
-fn emulate(
-    build: Build,
-    inp: &RasterInputs,
-    s: &RasterSettings,
-    pg: &PixelGrads,
-    mode: GradMode,
-    tag: &str,
-) -> Out {
+fn emulate(build: Build, inp: &RasterInputs, s: &RasterSettings, pg: &PixelGrads, mode: GradMode, tag: &str) -> Out {
     let (w, h) = (s.camera.width, s.camera.height);
-    let dims = [
-        inp.len(),
-        w,
-        h,
-        inp.sh_coeffs,
-        inp.eval_degree(),
-        inp.num_features,
-    ];
+    let dims = [inp.len(), w, h, inp.sh_coeffs, inp.eval_degree(), inp.num_features];
     let mut recs = vec![
         ("dims", Arr::I(dims.iter().map(|&d| d as i32).collect())),
         ("params", Arr::F(params_of(s))),
@@ -233,37 +194,17 @@ fn emulate(
             recs.push(("quats", Arr::F(quats.to_vec())));
         }
     }
-    let (in_path, out_path) = (
-        work_dir().join(format!("{tag}.in")),
-        work_dir().join(format!("{tag}.out")),
-    );
+    let (in_path, out_path) = (work_dir().join(format!("{tag}.in")), work_dir().join(format!("{tag}.out")));
     write_records(&in_path, &recs);
     let t0 = std::time::Instant::now();
-    let res = Command::new(driver(build))
-        .arg(&in_path)
-        .arg(&out_path)
-        .output()
-        .unwrap();
-    assert!(
-        res.status.success(),
-        "emulate_main failed: {}",
-        String::from_utf8_lossy(&res.stderr)
-    );
-    eprintln!(
-        "emulated CUDA run ({tag}): {:.2} s",
-        t0.elapsed().as_secs_f64()
-    );
+    let res = Command::new(driver(build)).arg(&in_path).arg(&out_path).output().unwrap();
+    assert!(res.status.success(), "emulate_main failed: {}", String::from_utf8_lossy(&res.stderr));
+    eprintln!("emulated CUDA run ({tag}): {:.2} s", t0.elapsed().as_secs_f64());
     Out(read_records(&out_path))
 }
 
 /// Every emulated output against our CPU rasterizer; returns the CPU results.
-fn check_vs_cpu(
-    g: &Out,
-    inp: &RasterInputs,
-    s: &RasterSettings,
-    pg: &PixelGrads,
-    mode: GradMode,
-) -> (cpu::ForwardOutput, cpu::Gradients) {
+fn check_vs_cpu(g: &Out, inp: &RasterInputs, s: &RasterSettings, pg: &PixelGrads, mode: GradMode) -> (cpu::ForwardOutput, cpu::Gradients) {
     let (w, h) = (s.camera.width, s.camera.height);
     let out = cpu::forward(inp, s).unwrap();
     let cg = cpu::backward(inp, s, &out, pg, mode).unwrap();
@@ -276,27 +217,16 @@ fn check_vs_cpu(
     assert_eq!(tt, out.tiles_touched, "tiles_touched vs CPU");
     let pairs = g.u("num_pairs")[0] as usize;
     assert_eq!(pairs, out.num_pairs(), "pair count vs CPU");
-    assert_eq!(
-        pairs as u64,
-        tt.iter().map(|&t| t as u64).sum::<u64>(),
-        "pair count vs scan"
-    );
+    assert_eq!(pairs as u64, tt.iter().map(|&t| t as u64).sum::<u64>(), "pair count vs scan");
     let (m2, depths) = (g.f("means2d"), g.f("depths"));
-    assert_eq!(
-        g.u("point_list"),
-        expected_pairs(&radii, &m2, &depths, w, h),
-        "sorted pair list"
-    );
+    assert_eq!(g.u("point_list"), expected_pairs(&radii, &m2, &depths, w, h), "sorted pair list");
     let bad = count_diff(&g.u("n_contrib"), &out.n_contrib);
     eprintln!("n_contrib: {bad} pixels differ from CPU");
     assert!(bad <= 5, "n_contrib differs from CPU at {bad} pixels");
 
-    for (name, got, cpu_v) in [
-        ("means2d", &m2, &out.means2d),
-        ("depths", &depths, &out.depths),
-        ("cov2d", &g.f("cov2d"), &out.cov2d),
-        ("conic", &g.f("conic"), &out.conic),
-    ] {
+    for (name, got, cpu_v) in
+        [("means2d", &m2, &out.means2d), ("depths", &depths, &out.depths), ("cov2d", &g.f("cov2d"), &out.cov2d), ("conic", &g.f("conic"), &out.conic)]
+    {
         check_rel(&format!("{name} vs CPU"), got, cpu_v, 1e-5);
     }
     check_abs("colors vs CPU", &g.f("colors"), &out.colors, 1e-5);
@@ -324,11 +254,7 @@ fn check_grad(name: &str, got: &[f32], want: &[f32]) {
 }
 
 /// (fixture name, emulated, CPU) for every gradient of this input path.
-fn grads_of<'a>(
-    g: &Out,
-    cg: &'a cpu::Gradients,
-    inp: &RasterInputs,
-) -> Vec<(&'static str, Vec<f32>, &'a [f32])> {
+fn grads_of<'a>(g: &Out, cg: &'a cpu::Gradients, inp: &RasterInputs) -> Vec<(&'static str, Vec<f32>, &'a [f32])> {
     let mut v: Vec<(&str, Vec<f32>, &[f32])> = vec![
         ("grad_means", g.f("grad_means"), &cg.means),
         ("grad_opacities", g.f("grad_opacities"), &cg.opacities),
@@ -338,16 +264,8 @@ fn grads_of<'a>(
         ("grad_cov3d", g.f("grad_cov3d"), &cg.cov3d),
     ];
     if let CovInput::ScaleRot { .. } = inp.cov {
-        v.push((
-            "grad_scales",
-            g.f("grad_scales"),
-            cg.scales.as_deref().unwrap(),
-        ));
-        v.push((
-            "grad_quats",
-            g.f("grad_quats"),
-            cg.quats.as_deref().unwrap(),
-        ));
+        v.push(("grad_scales", g.f("grad_scales"), cg.scales.as_deref().unwrap()));
+        v.push(("grad_quats", g.f("grad_quats"), cg.quats.as_deref().unwrap()));
     }
     v
 }
@@ -364,23 +282,12 @@ fn run(file: &str, build: Build, mode: GradMode) {
     let da: Vec<f32> = (0..h * w).map(|_| rng.uni(-1.0, 1.0)).collect();
     let dd: Vec<f32> = (0..h * w).map(|_| rng.uni(-1.0, 1.0)).collect();
     let exact = mode == GradMode::Exact;
-    let pg = PixelGrads {
-        rgb: w1,
-        features: w2,
-        alpha: exact.then_some(&da[..]),
-        depth: exact.then_some(&dd[..]),
-    };
+    let pg = PixelGrads { rgb: w1, features: w2, alpha: exact.then_some(&da[..]), depth: exact.then_some(&dd[..]) };
     let n = fx.opacities.len();
 
     let fx_radii = vi(get(m, "radii"));
     let vis: Vec<bool> = fx_radii.iter().map(|&r| r > 0).collect();
-    let sel = |v: &[f32], c: usize| -> Vec<f32> {
-        v.chunks(c)
-            .zip(&vis)
-            .filter(|(_, &ok)| ok)
-            .flat_map(|(x, _)| x.to_vec())
-            .collect()
-    };
+    let sel = |v: &[f32], c: usize| -> Vec<f32> { v.chunks(c).zip(&vis).filter(|(_, &ok)| ok).flat_map(|(x, _)| x.to_vec()).collect() };
 
     for path in [CovPath::Cov3d, CovPath::ScaleRot] {
         let inp = fx.inputs(path);
@@ -399,44 +306,18 @@ fn run(file: &str, build: Build, mode: GradMode) {
         assert_eq!(g.i("radii"), fx_radii, "radii vs fixture");
         let tt = g.u("tiles_touched");
         let tt_ref = vi(get(m, "tiles_touched"));
-        let tt_bad = (0..n)
-            .filter(|&i| vis[i] && tt[i] as i64 != tt_ref[i])
-            .count();
-        assert_eq!(
-            tt_bad, 0,
-            "tiles_touched vs fixture differ for {tt_bad} visible Gaussians"
-        );
+        let tt_bad = (0..n).filter(|&i| vis[i] && tt[i] as i64 != tt_ref[i]).count();
+        assert_eq!(tt_bad, 0, "tiles_touched vs fixture differ for {tt_bad} visible Gaussians");
         let nc_ref: Vec<u32> = vi(get(m, "n_contrib")).iter().map(|&x| x as u32).collect();
         let bad = count_diff(&g.u("n_contrib"), &nc_ref);
         eprintln!("n_contrib: {bad} pixels differ from fixture");
         assert!(bad <= 5, "n_contrib differs from fixture at {bad} pixels");
         for (name, c) in [("means2d", 2), ("depths", 1), ("cov2d", 3), ("conic", 3)] {
-            check_rel(
-                &format!("{name} vs fixture"),
-                &sel(&g.f(name), c),
-                &sel(&v32(get(m, name)), c),
-                1e-5,
-            );
+            check_rel(&format!("{name} vs fixture"), &sel(&g.f(name), c), &sel(&v32(get(m, name)), c), 1e-5);
         }
-        check_abs(
-            "colors vs fixture",
-            &sel(&g.f("colors"), 3),
-            &sel(&v32(get(m, "colors")), 3),
-            1e-5,
-        );
-        for (name, fx_name, c) in [
-            ("rgb", "rgb", 3),
-            ("feat", "feat", nf),
-            ("alpha", "alpha", 1),
-            ("depth", "depth", 1),
-            ("final_t", "final_T", 1),
-        ] {
-            check_abs(
-                &format!("{name} vs fixture"),
-                &g.f(name),
-                &to_planar(&v32(get(m, fx_name)), h, w, c),
-                1e-4,
-            );
+        check_abs("colors vs fixture", &sel(&g.f("colors"), 3), &sel(&v32(get(m, "colors")), 3), 1e-5);
+        for (name, fx_name, c) in [("rgb", "rgb", 3), ("feat", "feat", nf), ("alpha", "alpha", 1), ("depth", "depth", 1), ("final_t", "final_T", 1)] {
+            check_abs(&format!("{name} vs fixture"), &g.f(name), &to_planar(&v32(get(m, fx_name)), h, w, c), 1e-4);
         }
         if !exact {
             for (name, got, _) in grads_of(&g, &cg, &inp) {
@@ -451,10 +332,7 @@ struct Lcg(u64);
 
 impl Lcg {
     fn uni(&mut self, lo: f32, hi: f32) -> f32 {
-        self.0 = self
-            .0
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
+        self.0 = self.0.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
         lo + (hi - lo) * ((self.0 >> 40) as f32 / (1u64 << 24) as f32)
     }
 }
@@ -488,16 +366,8 @@ fn synthetic(n: usize, culled_only: bool) -> Scene {
     let (tanx, tany) = (w as f32 / (2.0 * fx), h as f32 / (2.0 * fy));
     // View = rotation about y then x, plus a translation.
     let (a, b) = (0.2f32, -0.1f32);
-    let ry = [
-        [a.cos(), 0.0, a.sin()],
-        [0.0, 1.0, 0.0],
-        [-a.sin(), 0.0, a.cos()],
-    ];
-    let rx = [
-        [1.0, 0.0, 0.0],
-        [0.0, b.cos(), -b.sin()],
-        [0.0, b.sin(), b.cos()],
-    ];
+    let ry = [[a.cos(), 0.0, a.sin()], [0.0, 1.0, 0.0], [-a.sin(), 0.0, a.cos()]];
+    let rx = [[1.0, 0.0, 0.0], [0.0, b.cos(), -b.sin()], [0.0, b.sin(), b.cos()]];
     let mut r = [[0f32; 3]; 3];
     for i in 0..3 {
         for j in 0..3 {
@@ -511,17 +381,7 @@ fn synthetic(n: usize, culled_only: bool) -> Scene {
         view[i][3] = t[i];
     }
     view[3][3] = 1.0;
-    let camera = RasterCamera {
-        viewmatrix: view,
-        fx,
-        fy,
-        cx: 0.5 * w as f32 + 1.5,
-        cy: 0.5 * h as f32 - 1.0,
-        width: w,
-        height: h,
-        near: 0.01,
-        far: 100.0,
-    };
+    let camera = RasterCamera { viewmatrix: view, fx, fy, cx: 0.5 * w as f32 + 1.5, cy: 0.5 * h as f32 - 1.0, width: w, height: h, near: 0.01, far: 100.0 };
     let mut rng = Lcg(0x5eed_cafe);
     let mut sc = Scene {
         means: Vec::new(),
@@ -535,10 +395,7 @@ fn synthetic(n: usize, culled_only: bool) -> Scene {
         w2: (0..SYN_NF * w * h).map(|_| rng.uni(-1.0, 1.0)).collect(),
         da: (0..w * h).map(|_| rng.uni(-1.0, 1.0)).collect(),
         dd: (0..w * h).map(|_| rng.uni(-1.0, 1.0)).collect(),
-        settings: RasterSettings {
-            camera,
-            background: [0.3, 0.1, 0.7],
-        },
+        settings: RasterSettings { camera, background: [0.3, 0.1, 0.7] },
     };
     for i in 0..n {
         let kind = rng.uni(0.0, 1.0);
@@ -571,44 +428,24 @@ fn synthetic(n: usize, culled_only: bool) -> Scene {
         };
         // World point = R^T (p_cam - t).
         let pc = [x - t[0], y - t[1], zc - t[2]];
-        sc.means
-            .extend((0..3).map(|j| r[0][j] * pc[0] + r[1][j] * pc[1] + r[2][j] * pc[2]));
-        let mut q = [
-            rng.uni(-1.0, 1.0),
-            rng.uni(-1.0, 1.0),
-            rng.uni(-1.0, 1.0),
-            rng.uni(-1.0, 1.0),
-        ];
+        sc.means.extend((0..3).map(|j| r[0][j] * pc[0] + r[1][j] * pc[1] + r[2][j] * pc[2]));
+        let mut q = [rng.uni(-1.0, 1.0), rng.uni(-1.0, 1.0), rng.uni(-1.0, 1.0), rng.uni(-1.0, 1.0)];
         let qn = q.iter().map(|v| v * v).sum::<f32>().sqrt().max(1e-3);
         q = q.map(|v| v / qn);
         let rot = {
             let [w_, x_, y_, z_] = q;
             [
-                [
-                    1.0 - 2.0 * (y_ * y_ + z_ * z_),
-                    2.0 * (x_ * y_ - w_ * z_),
-                    2.0 * (x_ * z_ + w_ * y_),
-                ],
-                [
-                    2.0 * (x_ * y_ + w_ * z_),
-                    1.0 - 2.0 * (x_ * x_ + z_ * z_),
-                    2.0 * (y_ * z_ - w_ * x_),
-                ],
-                [
-                    2.0 * (x_ * z_ - w_ * y_),
-                    2.0 * (y_ * z_ + w_ * x_),
-                    1.0 - 2.0 * (x_ * x_ + y_ * y_),
-                ],
+                [1.0 - 2.0 * (y_ * y_ + z_ * z_), 2.0 * (x_ * y_ - w_ * z_), 2.0 * (x_ * z_ + w_ * y_)],
+                [2.0 * (x_ * y_ + w_ * z_), 1.0 - 2.0 * (x_ * x_ + z_ * z_), 2.0 * (y_ * z_ - w_ * x_)],
+                [2.0 * (x_ * z_ - w_ * y_), 2.0 * (y_ * z_ + w_ * x_), 1.0 - 2.0 * (x_ * x_ + y_ * y_)],
             ]
         };
         for (u, v) in [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)] {
-            sc.cov3d
-                .push((0..3).map(|k| rot[u][k] * rot[v][k] * s[k] * s[k]).sum());
+            sc.cov3d.push((0..3).map(|k| rot[u][k] * rot[v][k] * s[k] * s[k]).sum());
         }
         sc.scales.extend(s);
         sc.quats.extend(q);
-        sc.opac
-            .push(if i % 17 == 0 { 1.0 } else { rng.uni(0.05, 0.8) });
+        sc.opac.push(if i % 17 == 0 { 1.0 } else { rng.uni(0.05, 0.8) });
     }
     sc
 }
@@ -617,37 +454,12 @@ fn run_synthetic(culled_only: bool) {
     let sc = synthetic(500, culled_only);
     let s = &sc.settings;
     let (w, h) = (s.camera.width, s.camera.height);
-    for (path, cov) in [
-        ("cov", CovInput::Cov3d(&sc.cov3d)),
-        (
-            "sr",
-            CovInput::ScaleRot {
-                scales: &sc.scales,
-                quats: &sc.quats,
-            },
-        ),
-    ] {
-        let inp = RasterInputs {
-            means: &sc.means,
-            cov,
-            opacities: &sc.opac,
-            sh: &sc.sh,
-            sh_coeffs: SYN_K,
-            sh_degree: 2,
-            features: &sc.feats,
-            num_features: SYN_NF,
-        };
-        let tag = format!(
-            "synthetic_{}_{path}",
-            if culled_only { "culled" } else { "clamped" }
-        );
+    for (path, cov) in [("cov", CovInput::Cov3d(&sc.cov3d)), ("sr", CovInput::ScaleRot { scales: &sc.scales, quats: &sc.quats })] {
+        let inp =
+            RasterInputs { means: &sc.means, cov, opacities: &sc.opac, sh: &sc.sh, sh_coeffs: SYN_K, sh_degree: 2, features: &sc.feats, num_features: SYN_NF };
+        let tag = format!("synthetic_{}_{path}", if culled_only { "culled" } else { "clamped" });
         eprintln!("--- {tag}");
-        let official = PixelGrads {
-            rgb: &sc.w1,
-            features: &sc.w2,
-            alpha: None,
-            depth: None,
-        };
+        let official = PixelGrads { rgb: &sc.w1, features: &sc.w2, alpha: None, depth: None };
         let g = emulate(Build::Plain, &inp, s, &official, GradMode::Official, &tag);
         if culled_only {
             // Nothing visible: no pairs, background only, zero gradients.
@@ -655,20 +467,11 @@ fn run_synthetic(culled_only: bool) {
             assert_eq!(g.u("num_pairs"), vec![0]);
             let rgb = g.f("rgb");
             for ch in 0..3 {
-                assert!(rgb[ch * w * h..(ch + 1) * w * h]
-                    .iter()
-                    .all(|&v| v == s.background[ch]));
+                assert!(rgb[ch * w * h..(ch + 1) * w * h].iter().all(|&v| v == s.background[ch]));
             }
             assert!(g.f("feat").iter().all(|&v| v == 0.0));
             assert!(g.f("final_t").iter().all(|&v| v == 1.0));
-            let mut names = vec![
-                "grad_means",
-                "grad_opacities",
-                "grad_sh",
-                "grad_features",
-                "grad_means2d_ndc",
-                "grad_cov3d",
-            ];
+            let mut names = vec!["grad_means", "grad_opacities", "grad_sh", "grad_features", "grad_means2d_ndc", "grad_cov3d"];
             if path == "sr" {
                 names.extend(["grad_scales", "grad_quats"]);
             }
@@ -678,21 +481,9 @@ fn run_synthetic(culled_only: bool) {
             continue;
         }
         check_vs_cpu(&g, &inp, s, &official, GradMode::Official);
-        let exact = PixelGrads {
-            rgb: &sc.w1,
-            features: &sc.w2,
-            alpha: Some(&sc.da),
-            depth: Some(&sc.dd),
-        };
+        let exact = PixelGrads { rgb: &sc.w1, features: &sc.w2, alpha: Some(&sc.da), depth: Some(&sc.dd) };
         eprintln!("--- {tag} exact");
-        let ge = emulate(
-            Build::Plain,
-            &inp,
-            s,
-            &exact,
-            GradMode::Exact,
-            &format!("{tag}_exact"),
-        );
+        let ge = emulate(Build::Plain, &inp, s, &exact, GradMode::Exact, &format!("{tag}_exact"));
         check_vs_cpu(&ge, &inp, s, &exact, GradMode::Exact);
         // The scene must really exercise the clamped Jacobian and the 0.99 clamp.
         let radii = g.i("radii");
@@ -701,32 +492,18 @@ fn run_synthetic(culled_only: bool) {
         let clamped = (0..sc.opac.len())
             .filter(|&i| {
                 let p = &sc.means[3 * i..3 * i + 3];
-                let tv: Vec<f32> = (0..3)
-                    .map(|r| v[r][0] * p[0] + v[r][1] * p[1] + v[r][2] * p[2] + v[r][3])
-                    .collect();
-                radii[i] > 0
-                    && ((tv[0] / tv[2]).abs() > 1.3 * tf[0] || (tv[1] / tv[2]).abs() > 1.3 * tf[1])
+                let tv: Vec<f32> = (0..3).map(|r| v[r][0] * p[0] + v[r][1] * p[1] + v[r][2] * p[2] + v[r][3]).collect();
+                radii[i] > 0 && ((tv[0] / tv[2]).abs() > 1.3 * tf[0] || (tv[1] / tv[2]).abs() > 1.3 * tf[1])
             })
             .count();
         let visible = radii.iter().filter(|&&r| r > 0).count();
-        let opaque = (0..sc.opac.len())
-            .filter(|&i| radii[i] > 0 && sc.opac[i] == 1.0)
-            .count();
-        assert!(
-            opaque >= 10,
-            "only {opaque} visible Gaussians with opacity 1"
-        );
+        let opaque = (0..sc.opac.len()).filter(|&i| radii[i] > 0 && sc.opac[i] == 1.0).count();
+        assert!(opaque >= 10, "only {opaque} visible Gaussians with opacity 1");
         let ft = g.f("final_t");
         let see_through = ft.iter().filter(|&&t| t > 0.05).count();
         eprintln!("{visible} visible Gaussians, {clamped} with a clamped Jacobian; {see_through} pixels with T > 0.05");
-        assert!(
-            clamped >= 30 && visible >= 350,
-            "scene too tame: {visible} visible, {clamped} clamped"
-        );
-        assert!(
-            see_through >= w * h / 10,
-            "scene too opaque: {see_through} pixels with T > 0.05"
-        );
+        assert!(clamped >= 30 && visible >= 350, "scene too tame: {visible} visible, {clamped} clamped");
+        assert!(see_through >= w * h / 10, "scene too opaque: {see_through} pixels with T > 0.05");
         assert!(g.u("n_contrib").iter().any(|&c| c > 0));
     }
 }

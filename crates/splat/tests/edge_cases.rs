@@ -44,7 +44,8 @@ fn run(w: usize, h: usize, mode: GradMode) {
     opac[4] = 0.0;
     let sh = vec![0.3f32; n * 16 * 3];
     let feat = vec![0.5f32; n * 4];
-    let inp = RasterInputs { means: &means, cov: CovInput::Cov3d(&cov), opacities: &opac, sh: &sh, sh_coeffs: 16, sh_degree: 3, features: &feat, num_features: 4 };
+    let inp =
+        RasterInputs { means: &means, cov: CovInput::Cov3d(&cov), opacities: &opac, sh: &sh, sh_coeffs: 16, sh_degree: 3, features: &feat, num_features: 4 };
     let st = RasterSettings { camera: cam(w, h), background: [1.0, 0.0, 0.5] };
     let out = cpu::forward(&inp, &st).unwrap();
     for v in [&out.rgb, &out.features, &out.alpha, &out.depth, &out.final_t] {
@@ -118,7 +119,16 @@ fn empty_scene_gives_background() {
 #[test]
 fn bad_inputs_are_errors_not_panics() {
     let st = RasterSettings { camera: cam(8, 8), background: [0.0; 3] };
-    let inp = RasterInputs { means: &[0.0; 5], cov: CovInput::Cov3d(&[0.0; 6]), opacities: &[1.0], sh: &[0.0; 3], sh_coeffs: 1, sh_degree: 0, features: &[], num_features: 0 };
+    let inp = RasterInputs {
+        means: &[0.0; 5],
+        cov: CovInput::Cov3d(&[0.0; 6]),
+        opacities: &[1.0],
+        sh: &[0.0; 3],
+        sh_coeffs: 1,
+        sh_degree: 0,
+        features: &[],
+        num_features: 0,
+    };
     assert!(cpu::forward(&inp, &st).is_err());
     let mut c = cam(0, 8);
     c.width = 0;

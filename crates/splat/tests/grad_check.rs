@@ -101,10 +101,18 @@ fn weights(hw: usize) -> Weights {
     let mut v = |n: usize| (0..n).map(|_| r.range(-1.0, 1.0)).collect::<Vec<f32>>();
     let mut w = Weights { rgb: v(3 * hw), feat: v(NF * hw), alpha: v(hw), depth: v(hw) };
     if let Ok(m) = std::env::var("FD_ONLY") {
-        if !m.contains('r') { w.rgb.fill(0.0); }
-        if !m.contains('f') { w.feat.fill(0.0); }
-        if !m.contains('a') { w.alpha.fill(0.0); }
-        if !m.contains('d') { w.depth.fill(0.0); }
+        if !m.contains('r') {
+            w.rgb.fill(0.0);
+        }
+        if !m.contains('f') {
+            w.feat.fill(0.0);
+        }
+        if !m.contains('a') {
+            w.alpha.fill(0.0);
+        }
+        if !m.contains('d') {
+            w.depth.fill(0.0);
+        }
     }
     w
 }
@@ -137,7 +145,9 @@ fn scene_is_smooth_everywhere() {
                 let c = &o.conic[3 * i..3 * i + 3];
                 let p = -0.5 * (c[0] * dx * dx + c[2] * dy * dy) - c[1] * dx * dy;
                 let a = s.opac[i] * p.exp();
-                if std::env::var("FD_DEBUG").is_ok() && a > 0.97 { eprintln!("g{i} ({x},{y}) {a}"); }
+                if std::env::var("FD_DEBUG").is_ok() && a > 0.97 {
+                    eprintln!("g{i} ({x},{y}) {a}");
+                }
                 assert!(a > 2.0 / 255.0, "Gaussian {i} too faint at ({x},{y})");
                 // Keep the 0.99 clamp away from any pixel (a kink finite differences cannot resolve).
                 assert!((a - 0.99).abs() > 1.5e-3, "Gaussian {i} at ({x},{y}) has o*G = {a}, too close to 0.99");

@@ -2,9 +2,7 @@
 //! write → read round trip, .splat byte layout.
 
 use candle_core::Device;
-use mvsplat360_splat::io::{
-    covariance_to_scale_rotation, encode_splat, read_ply, scale_rotation_to_covariance, write_ply, ExportGaussians,
-};
+use mvsplat360_splat::io::{covariance_to_scale_rotation, encode_splat, read_ply, scale_rotation_to_covariance, write_ply, ExportGaussians};
 use mvsplat360_splat::sh::{fork_basis, fork_to_graphdeco_matrix, graphdeco_basis, sphere_directions, C0};
 
 fn rng(seed: &mut u64) -> f32 {
@@ -154,12 +152,7 @@ fn covariance_decomposition() {
         assert!(q[0] >= 0.0 && (q.iter().map(|v| v * v).sum::<f32>() - 1.0).abs() < 1e-5);
     }
     // Degenerate: zero, rank one, slightly negative, NaN → finite, positive scales and a unit quaternion.
-    let cases = [
-        [[0.0; 3]; 3],
-        [[1.0, 1.0, 1.0], [1.0, 1.0, 1.0], [1.0, 1.0, 1.0]],
-        [[1.0, 0.0, 0.0], [0.0, -1e-4, 0.0], [0.0, 0.0, 0.5]],
-        [[f64::NAN; 3]; 3],
-    ];
+    let cases = [[[0.0; 3]; 3], [[1.0, 1.0, 1.0], [1.0, 1.0, 1.0], [1.0, 1.0, 1.0]], [[1.0, 0.0, 0.0], [0.0, -1e-4, 0.0], [0.0, 0.0, 0.5]], [[f64::NAN; 3]; 3]];
     for c in cases {
         let (s, q) = covariance_to_scale_rotation(c);
         assert!(s.iter().all(|v| v.is_finite() && *v > 0.0));

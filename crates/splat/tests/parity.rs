@@ -39,9 +39,7 @@ fn run(file: &str) {
         let tt_bad = tt.iter().zip(&tt_ref).zip(&radii).filter(|((a, b), r)| **r > 0 && a != b).count();
         assert_eq!(tt_bad, 0, "tiles_touched differ for {tt_bad} visible Gaussians");
         let vis: Vec<bool> = radii.iter().map(|&r| r > 0).collect();
-        let sel = |v: &[f32], c: usize| -> Vec<f32> {
-            v.chunks(c).zip(&vis).filter(|(_, &ok)| ok).flat_map(|(x, _)| x.to_vec()).collect()
-        };
+        let sel = |v: &[f32], c: usize| -> Vec<f32> { v.chunks(c).zip(&vis).filter(|(_, &ok)| ok).flat_map(|(x, _)| x.to_vec()).collect() };
         check_rel("means2d", &sel(&out.means2d, 2), &sel(&v32(get(m, "means2d")), 2), 1e-6);
         check_rel("depths", &sel(&out.depths, 1), &sel(&v32(get(m, "depths")), 1), 1e-6);
         check_rel("cov2d", &sel(&out.cov2d, 3), &sel(&v32(get(m, "cov2d")), 3), 1e-5);

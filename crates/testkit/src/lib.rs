@@ -10,11 +10,7 @@ use candle_core::{DType, Device, Tensor};
 
 /// Repository root, found from this crate's manifest directory (`<root>/crates/testkit`).
 pub fn repo_root() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .parent()
-        .and_then(|p| p.parent())
-        .map(PathBuf::from)
-        .expect("testkit lives at <root>/crates/testkit")
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).parent().and_then(|p| p.parent()).map(PathBuf::from).expect("testkit lives at <root>/crates/testkit")
 }
 
 /// The golden-fixture folder; panics (failing the test) with the searched path when absent.
@@ -22,15 +18,15 @@ pub fn fixtures_dir() -> PathBuf {
     let dir = match std::env::var_os("MVSPLAT360_FIXTURES") {
         Some(p) => {
             let p = PathBuf::from(p);
-            if p.is_absolute() { p } else { repo_root().join(p) }
+            if p.is_absolute() {
+                p
+            } else {
+                repo_root().join(p)
+            }
         }
         None => repo_root().join("../shared/fixtures"),
     };
-    assert!(
-        dir.is_dir(),
-        "golden fixtures not found at {} (set MVSPLAT360_FIXTURES to the folder holding encoder/, rasterizer/, svd/)",
-        dir.display()
-    );
+    assert!(dir.is_dir(), "golden fixtures not found at {} (set MVSPLAT360_FIXTURES to the folder holding encoder/, rasterizer/, svd/)", dir.display());
     dir
 }
 
@@ -44,8 +40,7 @@ pub fn fixture(rel: &str) -> PathBuf {
 /// Load every tensor of a safetensors fixture on the CPU.
 pub fn load(rel: &str) -> HashMap<String, Tensor> {
     let p = fixture(rel);
-    candle_core::safetensors::load(&p, &Device::Cpu)
-        .unwrap_or_else(|e| panic!("cannot read {}: {e}", p.display()))
+    candle_core::safetensors::load(&p, &Device::Cpu).unwrap_or_else(|e| panic!("cannot read {}: {e}", p.display()))
 }
 
 /// Fetch a named tensor from a loaded fixture, failing with the name if absent.
@@ -113,12 +108,28 @@ pub struct Spread {
 /// `actual` entry whose reference is finite.
 pub fn spread(actual: &[f64], expected: &[f64], atol: f64, rtol: f64) -> Spread {
     assert_eq!(actual.len(), expected.len(), "length mismatch");
-    let mut s = Spread { n: actual.len(), max_abs: 0.0, max_rel: 0.0, worst_ratio: 0.0, worst: (0, 0.0, 0.0), n_bad: 0, max_ref: 0.0, rtol_needed: 0.0, atol_needed: 0.0 };
+    let mut s = Spread {
+        n: actual.len(),
+        max_abs: 0.0,
+        max_rel: 0.0,
+        worst_ratio: 0.0,
+        worst: (0, 0.0, 0.0),
+        n_bad: 0,
+        max_ref: 0.0,
+        rtol_needed: 0.0,
+        atol_needed: 0.0,
+    };
     for (i, (&a, &e)) in actual.iter().zip(expected).enumerate() {
         assert!(a.is_finite() || !e.is_finite(), "entry {i}: actual {a} is not finite (expected {e})");
         let d = (a - e).abs();
         let tol = atol + rtol * e.abs();
-        let ratio = if tol > 0.0 { d / tol } else if d == 0.0 { 0.0 } else { f64::INFINITY };
+        let ratio = if tol > 0.0 {
+            d / tol
+        } else if d == 0.0 {
+            0.0
+        } else {
+            f64::INFINITY
+        };
         s.max_abs = s.max_abs.max(d);
         s.max_ref = s.max_ref.max(e.abs());
         s.atol_needed = s.atol_needed.max(d - rtol * e.abs());
@@ -192,7 +203,11 @@ pub fn assert_no_failures(what: &str, failures: &[String]) {
 /// The official SH mask of degree l (`gaussian_adapter.sh_mask`): 1, then 0.1·0.25^l — the scale of that degree's
 /// coefficients, by which SH tolerances are scaled.
 pub fn sh_mask(l: usize) -> f64 {
-    if l == 0 { 1.0 } else { 0.1 * 0.25f64.powi(l as i32) }
+    if l == 0 {
+        1.0
+    } else {
+        0.1 * 0.25f64.powi(l as i32)
+    }
 }
 
 /// The slice of coefficients of SH degree `l` along the last dimension (k = l² .. (l+1)²).

@@ -114,7 +114,9 @@ fn main() -> anyhow::Result<()> {
                     .iter()
                     .map(|t| {
                         let k = (0..p.context_cameras.len())
-                            .min_by(|&a, &b| (p.context_cameras[a].center() - t.center()).norm().total_cmp(&(p.context_cameras[b].center() - t.center()).norm()))
+                            .min_by(|&a, &b| {
+                                (p.context_cameras[a].center() - t.center()).norm().total_cmp(&(p.context_cameras[b].center() - t.center()).norm())
+                            })
                             .unwrap_or(0);
                         p.context_images[k].clone()
                     })
@@ -150,8 +152,9 @@ fn main() -> anyhow::Result<()> {
                 let photos = Tensor::stack(&gts.iter().map(|g| Tensor::from_slice(&g.data, (3, gh, gw), &Device::Cpu)).collect::<Result<Vec<_>, _>>()?, 0)?;
                 let (mean, _) = vae.encode(&prepare_encoder_input(&photos, 2)?)?;
                 let rec = frames_from_decoded(&vae.decode(&mean, 1)?, 2)?;
-                let rec: Vec<ImageF32> =
-                    (0..gts.len()).map(|i| Ok(ImageF32 { width: gw as u32, height: gh as u32, data: rec.get(i)?.flatten_all()?.to_vec1()? })).collect::<anyhow::Result<_>>()?;
+                let rec: Vec<ImageF32> = (0..gts.len())
+                    .map(|i| Ok(ImageF32 { width: gw as u32, height: gh as u32, data: rec.get(i)?.flatten_all()?.to_vec1()? }))
+                    .collect::<anyhow::Result<_>>()?;
                 let [ps, ss, ls] = scores(&lp, &rec, &gts)?;
                 println!("| {name} | {mname} (its VAE on the photos: encode, decode) | {ps:.2} | {ss:.3} | {ls:.3} |");
                 rows.push(serde_json::json!({"scene": name, "method": format!("{mname} VAE reconstruction"), "psnr": ps, "ssim": ss, "lpips": ls, "targets": gts.len()}));
@@ -171,7 +174,9 @@ fn main() -> anyhow::Result<()> {
                     }
                     let [ps, ss, ls] = scores(&lp, frames, &gts)?;
                     println!("| {name} | {mname} ({label}) | {ps:.2} | {ss:.3} | {ls:.3} |");
-                    rows.push(serde_json::json!({"scene": name, "method": format!("{mname} {label}"), "psnr": ps, "ssim": ss, "lpips": ls, "targets": gts.len()}));
+                    rows.push(
+                        serde_json::json!({"scene": name, "method": format!("{mname} {label}"), "psnr": ps, "ssim": ss, "lpips": ls, "targets": gts.len()}),
+                    );
                 }
             }
         }

@@ -128,8 +128,8 @@ fn main() -> anyhow::Result<()> {
         let full = render_example_full(&model, &ex)?;
         let renders = full.rgb;
         // The model's context depths against the truth: mean |ln d̂ − ln d| (the depth loss), unknown pixels out.
-        let depth_err = mvsplat360_train::loss::depth_log_l1(&full.depths, ex.context_depths.as_ref().expect("depths checked"), near, far)?
-            .to_scalar::<f32>()?;
+        let depth_err =
+            mvsplat360_train::loss::depth_log_l1(&full.depths, ex.context_depths.as_ref().expect("depths checked"), near, far)?.to_scalar::<f32>()?;
         let mut m = 0.0;
         for t in 0..ex.target_cameras.len() {
             m += psnr(&renders.get(t)?, &ex.target_images.get(t)?)?;

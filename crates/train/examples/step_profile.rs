@@ -38,7 +38,13 @@ fn main() -> anyhow::Result<()> {
         // The rasterizer's share: the same renders from detached Gaussians.
         let (_, g) = render_example(&model, &ex)?;
         let v = |t: &candle_core::Tensor| candle_core::Var::from_tensor(&t.detach()).map(|v| v.as_tensor().clone());
-        let gs = mvsplat360_splat::Gaussians { means: v(&g.means)?, covariances: v(&g.covariances)?, opacities: v(&g.opacities)?, harmonics: v(&g.harmonics)?, feature_harmonics: v(&g.feature_harmonics)? };
+        let gs = mvsplat360_splat::Gaussians {
+            means: v(&g.means)?,
+            covariances: v(&g.covariances)?,
+            opacities: v(&g.opacities)?,
+            harmonics: v(&g.harmonics)?,
+            feature_harmonics: v(&g.feature_harmonics)?,
+        };
         let t = Instant::now();
         let mut r = Vec::new();
         for c in &ex.target_cameras {

@@ -269,7 +269,11 @@ impl TrainConfig {
         if self.data.sources.is_empty() {
             return bad("data.sources", "add at least one source (procedural, folder or chunks)".into());
         }
-        if !self.data.weights.is_empty() && (self.data.weights.len() != self.data.sources.len() || self.data.weights.iter().any(|w| !(*w >= 0.0)) || self.data.weights.iter().sum::<f64>() <= 0.0) {
+        if !self.data.weights.is_empty()
+            && (self.data.weights.len() != self.data.sources.len()
+                || self.data.weights.iter().any(|w| !(*w >= 0.0))
+                || self.data.weights.iter().sum::<f64>() <= 0.0)
+        {
             return bad("data.weights", "one non-negative weight per source, not all zero".into());
         }
         if self.data.num_context < 2 {

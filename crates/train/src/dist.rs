@@ -180,7 +180,10 @@ impl HostCollective {
         let s = TcpStream::connect(addr).map_err(|e| net(&format!("rank {rank}: connecting to the launcher at {addr}"), e))?;
         let _ = s.set_nodelay(true);
         let mut w = BufWriter::new(s.try_clone().map_err(|e| net("socket", e))?);
-        w.write_all(&(rank as u32).to_le_bytes()).and_then(|_| w.write_all(&(world as u32).to_le_bytes())).and_then(|_| w.flush()).map_err(|e| net("handshake", e))?;
+        w.write_all(&(rank as u32).to_le_bytes())
+            .and_then(|_| w.write_all(&(world as u32).to_le_bytes()))
+            .and_then(|_| w.flush())
+            .map_err(|e| net("handshake", e))?;
         Ok(Self { rank, world, r: BufReader::new(s), w })
     }
 

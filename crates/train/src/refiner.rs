@@ -157,11 +157,7 @@ fn write_random_init(cfg: &RefinerModelConfig, seed: u64, out: &Path) -> Result<
 /// Every tensor of `file` that `map` names (None = not this part's, `Some(None)` = a buffer to skip), renamed
 /// to `prefix` + its sgm/open_clip name and rearranged as its [`Piece`] says: separate q/k/v concatenated, a
 /// projection transposed, a Linear stored as a 1×1 convolution.
-fn renamed(
-    file: &Path,
-    prefix: &str,
-    map: impl Fn(&str) -> Option<Option<(String, Piece)>>,
-) -> std::result::Result<Vec<(String, Tensor)>, String> {
+fn renamed(file: &Path, prefix: &str, map: impl Fn(&str) -> Option<Option<(String, Piece)>>) -> std::result::Result<Vec<(String, Tensor)>, String> {
     // SAFETY: read-only mapping of a weights file, as candle does.
     let st = unsafe { MmapedSafetensors::new(file) }.map_err(|e| e.to_string())?;
     let mut parts: std::collections::BTreeMap<String, Vec<(usize, usize, Tensor)>> = Default::default();
@@ -197,7 +193,11 @@ fn renamed(
         if p.len() != of || p.iter().enumerate().any(|(i, x)| x.0 != i) {
             return Err(format!("`{name}`: {} of its {of} parts found", p.len()));
         }
-        let t = if of == 1 { p.pop().map(|x| x.2).expect("one part") } else { Tensor::cat(&p.iter().map(|x| &x.2).collect::<Vec<_>>(), 0).map_err(|e| e.to_string())? };
+        let t = if of == 1 {
+            p.pop().map(|x| x.2).expect("one part")
+        } else {
+            Tensor::cat(&p.iter().map(|x| &x.2).collect::<Vec<_>>(), 0).map_err(|e| e.to_string())?
+        };
         out.push((format!("{prefix}{name}"), t));
     }
     Ok(out)

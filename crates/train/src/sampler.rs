@@ -129,7 +129,15 @@ mod tests {
     use rand::SeedableRng;
 
     fn ring(n: usize) -> Vec<Camera> {
-        let t = Camera { fx: 60.0, fy: 60.0, cx: 40.0, cy: 20.0, width: 128, height: 64, c2w: [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]] };
+        let t = Camera {
+            fx: 60.0,
+            fy: 60.0,
+            cx: 40.0,
+            cy: 20.0,
+            width: 128,
+            height: 64,
+            c2w: [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]],
+        };
         (0..n)
             .map(|i| {
                 let a = std::f64::consts::TAU * i as f64 / n as f64;

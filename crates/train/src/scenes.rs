@@ -183,7 +183,8 @@ fn chunk_files(path: &Path) -> Result<Vec<PathBuf>> {
     if path.is_file() {
         return Ok(vec![path.to_path_buf()]);
     }
-    let rd = std::fs::read_dir(path).map_err(|e| TrainError::Data(format!("{}: {e} (a chunks source needs a .torch file or a folder of them)", path.display())))?;
+    let rd =
+        std::fs::read_dir(path).map_err(|e| TrainError::Data(format!("{}: {e} (a chunks source needs a .torch file or a folder of them)", path.display())))?;
     let mut out: Vec<PathBuf> = rd.filter_map(|e| e.ok().map(|e| e.path())).filter(|p| p.extension().is_some_and(|x| x == "torch")).collect();
     out.sort();
     if out.is_empty() {

@@ -381,12 +381,7 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
     let mut coll = opts.dist.as_ref().map(|r| crate::dist::connect(r, &dev)).transpose()?;
     let model = Model::new_on(cfg, &dev)?;
     let multiple = cfg.model.encoder.image_multiple() as u32;
-    let mut sources = cfg
-        .data
-        .sources
-        .iter()
-        .map(|s| SceneSource::open(s, cfg.model.width, cfg.model.height, multiple))
-        .collect::<Result<Vec<_>>>()?;
+    let mut sources = cfg.data.sources.iter().map(|s| SceneSource::open(s, cfg.model.width, cfg.model.height, multiple)).collect::<Result<Vec<_>>>()?;
     let lpips = if cfg.train.lpips_weight > 0.0 {
         match Lpips::load(opts.weights_dir.as_deref(), mvsplat360_metrics::lpips::Net::Vgg, &dev) {
             Ok(l) => Some(l),
@@ -451,7 +446,13 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
     if main {
         records = crate::log::read(&log_path)?.into_iter().filter(|r| r.step <= start).collect::<Vec<_>>();
         crate::log::rewrite(&log_path, &records)?;
-        log = Some(std::fs::OpenOptions::new().append(true).create(true).open(&log_path).map_err(|e| TrainError::Write { path: log_path.clone(), msg: e.to_string() })?);
+        log = Some(
+            std::fs::OpenOptions::new()
+                .append(true)
+                .create(true)
+                .open(&log_path)
+                .map_err(|e| TrainError::Write { path: log_path.clone(), msg: e.to_string() })?,
+        );
     }
 
     let mut settings = SamplerSettings {
@@ -561,10 +562,7 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
         let results: Vec<Result<MicroResult>> = if cfg.train.parallel_micro_batches && accum > 1 {
             std::thread::scope(|sc| {
                 let handles: Vec<_> = examples.iter().zip(0u32..).map(|(ex, m)| sc.spawn(move || micro_step(m, ex))).collect();
-                handles
-                    .into_iter()
-                    .map(|h| h.join().unwrap_or_else(|_| Err(TrainError::Data("a micro-batch thread panicked".into()))))
-                    .collect()
+                handles.into_iter().map(|h| h.join().unwrap_or_else(|_| Err(TrainError::Data("a micro-batch thread panicked".into())))).collect()
             })
         } else {
             examples.iter().zip(0u32..).map(|(ex, m)| micro_step(m, ex)).collect()
@@ -603,7 +601,17 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
         if let Some(c) = coll.as_mut() {
             // Sampled before the sums, so that every rank stops after the same step.
             let stop_here = mon.should_stop();
-            let sums = StepSums { loss: sum_loss, mse: sum_mse, lpips: sum_lp, n_lpips: n_lp, refiner: sum_ref, n_refiner: n_ref, vae: sum_vae, depth: &depth_terms, stop: stop_here };
+            let sums = StepSums {
+                loss: sum_loss,
+                mse: sum_mse,
+                lpips: sum_lp,
+                n_lpips: n_lp,
+                refiner: sum_ref,
+                n_refiner: n_ref,
+                vae: sum_vae,
+                depth: &depth_terms,
+                stop: stop_here,
+            };
             let r = reduce_step(c.as_mut(), sums, &mut grads, &adam.params, &dev)?;
             (sum_loss, sum_mse, sum_lp, sum_ref, sum_vae, depth_mean, stop_all) = (r.loss, r.mse, r.lpips, r.refiner, r.vae, r.depth, Some(r.stop));
         }
@@ -738,14 +746,7 @@ struct MicroResult {
     grads: Vec<Option<Tensor>>,
 }
 
-fn draw_example(
-    sources: &mut [SceneSource],
-    weights: &[f64],
-    wsum: f64,
-    s: &SamplerSettings,
-    cfg: &TrainConfig,
-    rng: &mut impl Rng,
-) -> Result<Example> {
+fn draw_example(sources: &mut [SceneSource], weights: &[f64], wsum: f64, s: &SamplerSettings, cfg: &TrainConfig, rng: &mut impl Rng) -> Result<Example> {
     for _ in 0..20 {
         let mut u = rng.gen_range(0.0..wsum);
         let mut k = 0;
@@ -758,10 +759,7 @@ fn draw_example(
             return Ok(ex);
         }
     }
-    Err(TrainError::Data(format!(
-        "no scene has enough views for {} context + targets; add longer sequences or lower data.num_context",
-        s.num_context
-    )))
+    Err(TrainError::Data(format!("no scene has enough views for {} context + targets; add longer sequences or lower data.num_context", s.num_context)))
 }
 
 pub fn out_dir(cfg: &TrainConfig) -> &Path {

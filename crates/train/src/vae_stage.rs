@@ -42,7 +42,10 @@ impl TrainVae {
             Some(p) => {
                 let (file, layout) = if p.join("vae").is_dir() {
                     let d = p.join("vae");
-                    (mvsplat360_refiner::diffusers_weights_file(&d).unwrap_or_else(|| d.join(mvsplat360_refiner::DIFFUSERS_WEIGHTS[0])), Some(VaeLayout::Diffusers))
+                    (
+                        mvsplat360_refiner::diffusers_weights_file(&d).unwrap_or_else(|| d.join(mvsplat360_refiner::DIFFUSERS_WEIGHTS[0])),
+                        Some(VaeLayout::Diffusers),
+                    )
                 } else if p.is_dir() {
                     (p.join(mvsplat360_pipeline::model::MODEL_WEIGHTS), None)
                 } else {

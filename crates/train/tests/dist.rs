@@ -116,9 +116,7 @@ fn weights(dir: &std::path::Path) -> std::collections::HashMap<String, Tensor> {
 
 fn max_diff(a: &std::collections::HashMap<String, Tensor>, b: &std::collections::HashMap<String, Tensor>) -> f32 {
     assert_eq!(a.len(), b.len());
-    a.iter()
-        .map(|(k, ta)| (ta - &b[k]).unwrap().abs().unwrap().flatten_all().unwrap().max(0).unwrap().to_scalar::<f32>().unwrap())
-        .fold(0.0, f32::max)
+    a.iter().map(|(k, ta)| (ta - &b[k]).unwrap().abs().unwrap().flatten_all().unwrap().max(0).unwrap().to_scalar::<f32>().unwrap()).fold(0.0, f32::max)
 }
 
 /// Two ranks × 1 micro-batch = one process × 2 micro-batches: same examples, same scaled gradient sum, same

@@ -31,9 +31,8 @@ fn povray_depth_maps_agree_across_views() {
     let depths = s.depths.as_ref().expect("the folder has depth/depth.json");
     assert_eq!(depths.len(), 6);
     // 0 in the PNG = unknown (sky, clipped colours) = infinite here; the rest is value × unit.
-    let unit: f64 = serde_json::from_str::<serde_json::Value>(&std::fs::read_to_string(scene_dir().join("depth/depth.json")).unwrap()).unwrap()["unit"]
-        .as_f64()
-        .unwrap();
+    let unit: f64 =
+        serde_json::from_str::<serde_json::Value>(&std::fs::read_to_string(scene_dir().join("depth/depth.json")).unwrap()).unwrap()["unit"].as_f64().unwrap();
     let raw = image::open(scene_dir().join("depth/002.png")).unwrap().to_luma16().into_raw();
     for (v, d) in raw.iter().zip(&depths[2]) {
         if *v == 0 {

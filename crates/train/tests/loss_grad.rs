@@ -205,7 +205,15 @@ fn depth_targets_agree_across_views() {
         for d in scene.depths.as_mut().unwrap().iter_mut().flatten() {
             *d *= 3.0;
         }
-        let s = mvsplat360_train::sampler::SamplerSettings { num_context: 3, num_target: 1, gap: Some([3, 3]), gap_initial: None, warm_up: 1.0, closed_loop: true, flip };
+        let s = mvsplat360_train::sampler::SamplerSettings {
+            num_context: 3,
+            num_target: 1,
+            gap: Some([3, 3]),
+            gap_initial: None,
+            warm_up: 1.0,
+            closed_loop: true,
+            flip,
+        };
         let ex = loop {
             let ex = make_example(&scene, &s, 1.0, 100.0, &mut rng).unwrap().unwrap();
             // The sampler flips at random (rotations are unchanged by scaling, negated off the x row/column by

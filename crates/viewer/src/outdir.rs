@@ -34,9 +34,7 @@ impl Manifest {
 
     pub fn contains(&self, rel: &str) -> bool {
         if let Some(rest) = rel.strip_prefix("frames/") {
-            return rest
-                .split_once('/')
-                .is_some_and(|(k, n)| self.frames.get(k).is_some_and(|v| v.binary_search(&n.to_string()).is_ok()));
+            return rest.split_once('/').is_some_and(|(k, n)| self.frames.get(k).is_some_and(|v| v.binary_search(&n.to_string()).is_ok()));
         }
         self.files.values().any(|f| f == rel)
     }

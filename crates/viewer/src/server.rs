@@ -48,10 +48,7 @@ pub fn resolve(out: &OutDir, target: &str) -> Resolved {
     let Ok(rel) = percent_encoding::percent_decode_str(raw).decode_utf8() else {
         return Resolved::Refused(400, "bad path encoding");
     };
-    let bad = rel.is_empty()
-        || rel.starts_with('/')
-        || rel.contains(['\\', '\0', ':'])
-        || rel.split('/').any(|s| s.is_empty() || s == "." || s == "..");
+    let bad = rel.is_empty() || rel.starts_with('/') || rel.contains(['\\', '\0', ':']) || rel.split('/').any(|s| s.is_empty() || s == "." || s == "..");
     if bad {
         return Resolved::Refused(400, "bad path");
     }

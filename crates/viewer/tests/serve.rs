@@ -144,7 +144,17 @@ fn static_export_is_self_contained() {
     let dir = OutDir::open(&out).unwrap();
     let site = t.path().join("site");
     mvsplat360_viewer::write_static(&dir, &site).unwrap();
-    for f in ["index.html", "viewer.js", "THIRD_PARTY_LICENSES.txt", "manifest.json", "data/gaussians.ply", "data/cameras.json", "data/run.json", "data/video.mp4", "data/frames/gsplat/0000.png"] {
+    for f in [
+        "index.html",
+        "viewer.js",
+        "THIRD_PARTY_LICENSES.txt",
+        "manifest.json",
+        "data/gaussians.ply",
+        "data/cameras.json",
+        "data/run.json",
+        "data/video.mp4",
+        "data/frames/gsplat/0000.png",
+    ] {
         assert!(site.join(f).is_file(), "{f}");
     }
     // Again over an earlier export: fine. Into a folder with other things, or inside the render: refused.

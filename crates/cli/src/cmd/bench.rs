@@ -159,14 +159,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             if gaussians == 0 || width == 0 || height == 0 {
                 anyhow::bail!("bench raster: --gaussians, --width and --height must be positive");
             }
-            let opts = mvsplat360_splat::bench::RasterBenchOpts {
-                gaussians,
-                width,
-                height,
-                features,
-                threads: common.threads.count(),
-                runs: common.runs,
-            };
+            let opts = mvsplat360_splat::bench::RasterBenchOpts { gaussians, width, height, features, threads: common.threads.count(), runs: common.runs };
             mvsplat360_splat::bench::run_raster_bench(&opts)?
         }
         What::Encoder { views, height, width, backbone_only, common } => {

@@ -41,7 +41,9 @@ pub struct Args {
 
 pub fn run(args: Args, quiet: bool) -> anyhow::Result<()> {
     let model = match &args.ckpt {
-        Some(p) if p.is_file() => ModelArgs { encoder: Some(p.clone()), refiner: Some(RefinerArg::None), experiment: args.experiment.clone(), ..Default::default() },
+        Some(p) if p.is_file() => {
+            ModelArgs { encoder: Some(p.clone()), refiner: Some(RefinerArg::None), experiment: args.experiment.clone(), ..Default::default() }
+        }
         other => ModelArgs { ckpt: other.clone(), refiner: Some(RefinerArg::None), experiment: args.experiment.clone(), ..Default::default() },
     };
     let req = RenderRequest {

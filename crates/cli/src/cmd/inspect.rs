@@ -77,22 +77,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             hi[k] = hi[k].max(c[k]);
         }
     }
-    println!(
-        "centres    x [{:.3}, {:.3}]  y [{:.3}, {:.3}]  z [{:.3}, {:.3}]",
-        lo[0], hi[0], lo[1], hi[1], lo[2], hi[2]
-    );
+    println!("centres    x [{:.3}, {:.3}]  y [{:.3}, {:.3}]  z [{:.3}, {:.3}]", lo[0], hi[0], lo[1], hi[1], lo[2], hi[2]);
     println!("baseline   min {bmin:.4}  max {bmax:.4} (pairwise centre distance)");
     println!("context    {:?}", context);
     for &i in &context {
         let c = centres[i];
-        println!(
-            "  view {i:>4} {:<24} centre ({:.3}, {:.3}, {:.3})  nearest {:?}",
-            scene.view_names[i],
-            c[0],
-            c[1],
-            c[2],
-            &groups[i][1..]
-        );
+        println!("  view {i:>4} {:<24} centre ({:.3}, {:.3}, {:.3})  nearest {:?}", scene.view_names[i], c[0], c[1], c[2], &groups[i][1..]);
     }
     Ok(())
 }

@@ -46,9 +46,7 @@ pub fn table(r: &Report) -> String {
     let head = ["PSNR↑", "SSIM↑", "LPIPS↓", "DISTS↓", "FID↓"];
     let vals = [cell(Some(r.psnr), 2), cell(Some(r.ssim), 4), cell(r.lpips, 4), cell(r.dists, 4), cell(r.fid, 2)];
     let width = |i: usize| head[i].chars().count().max(vals[i].chars().count());
-    let line = |cells: &[String]| {
-        cells.iter().enumerate().map(|(i, c)| format!("{c:>w$}", w = width(i))).collect::<Vec<_>>().join("  ")
-    };
+    let line = |cells: &[String]| cells.iter().enumerate().map(|(i, c)| format!("{c:>w$}", w = width(i))).collect::<Vec<_>>().join("  ");
     let head: Vec<String> = head.iter().map(|s| s.to_string()).collect();
     format!("{}\n{}\nimages: {}\n", line(&head), line(&vals), r.per_image.len())
 }
@@ -72,19 +70,12 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<()> {
             pb.set_position(done as u64);
         }) as mvsplat360_metrics::score::ProgressFn
     });
-    let opts = ScoreOptions {
-        weights_dir: args.weights_dir.clone(),
-        batch_size: args.batch_size as usize,
-        progress,
-        ..ScoreOptions::default()
-    };
+    let opts = ScoreOptions { weights_dir: args.weights_dir.clone(), batch_size: args.batch_size as usize, progress, ..ScoreOptions::default() };
     let result = score_dirs(&args.pred_dir, &args.gt_dir, &opts);
     if let Some(pb) = &bar {
         pb.finish_and_clear();
     }
-    let report = result.with_context(|| {
-        format!("cannot score {} against {}", args.pred_dir.display(), args.gt_dir.display())
-    })?;
+    let report = result.with_context(|| format!("cannot score {} against {}", args.pred_dir.display(), args.gt_dir.display()))?;
     for w in &report.warnings {
         eprintln!("warning: {w}");
     }

@@ -83,11 +83,11 @@ pub fn run(a: Args, quiet: bool) -> anyhow::Result<()> {
         let _ = ctrlc::set_handler(move || s2.store(true, Ordering::SeqCst));
     } else {
         let _ = ctrlc::set_handler(move || {
-        if s2.swap(true, Ordering::SeqCst) {
-            eprintln!("interrupted again: exiting without a checkpoint");
-            std::process::exit(130);
-        }
-        eprintln!("interrupt: finishing this step and writing a checkpoint (Ctrl-C again to exit now)");
+            if s2.swap(true, Ordering::SeqCst) {
+                eprintln!("interrupted again: exiting without a checkpoint");
+                std::process::exit(130);
+            }
+            eprintln!("interrupt: finishing this step and writing a checkpoint (Ctrl-C again to exit now)");
         });
     }
     let cuda = a.device != mvsplat360_pipeline::compute::DeviceSpec::Cpu;

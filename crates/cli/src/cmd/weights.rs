@@ -33,8 +33,8 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<()> {
             let out = out
                 .or_else(|| std::env::var_os(mvsplat360_metrics::weights::ENV_VAR).map(PathBuf::from))
                 .unwrap_or_else(mvsplat360_metrics::weights::default_dir);
-            let written = mvsplat360_metrics::weights::convert_all(&from, &out)
-                .with_context(|| format!("converting metric weights from {}", from.display()))?;
+            let written =
+                mvsplat360_metrics::weights::convert_all(&from, &out).with_context(|| format!("converting metric weights from {}", from.display()))?;
             if !quiet {
                 for p in written {
                     eprintln!("wrote {}", p.display());

@@ -73,11 +73,6 @@ impl BackboneMultiview {
         let input = cnn_features.broadcast_add(&pos)?;
         let (trans_features, block_outputs) = self.transformer.forward(&input, splits, nn, intermediates)?;
         crate::prof("transformer", &mut t);
-        Ok(BackboneOutput {
-            trans_features,
-            cnn_features,
-            transformer_input: if intermediates { Some(input) } else { None },
-            block_outputs,
-        })
+        Ok(BackboneOutput { trans_features, cnn_features, transformer_input: if intermediates { Some(input) } else { None }, block_outputs })
     }
 }

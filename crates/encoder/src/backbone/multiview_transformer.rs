@@ -6,10 +6,10 @@ use candle_core::{Device, Module, Result, Tensor};
 use candle_nn::VarBuilder;
 
 use crate::backbone::nn::{LayerNorm, LinearNoBias};
-use mvsplat360_nn::activation::gelu;
-use mvsplat360_nn::softmax::masked_softmax;
 use crate::backbone::unimatch::utils::{shifted_window_labels, shifted_window_mask};
+use mvsplat360_nn::activation::gelu;
 use mvsplat360_nn::attention::{fused_attention, RegionMask};
+use mvsplat360_nn::softmax::masked_softmax;
 
 /// Shifted-window mask for `m` key views: region labels for the fused inference kernel, and the dense additive
 /// mask `[K·K, Lw, m·Lw]` (built only if the differentiable path asks for it).
@@ -94,10 +94,7 @@ impl TransformerLayer {
         let k = self.k_proj.forward(kv_source)?;
         let v = self.v_proj.forward(kv_source)?;
         let (k, v) = match rows {
-            Some((idx, m)) => (
-                k.index_select(idx, 0)?.reshape((n, m, l, c))?,
-                v.index_select(idx, 0)?.reshape((n, m, l, c))?,
-            ),
+            Some((idx, m)) => (k.index_select(idx, 0)?.reshape((n, m, l, c))?, v.index_select(idx, 0)?.reshape((n, m, l, c))?),
             None => (k.unsqueeze(1)?, v.unsqueeze(1)?),
         };
         let mask = if self.with_shift { mask } else { None };
@@ -135,14 +132,7 @@ pub fn window_attention(q: &Tensor, k: &Tensor, v: &Tensor, g: WindowGeom, shift
     let mut start = 0;
     while start < n {
         let len = rows_per_chunk.min(n - start);
-        outs.push(window_attention_chunk(
-            &q.narrow(0, start, len)?,
-            &k.narrow(0, start, len)?,
-            &v.narrow(0, start, len)?,
-            g,
-            shift,
-            mask,
-        )?);
+        outs.push(window_attention_chunk(&q.narrow(0, start, len)?, &k.narrow(0, start, len)?, &v.narrow(0, start, len)?, g, shift, mask)?);
         start += len;
     }
     let out = if outs.len() == 1 { outs.remove(0) } else { Tensor::cat(&outs, 0)? };
@@ -287,13 +277,7 @@ impl MultiViewFeatureTransformer {
 
     /// `features [B, V, C, h, w]` → `[B, V, C, h, w]`; also returns each block's output `[(v b), h·w, C]`.
     /// `nn` is `cameras_dist_index[b][v][..n]` (column 0 = the view itself).
-    pub fn forward(
-        &self,
-        features: &Tensor,
-        splits: usize,
-        nn: Option<&[Vec<Vec<u32>>]>,
-        keep_block_outputs: bool,
-    ) -> Result<(Tensor, Vec<Tensor>)> {
+    pub fn forward(&self, features: &Tensor, splits: usize, nn: Option<&[Vec<Vec<u32>>]>, keep_block_outputs: bool) -> Result<(Tensor, Vec<Tensor>)> {
         let (b, v, c, h, w) = features.dims5()?;
         if c != self.d_model {
             candle_core::bail!("transformer expects {} channels, got {c}", self.d_model);

@@ -5,9 +5,9 @@
 use candle_core::{DType, Result, Tensor, D};
 
 use super::sh_rotation::{rotate_sh, sh_rotation_matrices};
-use mvsplat360_nn::layout::channels_last;
 use crate::config::EncoderCostVolumeCfg;
 use crate::costvolume::DepthPredictorOutput;
+use mvsplat360_nn::layout::channels_last;
 
 /// Gaussians as the encoder returns them (B batches, G = V·H·W per batch, g = v·H·W + y·W + x).
 #[derive(Debug, Clone)]
@@ -60,11 +60,7 @@ pub fn map_pdf_to_opacity(cfg: &EncoderCostVolumeCfg, pdf: &Tensor, global_step:
     let x = om.initial as f64 + ramp * (om.r#final as f64 - om.initial as f64);
     let exponent = 2f64.powf(x);
     let one_minus = pdf.affine(-1.0, 1.0)?;
-    let (a, b) = if exponent == 1.0 {
-        (one_minus, pdf.clone())
-    } else {
-        (one_minus.powf(exponent)?, pdf.powf(1.0 / exponent)?)
-    };
+    let (a, b) = if exponent == 1.0 { (one_minus, pdf.clone()) } else { (one_minus.powf(exponent)?, pdf.powf(1.0 / exponent)?) };
     (a.affine(-1.0, 1.0)? + b)? * 0.5
 }
 
@@ -107,7 +103,12 @@ pub fn gaussians_from_prediction_at_step(
     let d_fsh = (ga.feature_sh_degree + 1).pow(2);
     let want = 2 + 7 + 3 * d_sh + if nfc > 0 { nfc * d_fsh } else { 0 };
     if craw != want {
-        candle_core::bail!("gaussian adapter: {craw} raw channels, the configuration (sh_degree {}, {} feature channels of degree {}) needs {want}", ga.sh_degree, nfc, ga.feature_sh_degree);
+        candle_core::bail!(
+            "gaussian adapter: {craw} raw channels, the configuration (sh_degree {}, {} feature channels of degree {}) needs {want}",
+            ga.sh_degree,
+            nfc,
+            ga.feature_sh_degree
+        );
     }
     let dev = pred.raw_gaussians.device();
     let p = h * w;
@@ -133,7 +134,8 @@ pub fn gaussians_from_prediction_at_step(
     let (mut kinv, mut mult, mut rot, mut origin) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
     for i in 0..b * v {
         let k: Vec<f64> = intr[i * 9..i * 9 + 9].iter().map(|&x| x as f64).collect();
-        let ki = crate::costvolume::depth_predictor_multiview::inv3(&k, 1e-20).ok_or_else(|| candle_core::Error::Msg(format!("gaussian adapter: intrinsics of item {i} are singular")))?;
+        let ki = crate::costvolume::depth_predictor_multiview::inv3(&k, 1e-20)
+            .ok_or_else(|| candle_core::Error::Msg(format!("gaussian adapter: intrinsics of item {i} are singular")))?;
         kinv.extend(ki.iter().map(|&x| x as f32));
         // 0.1 · Σᵢ (K[:2,:2]⁻¹ · (1/W, 1/H))ᵢ
         let det2 = k[0] * k[4] - k[1] * k[3];

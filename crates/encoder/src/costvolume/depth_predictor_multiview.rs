@@ -4,10 +4,10 @@
 use candle_core::{DType, Device, Module, Result, Tensor};
 use candle_nn::VarBuilder;
 
-use mvsplat360_nn::activation::gelu;
-use super::ldm_unet::{Conv2d, GroupNorm, UNetCfg, UNetModel};
 use super::ldm_unet::util::Act;
+use super::ldm_unet::{Conv2d, GroupNorm, UNetCfg, UNetModel};
 use crate::config::EncoderCostVolumeCfg;
+use mvsplat360_nn::activation::gelu;
 use mvsplat360_nn::upsample::{upsample_bilinear, upsample_nearest};
 use mvsplat360_nn::warp_correlation::warp_correlation;
 
@@ -129,25 +129,16 @@ impl DepthPredictorMultiView {
             cfg: cfg.clone(),
             corr_conv: Conv2d::same3(corr.pp("0"), nd + c, cv)?,
             corr_norm: GroupNorm::new(corr.pp("1"), 8, cv)?,
-            corr_unet: UNetModel::new(
-                corr.pp("3"),
-                &unet_cfg(cv, &cfg.costvolume_unet_attn_res, &cfg.costvolume_unet_channel_mult),
-            )?,
+            corr_unet: UNetModel::new(corr.pp("3"), &unet_cfg(cv, &cfg.costvolume_unet_attn_res, &cfg.costvolume_unet_channel_mult))?,
             corr_out: Conv2d::same3(corr.pp("4"), cv, nd)?,
             regressor_residual: Conv2d::new(vb.pp("regressor_residual"), nd + c, nd, 1, 1, 0)?,
-            depth_head: (
-                Conv2d::same3(vb.pp("depth_head_lowres").pp("0"), nd, 2 * nd)?,
-                Conv2d::same3(vb.pp("depth_head_lowres").pp("2"), 2 * nd, nd)?,
-            ),
+            depth_head: (Conv2d::same3(vb.pp("depth_head_lowres").pp("0"), nd, 2 * nd)?, Conv2d::same3(vb.pp("depth_head_lowres").pp("2"), 2 * nd, nd)?),
             upsampler: Conv2d::same3(vb.pp("upsampler").pp("0"), 2 * c, c)?,
             proj_feature: Conv2d::same3(vb.pp("proj_feature"), c, du)?,
             refine_conv: Conv2d::same3(refine.pp("0"), 3 + du + 2, du)?,
             refine_norm: GroupNorm::new(refine.pp("1"), 4, du)?,
             refine_unet: UNetModel::new(refine.pp("3"), &unet_cfg(du, &cfg.depth_unet_attn_res, &cfg.depth_unet_channel_mult))?,
-            to_gaussians: (
-                Conv2d::same3(vb.pp("to_gaussians").pp("0"), du + 3 + c, 2 * raw)?,
-                Conv2d::same3(vb.pp("to_gaussians").pp("2"), 2 * raw, raw)?,
-            ),
+            to_gaussians: (Conv2d::same3(vb.pp("to_gaussians").pp("0"), du + 3 + c, 2 * raw)?, Conv2d::same3(vb.pp("to_gaussians").pp("2"), 2 * raw, raw)?),
             to_disparity: (
                 Conv2d::same3(vb.pp("to_disparity").pp("0"), du, 2 * du)?,
                 Conv2d::same3(vb.pp("to_disparity").pp("2"), 2 * du, 2 * cfg.gaussians_per_pixel)?,
@@ -406,8 +397,8 @@ impl CostVolumeGeometry {
                     let s = s as usize;
                     src.push((bi * v + s) as u32);
                     // Relative pose inv(c2w_src)·c2w_ref maps reference-camera points into the source camera.
-                    let inv_src = inv4(&mat4(bi * v + s))
-                        .ok_or_else(|| candle_core::Error::Msg(format!("cost volume: extrinsics of view {s} are singular")))?;
+                    let inv_src =
+                        inv4(&mat4(bi * v + s)).ok_or_else(|| candle_core::Error::Msg(format!("cost volume: extrinsics of view {s} are singular")))?;
                     let rf = mat4(bi * v + vi);
                     let mut pose = [0f64; 16];
                     for r in 0..4 {
@@ -429,11 +420,7 @@ impl CostVolumeGeometry {
                         for y in 0..h {
                             for x in 0..w {
                                 let (xf, yf) = (x as f64, y as f64);
-                                let p = [
-                                    kinv[0] * xf + kinv[1] * yf + kinv[2],
-                                    kinv[3] * xf + kinv[4] * yf + kinv[5],
-                                    kinv[6] * xf + kinv[7] * yf + kinv[8],
-                                ];
+                                let p = [kinv[0] * xf + kinv[1] * yf + kinv[2], kinv[3] * xf + kinv[4] * yf + kinv[5], kinv[6] * xf + kinv[7] * yf + kinv[8]];
                                 let mut q = [0f64; 3];
                                 for r in 0..3 {
                                     q[r] = (pose[r * 4] * p[0] + pose[r * 4 + 1] * p[1] + pose[r * 4 + 2] * p[2]) * depth + pose[r * 4 + 3];

@@ -4,6 +4,4 @@
 pub mod depth_predictor_multiview;
 pub mod ldm_unet;
 
-pub use depth_predictor_multiview::{
-    DepthIntermediates, DepthPredictorInput, DepthPredictorMultiView, DepthPredictorOutput,
-};
+pub use depth_predictor_multiview::{DepthIntermediates, DepthPredictorInput, DepthPredictorMultiView, DepthPredictorOutput};

@@ -98,28 +98,16 @@ fn numpy_array(path: &Path, v: &Value) -> Result<Array, ConvertError> {
     if state.len() != 5 {
         return Err(bad("state is not (version, shape, dtype, is_fortran, data)"));
     }
-    let shape: Vec<usize> = state[1]
-        .items()
-        .ok_or_else(|| bad("shape"))?
-        .iter()
-        .map(|d| d.as_int().map(|d| d as usize))
-        .collect::<Option<_>>()
-        .ok_or_else(|| bad("shape"))?;
+    let shape: Vec<usize> =
+        state[1].items().ok_or_else(|| bad("shape"))?.iter().map(|d| d.as_int().map(|d| d as usize)).collect::<Option<_>>().ok_or_else(|| bad("shape"))?;
     let dtype = &state[2];
     let typestr = match dtype {
-        Value::Object(d) => {
-            d.borrow().args.items().and_then(|a| a.first().and_then(|t| t.as_str().map(str::to_string)))
-        }
+        Value::Object(d) => d.borrow().args.items().and_then(|a| a.first().and_then(|t| t.as_str().map(str::to_string))),
         _ => None,
     }
     .ok_or_else(|| bad("dtype"))?;
     let endian = match dtype {
-        Value::Object(d) => d
-            .borrow()
-            .state
-            .as_ref()
-            .and_then(|s| s.items())
-            .and_then(|s| s.get(1).and_then(|e| e.as_str().map(str::to_string))),
+        Value::Object(d) => d.borrow().state.as_ref().and_then(|s| s.items()).and_then(|s| s.get(1).and_then(|e| e.as_str().map(str::to_string))),
         _ => None,
     }
     .unwrap_or_else(|| "<".to_string());
@@ -364,11 +352,7 @@ fn walk_torch(
                 }
             }
         }
-        Value::Object(o)
-            if v.class_name().is_some_and(|c| {
-                c.starts_with("torch.jit._pickle.build_") || c == "torch.jit._pickle.restore_type_tag"
-            }) =>
-        {
+        Value::Object(o) if v.class_name().is_some_and(|c| c.starts_with("torch.jit._pickle.build_") || c == "torch.jit._pickle.restore_type_tag") => {
             // TorchScript's typed containers: `build_intlist([0, 3])` etc.
             let inner = o.borrow().args.items().and_then(|a| a.first().cloned());
             if let Some(inner) = inner {
@@ -421,8 +405,7 @@ fn materialize(path: &Path, name: &str, t: &TensorRef, storage: &[u8]) -> Result
 fn load_torch_zip(path: &Path, data: Vec<u8>) -> Result<Checkpoint, ConvertError> {
     let zerr = |e: zip::result::ZipError| format_err(path, format!("zip: {e}"));
     let mut zip = zip::ZipArchive::new(std::io::Cursor::new(data)).map_err(zerr)?;
-    let names: Vec<String> =
-        zip.file_names().map(|n| n.map(|n| n.into_owned())).collect::<Result<_, _>>().map_err(zerr)?;
+    let names: Vec<String> = zip.file_names().map(|n| n.map(|n| n.into_owned())).collect::<Result<_, _>>().map_err(zerr)?;
     let pkl = names
         .iter()
         .filter(|n| *n == "data.pkl" || n.ends_with("/data.pkl"))
@@ -437,8 +420,7 @@ fn load_torch_zip(path: &Path, data: Vec<u8>) -> Result<Checkpoint, ConvertError
         Ok(buf)
     };
     let pkl_bytes = read(&mut zip, &pkl)?;
-    let (root, _) =
-        pickle::load(&pkl_bytes).map_err(|source| ConvertError::Pickle { path: path.to_path_buf(), source })?;
+    let (root, _) = pickle::load(&pkl_bytes).map_err(|source| ConvertError::Pickle { path: path.to_path_buf(), source })?;
     let mut tensors = Vec::new();
     let mut ints = Vec::new();
     walk_torch(path, &root, "", &mut tensors, &mut ints, 0)?;
@@ -504,9 +486,7 @@ fn load_torch_legacy(path: &Path, data: &[u8]) -> Result<Checkpoint, ConvertErro
     }
     let mut arrays = Vec::with_capacity(tensors.len());
     for (name, t) in &tensors {
-        let s = storages
-            .get(t.storage.as_str())
-            .ok_or_else(|| format_err(path, format!("storage {} missing", t.storage)))?;
+        let s = storages.get(t.storage.as_str()).ok_or_else(|| format_err(path, format!("storage {} missing", t.storage)))?;
         arrays.push((name.clone(), materialize(path, name, t, s)?));
     }
     Ok(Checkpoint { arrays, ints })

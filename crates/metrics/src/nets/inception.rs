@@ -69,23 +69,17 @@ enum Block {
 impl Block {
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
         let parts = match self {
-            Block::A { conv, tower, tower_1, tower_2 } | Block::C { conv, tower, tower_1, tower_2 } => vec![
-                conv.forward_relu(x)?,
-                seq(tower, x)?,
-                seq(tower_1, x)?,
-                tower_2.forward_relu(&avg_pool_3x3_exclusive(x)?)?,
-            ],
+            Block::A { conv, tower, tower_1, tower_2 } | Block::C { conv, tower, tower_1, tower_2 } => {
+                vec![conv.forward_relu(x)?, seq(tower, x)?, seq(tower_1, x)?, tower_2.forward_relu(&avg_pool_3x3_exclusive(x)?)?]
+            }
             Block::B { conv, tower } => vec![conv.forward_relu(x)?, seq(tower, x)?, max_pool_3x3_s2(x)?],
             Block::D { tower, tower_1 } => vec![seq(tower, x)?, seq(tower_1, x)?, max_pool_3x3_s2(x)?],
             Block::E { c, tower_2, max_pool } => {
                 let [conv, tower_conv, t_mixed, t_mixed_1, t1_conv, t1_conv_1, t1_mixed, t1_mixed_1] = c.as_ref();
                 let a = tower_conv.forward_relu(x)?;
                 let b = t1_conv_1.forward_relu(&t1_conv.forward_relu(x)?)?;
-                let pooled = if *max_pool {
-                    x.pad_with_same(2, 1, 1)?.pad_with_same(3, 1, 1)?.max_pool2d_with_stride(3, 1)?
-                } else {
-                    avg_pool_3x3_exclusive(x)?
-                };
+                let pooled =
+                    if *max_pool { x.pad_with_same(2, 1, 1)?.pad_with_same(3, 1, 1)?.max_pool2d_with_stride(3, 1)? } else { avg_pool_3x3_exclusive(x)? };
                 vec![
                     conv.forward_relu(x)?,
                     t_mixed.forward_relu(&a)?,
@@ -112,10 +106,7 @@ impl InceptionV3 {
         let cs = |prefix: &str, n: usize| -> std::result::Result<Vec<Conv>, MetricsWeightsError> {
             (0..n).map(|i| c(&if i == 0 { format!("{prefix}.conv") } else { format!("{prefix}.conv_{i}") })).collect()
         };
-        let stem = ["conv", "conv_1", "conv_2", "conv_3", "conv_4"]
-            .iter()
-            .map(|n| c(n))
-            .collect::<std::result::Result<_, _>>()?;
+        let stem = ["conv", "conv_1", "conv_2", "conv_3", "conv_4"].iter().map(|n| c(n)).collect::<std::result::Result<_, _>>()?;
         let mixed = |i: usize| if i == 0 { "mixed".to_string() } else { format!("mixed_{i}") };
         let mut blocks = Vec::with_capacity(11);
         for i in 0..3 {
@@ -150,8 +141,7 @@ impl InceptionV3 {
                 "tower_1_mixed_conv",
                 "tower_1_mixed_conv_1",
             ];
-            let convs: Vec<Conv> =
-                names.iter().map(|n| c(&format!("{m}.{n}"))).collect::<std::result::Result<_, _>>()?;
+            let convs: Vec<Conv> = names.iter().map(|n| c(&format!("{m}.{n}"))).collect::<std::result::Result<_, _>>()?;
             let convs: [Conv; 8] = convs.try_into().expect("8 convs");
             blocks.push(Block::E { c: Box::new(convs), tower_2: c(&format!("{m}.tower_2_conv"))?, max_pool });
         }

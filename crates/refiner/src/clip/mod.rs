@@ -175,7 +175,8 @@ impl ClipImageEmbedder {
             None => ClipLayout::detect(&weights::keys(&st)).ok_or_else(|| WeightsError::UnknownLayout {
                 path: path.to_path_buf(),
                 what: "CLIP vision".into(),
-                expected: "open_clip `…visual.class_embedding` / `…visual.conv1.weight` or transformers `vision_model.embeddings.patch_embedding.weight`".into(),
+                expected: "open_clip `…visual.class_embedding` / `…visual.conv1.weight` or transformers `vision_model.embeddings.patch_embedding.weight`"
+                    .into(),
             })?,
         };
         let w = match &layout {

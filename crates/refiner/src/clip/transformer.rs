@@ -82,9 +82,7 @@ impl VisionTransformer {
             class_embedding: w.get("class_embedding", &[d])?,
             positional_embedding: w.get("positional_embedding", &[grid * grid + 1, d])?,
             ln_pre: layer_norm(w, "ln_pre", d, cfg.layer_norm_eps)?,
-            resblocks: (0..cfg.layers)
-                .map(|i| ResidualAttentionBlock::load(w, &format!("transformer.resblocks.{i}"), cfg))
-                .collect::<Result<_>>()?,
+            resblocks: (0..cfg.layers).map(|i| ResidualAttentionBlock::load(w, &format!("transformer.resblocks.{i}"), cfg)).collect::<Result<_>>()?,
             ln_post: layer_norm(w, "ln_post", d, cfg.layer_norm_eps)?,
             proj: w.get("proj", &[d, cfg.output_dim])?,
         })
@@ -95,11 +93,7 @@ impl VisionTransformer {
         let (n, _, h, w) = x.dims4()?;
         let p = cfg.patch_size;
         let (gh, gw) = (h / p, w / p);
-        let patches = x
-            .reshape((n, 3, gh, p, gw, p))?
-            .permute((0, 2, 4, 1, 3, 5))?
-            .contiguous()?
-            .reshape((n * gh * gw, 3 * p * p))?;
+        let patches = x.reshape((n, 3, gh, p, gw, p))?.permute((0, 2, 4, 1, 3, 5))?.contiguous()?.reshape((n * gh * gw, 3 * p * p))?;
         let tokens = patches.matmul(&self.conv1.t()?)?.reshape((n, gh * gw, cfg.width))?;
         let cls = self.class_embedding.reshape((1, 1, cfg.width))?.broadcast_as((n, 1, cfg.width))?;
         let mut x = Tensor::cat(&[&cls, &tokens], 1)?.broadcast_add(&self.positional_embedding.unsqueeze(0)?)?;

@@ -61,7 +61,10 @@ mod tests {
     #[test]
     fn vit_h_names_follow_open_clip() {
         let m = |n: &str| transformers_to_open_clip(n).flatten();
-        assert_eq!(m("vision_model.encoder.layers.31.self_attn.v_proj.bias"), Some(("transformer.resblocks.31.attn.in_proj_bias".into(), Piece::Concat { index: 2, of: 3 })));
+        assert_eq!(
+            m("vision_model.encoder.layers.31.self_attn.v_proj.bias"),
+            Some(("transformer.resblocks.31.attn.in_proj_bias".into(), Piece::Concat { index: 2, of: 3 }))
+        );
         assert_eq!(m("vision_model.encoder.layers.0.mlp.fc2.weight"), Some(("transformer.resblocks.0.mlp.c_proj.weight".into(), Piece::Whole)));
         assert_eq!(m("vision_model.encoder.layers.4.self_attn.out_proj.weight"), Some(("transformer.resblocks.4.attn.out_proj.weight".into(), Piece::Whole)));
         assert_eq!(m("vision_model.pre_layrnorm.bias"), Some(("ln_pre.bias".into(), Piece::Whole)));

@@ -142,10 +142,7 @@ mod tests {
         assert_eq!(m("conv_in.weight").as_deref(), Some("input_blocks.0.0.weight"));
         assert_eq!(m("down_blocks.0.downsamplers.0.conv.weight").as_deref(), Some("input_blocks.3.0.op.weight"));
         assert_eq!(m("down_blocks.3.resnets.1.spatial_res_block.conv1.bias").as_deref(), Some("input_blocks.11.0.in_layers.2.bias"));
-        assert_eq!(
-            m("down_blocks.1.resnets.0.temporal_res_block.time_emb_proj.weight").as_deref(),
-            Some("input_blocks.4.0.time_stack.emb_layers.1.weight")
-        );
+        assert_eq!(m("down_blocks.1.resnets.0.temporal_res_block.time_emb_proj.weight").as_deref(), Some("input_blocks.4.0.time_stack.emb_layers.1.weight"));
         assert_eq!(m("up_blocks.0.upsamplers.0.conv.weight").as_deref(), Some("output_blocks.2.1.conv.weight"));
         assert_eq!(m("up_blocks.1.upsamplers.0.conv.weight").as_deref(), Some("output_blocks.5.2.conv.weight"));
         assert_eq!(

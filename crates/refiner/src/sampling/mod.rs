@@ -94,12 +94,7 @@ fn scale_tensor(scales: &[f32], batch: usize, like: &Tensor) -> Result<Tensor> {
 
 /// Euler EDM sampling with linear-prediction guidance; returns the final latents (B·F, 4, h, w).
 /// `on_step` sees every step's intermediates.
-pub fn sample(
-    unet: &VideoUNet,
-    cfg: &SamplerConfig,
-    inp: &SampleInputs,
-    mut on_step: Option<&mut dyn FnMut(&StepRecord)>,
-) -> Result<Tensor> {
+pub fn sample(unet: &VideoUNet, cfg: &SamplerConfig, inp: &SampleInputs, mut on_step: Option<&mut dyn FnMut(&StepRecord)>) -> Result<Tensor> {
     let f = inp.num_frames;
     let n = inp.noise.dim(0)?;
     if f == 0 || n % f != 0 {
@@ -126,14 +121,7 @@ pub fn sample(
         let (c_skip, c_out, c_in, c_noise) = v_scaling_edm(sigma);
         let unet_input = guided_unet_input(&x, inp.concat, c_in)?;
         let ts = vec![c_noise; 2 * n];
-        let v = unet.forward(&UNetInputs {
-            x: &unet_input,
-            timesteps: &ts,
-            context: &ctx2,
-            y: y.as_ref(),
-            num_video_frames: f,
-            num_splits: cfg.num_splits,
-        })?;
+        let v = unet.forward(&UNetInputs { x: &unet_input, timesteps: &ts, context: &ctx2, y: y.as_ref(), num_video_frames: f, num_splits: cfg.num_splits })?;
         let v_u = v.narrow(0, 0, n)?;
         let v_c = v.narrow(0, n, n)?;
         // Guidance on v (diffusers order); sgm guides the denoised outputs — algebraically identical.

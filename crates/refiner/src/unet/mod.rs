@@ -100,10 +100,9 @@ impl Default for VideoUNetConfig {
 fn usize_list(v: &serde_json::Value, key: &str, n: usize, path: &Path) -> Result<Vec<usize>, UNetError> {
     let err = |msg: String| UNetError::Config { path: path.to_path_buf(), msg };
     match v.get(key) {
-        Some(serde_json::Value::Array(a)) => a
-            .iter()
-            .map(|x| x.as_u64().map(|u| u as usize).ok_or_else(|| err(format!("`{key}` must hold integers"))))
-            .collect(),
+        Some(serde_json::Value::Array(a)) => {
+            a.iter().map(|x| x.as_u64().map(|u| u as usize).ok_or_else(|| err(format!("`{key}` must hold integers")))).collect()
+        }
         Some(x) => x.as_u64().map(|u| vec![u as usize; n]).ok_or_else(|| err(format!("`{key}` must be an integer or list"))),
         None => Err(err(format!("missing `{key}`"))),
     }
@@ -156,12 +155,7 @@ impl VideoUNetConfig {
         if head_ch.iter().any(|&d| d != head_ch[0]) {
             return Err(err(format!("channels per head differ between levels: {head_ch:?}")));
         }
-        let attention_resolutions = types
-            .iter()
-            .enumerate()
-            .filter(|(_, t)| t.starts_with("CrossAttn"))
-            .map(|(i, _)| 1usize << i)
-            .collect();
+        let attention_resolutions = types.iter().enumerate().filter(|(_, t)| t.starts_with("CrossAttn")).map(|(i, _)| 1usize << i).collect();
         let ctx = v
             .get("cross_attention_dim")
             .and_then(|x| x.as_u64().or_else(|| x.as_array().and_then(|a| a.first()).and_then(|y| y.as_u64())))

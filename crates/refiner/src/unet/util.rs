@@ -28,9 +28,7 @@ pub fn linspace_f32(start: f32, end: f32, n: usize) -> Vec<f32> {
     }
     let step = (end - start) / (n - 1) as f32;
     let halfway = n / 2;
-    (0..n)
-        .map(|i| if i < halfway { start + step * i as f32 } else { end - step * (n - i - 1) as f32 })
-        .collect()
+    (0..n).map(|i| if i < halfway { start + step * i as f32 } else { end - step * (n - i - 1) as f32 }).collect()
 }
 
 /// Linear layer with torch weight layout (out, in).

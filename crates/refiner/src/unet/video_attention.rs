@@ -4,10 +4,10 @@
 use candle_core::{Result, Tensor};
 
 use super::util::{attention, blend_learned, sigmoid_scalar, timestep_embedding, Linear, Norm};
-use mvsplat360_nn::attention::{multi_head_attention_seqs, SeqLayout};
-use mvsplat360_nn::linear::{geglu_ff, linear_fused, linear_from_channels_first, linear_to_channels_first};
-use mvsplat360_nn::mode::is_differentiable;
 use super::weights::Weights;
+use mvsplat360_nn::attention::{multi_head_attention_seqs, SeqLayout};
+use mvsplat360_nn::linear::{geglu_ff, linear_from_channels_first, linear_fused, linear_to_channels_first};
+use mvsplat360_nn::mode::is_differentiable;
 
 pub(crate) fn linear(w: &Weights, name: &str, i: usize, o: usize, bias: bool) -> Result<Linear> {
     let weight = w.get(&format!("{name}.weight"), &[o, i])?;
@@ -123,10 +123,7 @@ pub struct FeedForward {
 impl FeedForward {
     fn load(w: &Weights, p: &str, dim: usize, dim_out: usize) -> Result<Self> {
         let inner = dim * 4;
-        Ok(Self {
-            proj: linear(w, &format!("{p}.net.0.proj"), dim, inner * 2, true)?,
-            out: linear(w, &format!("{p}.net.2"), inner, dim_out, true)?,
-        })
+        Ok(Self { proj: linear(w, &format!("{p}.net.0.proj"), dim, inner * 2, true)?, out: linear(w, &format!("{p}.net.2"), inner, dim_out, true)? })
     }
 
     /// `scale·ff(x) + Σ cᵢ·addᵢ` (rows processed in chunks; the residual/blend is folded into the output gemm).
@@ -267,12 +264,21 @@ impl SpatialVideoTransformer {
         let norm = norm(w, &format!("{p}.norm"), ch, 1e-6)?;
         let proj_in = linear(w, &format!("{p}.proj_in"), ch, inner, true)?;
         let proj_out = linear(w, &format!("{p}.proj_out"), inner, ch, true)?;
-        let time_pos_embed = (
-            linear(w, &format!("{p}.time_pos_embed.0"), ch, ch * 4, true)?,
-            linear(w, &format!("{p}.time_pos_embed.2"), ch * 4, ch, true)?,
-        );
+        let time_pos_embed = (linear(w, &format!("{p}.time_pos_embed.0"), ch, ch * 4, true)?, linear(w, &format!("{p}.time_pos_embed.2"), ch * 4, ch, true)?);
         let mix = w.get(&format!("{p}.time_mixer.mix_factor"), &[1])?;
-        Ok(Self { norm, proj_in, proj_out, blocks, time_stack, time_pos_embed, alpha: sigmoid_scalar(&mix)?, mix, trainable: w.is_trainable(), channels: ch, max_period })
+        Ok(Self {
+            norm,
+            proj_in,
+            proj_out,
+            blocks,
+            time_stack,
+            time_pos_embed,
+            alpha: sigmoid_scalar(&mix)?,
+            mix,
+            trainable: w.is_trainable(),
+            channels: ch,
+            max_period,
+        })
     }
 
     /// x: (B·T, C, H, W); context: (B·T, Lc, D).

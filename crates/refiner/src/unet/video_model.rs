@@ -305,7 +305,16 @@ impl VideoUNet {
 
     /// `up_size`: the spatial size an upsampler must produce (the next skip connection's), when known.
     #[allow(clippy::too_many_arguments)]
-    fn run(&self, layers: &[Layer], h: Tensor, emb_act: &Tensor, ctx: &Tensor, frames: usize, splits: usize, up_size: Option<(usize, usize)>) -> Result<Tensor> {
+    fn run(
+        &self,
+        layers: &[Layer],
+        h: Tensor,
+        emb_act: &Tensor,
+        ctx: &Tensor,
+        frames: usize,
+        splits: usize,
+        up_size: Option<(usize, usize)>,
+    ) -> Result<Tensor> {
         let max = self.cfg.attn_max_score_elems;
         let mut h = h;
         for l in layers {

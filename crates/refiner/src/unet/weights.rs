@@ -67,8 +67,7 @@ impl Weights {
     /// Open a safetensors file (mmapped) and map its UNet keys to sgm names.
     pub fn from_file(path: &Path, layout: Option<UNetLayout>, cfg: &VideoUNetConfig, device: &Device) -> std::result::Result<Self, UNetError> {
         // SAFETY: the file is opened read-only; mutating it while mapped is the caller's problem, as in candle.
-        let st = unsafe { MmapedSafetensors::new(path) }
-            .map_err(|e| UNetError::Open { path: path.to_path_buf(), msg: e.to_string() })?;
+        let st = unsafe { MmapedSafetensors::new(path) }.map_err(|e| UNetError::Open { path: path.to_path_buf(), msg: e.to_string() })?;
         let names: Vec<String> = st.tensors().into_iter().map(|(n, _)| n).collect();
         let layout = match layout {
             Some(l) => l,

@@ -203,7 +203,12 @@ impl AutoencoderKL {
     }
 
     /// [`Self::load`] with the weights handed out as `Var`s by model name (to continue training an autoencoder).
-    pub fn load_trainable(path: &Path, layout: Option<VaeLayout>, cfg: &AutoencoderConfig, device: &Device) -> Result<(Self, Vec<(String, candle_core::Var)>), VaeError> {
+    pub fn load_trainable(
+        path: &Path,
+        layout: Option<VaeLayout>,
+        cfg: &AutoencoderConfig,
+        device: &Device,
+    ) -> Result<(Self, Vec<(String, candle_core::Var)>), VaeError> {
         let w = Self::open_weights(path, layout, cfg, device)?.trainable();
         let model = Self::build(&w, cfg)?;
         let vars = w.take_vars();
@@ -219,7 +224,8 @@ impl AutoencoderKL {
             None => VaeLayout::detect(&weights::keys(&st)).ok_or_else(|| WeightsError::UnknownLayout {
                 path: path.to_path_buf(),
                 what: "VAE".into(),
-                expected: "sgm `[refiner.]first_stage_model.encoder.down.0.block.0.conv1.weight` or diffusers `encoder.down_blocks.0.resnets.0.conv1.weight`".into(),
+                expected: "sgm `[refiner.]first_stage_model.encoder.down.0.block.0.conv1.weight` or diffusers `encoder.down_blocks.0.resnets.0.conv1.weight`"
+                    .into(),
             })?,
         };
         let w = match &layout {

@@ -20,11 +20,7 @@ pub(crate) struct Conv {
 
 impl Conv {
     pub fn load(w: &StrictWeights, p: &str, i: usize, o: usize, k: usize, stride: usize, padding: usize) -> Result<Self> {
-        Ok(Self {
-            w: w.get(&format!("{p}.weight"), &[o, i, k, k])?,
-            b: w.get(&format!("{p}.bias"), &[o])?,
-            cfg: Conv2dConfig { padding, stride, dilation: 1 },
-        })
+        Ok(Self { w: w.get(&format!("{p}.weight"), &[o, i, k, k])?, b: w.get(&format!("{p}.bias"), &[o])?, cfg: Conv2dConfig { padding, stride, dilation: 1 } })
     }
 
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {

@@ -146,11 +146,7 @@ impl VideoDecoder {
         let conv_in = Conv::load(w, "decoder.conv_in", cfg.z_channels, block_in, 3, 1, 1)?;
         let mid_block_1 = VideoResBlock::load(w, "decoder.mid.block_1", block_in, block_in, kt)?;
         let mid_attn_1 = AttnBlock::load(w, "decoder.mid.attn_1", block_in, cfg.attn_max_score_elems)?;
-        let mid_block_2 = if cfg.decoder_mid_res_blocks >= 2 {
-            Some(VideoResBlock::load(w, "decoder.mid.block_2", block_in, block_in, kt)?)
-        } else {
-            None
-        };
+        let mid_block_2 = if cfg.decoder_mid_res_blocks >= 2 { Some(VideoResBlock::load(w, "decoder.mid.block_2", block_in, block_in, kt)?) } else { None };
         let mut up = Vec::new();
         for l in (0..levels).rev() {
             let block_out = ch * cfg.ch_mult[l];

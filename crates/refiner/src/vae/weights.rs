@@ -209,9 +209,7 @@ impl StrictWeights {
         let Some(st) = &self.st else {
             return Err(WeightsError::Open { path: self.path.clone(), msg: format!("no file to read `{key}` from") });
         };
-        let t = st
-            .load(key, &self.device)
-            .map_err(|source| WeightsError::Read { path: self.path.clone(), key: key.to_string(), source })?;
+        let t = st.load(key, &self.device).map_err(|source| WeightsError::Read { path: self.path.clone(), key: key.to_string(), source })?;
         // f16/bf16 checkpoints are upcast once at load time.
         if t.dtype() == DType::F32 {
             Ok(t)

@@ -15,13 +15,7 @@ use crate::util::{SharedMut, Uninit, POOL_F32};
 static PAIR_POOL: std::sync::Mutex<Vec<f32>> = std::sync::Mutex::new(Vec::new());
 
 /// Gradients of the loss w.r.t. every input, given the forward result of the same inputs and settings.
-pub fn backward(
-    inp: &RasterInputs,
-    s: &RasterSettings,
-    fwd: &ForwardOutput,
-    grads: &PixelGrads,
-    mode: GradMode,
-) -> Result<Gradients> {
+pub fn backward(inp: &RasterInputs, s: &RasterSettings, fwd: &ForwardOutput, grads: &PixelGrads, mode: GradMode) -> Result<Gradients> {
     inp.validate()?;
     let n = inp.len();
     if fwd.radii.len() != n || fwd.width != s.camera.width || fwd.height != s.camera.height {
@@ -73,8 +67,7 @@ pub fn backward(
     let k = inp.sh_coeffs;
     let visible = |i: usize| fwd.radii[i] > 0;
     let opacities: Vec<f32> = (0..n).map(|i| if visible(i) { sum(P_OP, i) } else { 0.0 }).collect();
-    let features: Vec<f32> =
-        (0..n * nf).map(|j| if visible(j / nf.max(1)) { sum(P_FEAT + j % nf, j / nf) } else { 0.0 }).collect();
+    let features: Vec<f32> = (0..n * nf).map(|j| if visible(j / nf.max(1)) { sum(P_FEAT + j % nf, j / nf) } else { 0.0 }).collect();
     let scale_rot = matches!(inp.cov, CovInput::ScaleRot { .. });
     // Every value of these is written below (zeros for culled Gaussians and unused SH degrees): no zero pass.
     let mut means = Uninit::<f32>::new(3 * n);
@@ -125,8 +118,7 @@ pub fn backward(
         let m_w = 1.0 / (hom(3) + 1e-7);
         let (hx, hy) = (hom(0), hom(1));
         for j in 0..3 {
-            dmean[j] += (fp[0][j] * m_w - fp[3][j] * hx * m_w * m_w) * g_ndc[0]
-                + (fp[1][j] * m_w - fp[3][j] * hy * m_w * m_w) * g_ndc[1];
+            dmean[j] += (fp[0][j] * m_w - fp[3][j] * hx * m_w * m_w) * g_ndc[0] + (fp[1][j] * m_w - fp[3][j] * hy * m_w * m_w) * g_ndc[1];
         }
 
         // Conic → 2D covariance → 3D covariance and view-space mean.
@@ -292,11 +284,7 @@ pub fn backward(
 pub(crate) fn scale_rot_backward(s: [f32; 3], q: [f32; 4], dcov: &[f32; 6]) -> ([f32; 3], [f32; 4]) {
     let r = quat_to_rot(q);
     // Symmetric dL/dSigma: off-diagonal entries share the parameter, so each position gets half.
-    let g = [
-        [dcov[0], 0.5 * dcov[1], 0.5 * dcov[2]],
-        [0.5 * dcov[1], dcov[3], 0.5 * dcov[4]],
-        [0.5 * dcov[2], 0.5 * dcov[4], dcov[5]],
-    ];
+    let g = [[dcov[0], 0.5 * dcov[1], 0.5 * dcov[2]], [0.5 * dcov[1], dcov[3], 0.5 * dcov[4]], [0.5 * dcov[2], 0.5 * dcov[4], dcov[5]]];
     // G R
     let mut gr = [[0f32; 3]; 3];
     for a in 0..3 {
@@ -319,15 +307,8 @@ pub(crate) fn scale_rot_backward(s: [f32; 3], q: [f32; 4], dcov: &[f32; 6]) -> (
     }
     let [w, x, y, z] = q;
     let dw = 2.0 * (-z * dr[0][1] + y * dr[0][2] + z * dr[1][0] - x * dr[1][2] - y * dr[2][0] + x * dr[2][1]);
-    let dx = 2.0
-        * (y * dr[0][1] + z * dr[0][2] + y * dr[1][0] - 2.0 * x * dr[1][1] - w * dr[1][2] + z * dr[2][0] + w * dr[2][1]
-            - 2.0 * x * dr[2][2]);
-    let dy = 2.0
-        * (-2.0 * y * dr[0][0] + x * dr[0][1] + w * dr[0][2] + x * dr[1][0] + z * dr[1][2] - w * dr[2][0] + z * dr[2][1]
-            - 2.0 * y * dr[2][2]);
-    let dz = 2.0
-        * (-2.0 * z * dr[0][0] - w * dr[0][1] + x * dr[0][2] + w * dr[1][0] - 2.0 * z * dr[1][1] + y * dr[1][2]
-            + x * dr[2][0]
-            + y * dr[2][1]);
+    let dx = 2.0 * (y * dr[0][1] + z * dr[0][2] + y * dr[1][0] - 2.0 * x * dr[1][1] - w * dr[1][2] + z * dr[2][0] + w * dr[2][1] - 2.0 * x * dr[2][2]);
+    let dy = 2.0 * (-2.0 * y * dr[0][0] + x * dr[0][1] + w * dr[0][2] + x * dr[1][0] + z * dr[1][2] - w * dr[2][0] + z * dr[2][1] - 2.0 * y * dr[2][2]);
+    let dz = 2.0 * (-2.0 * z * dr[0][0] - w * dr[0][1] + x * dr[0][2] + w * dr[1][0] - 2.0 * z * dr[1][1] + y * dr[1][2] + x * dr[2][0] + y * dr[2][1]);
     (ds, [dw, dx, dy, dz])
 }

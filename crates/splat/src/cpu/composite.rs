@@ -164,12 +164,7 @@ unsafe fn fwd_tile<V: F8>(c: &Ctx, tile: usize, s: &mut FwdScratch, out: &FwdIma
                 let power = V::splat(-0.5).mul(cav.mul(dx).mul(dx).add(cdy2)).sub(dx.mul(bdy));
                 let al = ov.mul(exp8(power)).min(amax);
                 let tv = V::load(tp.add(idx));
-                let act = iota
-                    .ge(V::splat(lo))
-                    .and(iota.le(V::splat(hi)))
-                    .and(power.le(zero))
-                    .and(al.ge(amin))
-                    .and(tv.gt(zero));
+                let act = iota.ge(V::splat(lo)).and(iota.le(V::splat(hi))).and(power.le(zero)).and(al.ge(amin)).and(tv.gt(zero));
                 if act.bits() == 0 {
                     continue;
                 }
@@ -262,14 +257,7 @@ pub fn forward(inp: &RasterInputs, s: &RasterSettings) -> Result<ForwardOutput> 
             n_contrib: SharedMut::new(&mut n_contrib),
             bg: s.background,
         };
-        let ctx = Ctx {
-            f: &f,
-            geo: &pre.geo,
-            vals: &pre.vals,
-            nv: 4 + nf,
-            tile_start: &bins.tile_start,
-            point_list: &bins.point_list,
-        };
+        let ctx = Ctx { f: &f, geo: &pre.geo, vals: &pre.vals, nv: 4 + nf, tile_start: &bins.tile_start, point_list: &bins.point_list };
         let isa = isa();
         (0..f.num_tiles()).into_par_iter().for_each_init(
             || FwdScratch { t: [0.0; NPIX], last: [0.0; NPIX], acc: vec![0.0; (4 + nf) * NPIX] },
@@ -475,12 +463,7 @@ unsafe fn bwd_tile<V: F8>(b: &BwdCtx, tile: usize, s: &mut BwdScratch) {
                 let gk = exp8(power);
                 let raw = ov.mul(gk);
                 let a = raw.min(amax);
-                let act = iota
-                    .ge(V::splat(lo))
-                    .and(iota.le(V::splat(hi)))
-                    .and(power.le(zero))
-                    .and(a.ge(amin))
-                    .and(V::load(lp.add(idx)).gt_i32(jv));
+                let act = iota.ge(V::splat(lo)).and(iota.le(V::splat(hi))).and(power.le(zero)).and(a.ge(amin)).and(V::load(lp.add(idx)).gt_i32(jv));
                 if act.bits() == 0 {
                     continue;
                 }

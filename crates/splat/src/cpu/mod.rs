@@ -233,10 +233,5 @@ pub(crate) fn tile_rect(p: [f32; 2], radius: i32, grid: [usize; 2]) -> [usize; 4
     let r = radius as f32;
     let b = TILE as f32;
     let cl = |v: f32, g: usize| -> usize { (v as i32).clamp(0, g as i32) as usize };
-    [
-        cl((p[0] - r) / b, grid[0]),
-        cl((p[1] - r) / b, grid[1]),
-        cl((p[0] + r + b - 1.0) / b, grid[0]),
-        cl((p[1] + r + b - 1.0) / b, grid[1]),
-    ]
+    [cl((p[0] - r) / b, grid[0]), cl((p[1] - r) / b, grid[1]), cl((p[0] + r + b - 1.0) / b, grid[0]), cl((p[1] + r + b - 1.0) / b, grid[1])]
 }

@@ -297,12 +297,7 @@ fn project_lanes<V: F8>(f: &Frame, inp: &RasterInputs, idx: &[usize; LANES], deg
         }
         CovInput::ScaleRot { scales, quats } => {
             let s = [gather(scales, 3, idx, 0), gather(scales, 3, idx, 1), gather(scales, 3, idx, 2)];
-            let q = [
-                gather(quats, 4, idx, 0),
-                gather(quats, 4, idx, 1),
-                gather(quats, 4, idx, 2),
-                gather(quats, 4, idx, 3),
-            ];
+            let q = [gather(quats, 4, idx, 0), gather(quats, 4, idx, 1), gather(quats, 4, idx, 2), gather(quats, 4, idx, 3)];
             cov_scale_rot(&s, &q)
         }
     };
@@ -633,8 +628,7 @@ mod tests {
             }
             let radius = rf as i32;
             // Pixel coordinates in double precision, as the kernel's ndc2Pix does.
-            let px =
-                [(((ndc[0] as f64 + 1.0) * w - 1.0) * 0.5) as f32, (((ndc[1] as f64 + 1.0) * h - 1.0) * 0.5) as f32];
+            let px = [(((ndc[0] as f64 + 1.0) * w - 1.0) * 0.5) as f32, (((ndc[1] as f64 + 1.0) * h - 1.0) * 0.5) as f32];
             let rect = tile_rect(px, radius, f.grid);
             let area = (rect[2] - rect[0]) * (rect[3] - rect[1]);
             if area == 0 {

@@ -316,9 +316,7 @@ mod avx {
         }
         #[inline(always)]
         fn gt_i32(self, o: Self) -> Self {
-            unsafe {
-                Avx(_mm256_castsi256_ps(_mm256_cmpgt_epi32(_mm256_castps_si256(self.0), _mm256_castps_si256(o.0))))
-            }
+            unsafe { Avx(_mm256_castsi256_ps(_mm256_cmpgt_epi32(_mm256_castps_si256(self.0), _mm256_castps_si256(o.0)))) }
         }
         #[inline(always)]
         fn bits(self) -> u32 {

@@ -64,11 +64,7 @@ impl ExportGaussians {
         for i in 0..n {
             out.means.push([means[3 * i], means[3 * i + 1], means[3 * i + 2]]);
             let c = &covs[9 * i..9 * i + 9];
-            let m = [
-                [c[0] as f64, c[1] as f64, c[2] as f64],
-                [c[3] as f64, c[4] as f64, c[5] as f64],
-                [c[6] as f64, c[7] as f64, c[8] as f64],
-            ];
+            let m = [[c[0] as f64, c[1] as f64, c[2] as f64], [c[3] as f64, c[4] as f64, c[5] as f64], [c[6] as f64, c[7] as f64, c[8] as f64]];
             let (s, q) = covariance_to_scale_rotation(m);
             out.scales.push(s);
             out.quats.push(q);

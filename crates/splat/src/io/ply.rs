@@ -187,7 +187,11 @@ pub fn read_ply(path: &Path) -> Result<ExportGaussians> {
             .map(|i| {
                 let q = [rot[0][i], rot[1][i], rot[2][i], rot[3][i]];
                 let nrm = q.iter().map(|v| v * v).sum::<f32>().sqrt();
-                if nrm > 0.0 && nrm.is_finite() { q.map(|v| v / nrm) } else { [1.0, 0.0, 0.0, 0.0] }
+                if nrm > 0.0 && nrm.is_finite() {
+                    q.map(|v| v / nrm)
+                } else {
+                    [1.0, 0.0, 0.0, 0.0]
+                }
             })
             .collect(),
         opacities: op.iter().map(|&l| 1.0 / (1.0 + (-l).exp())).collect(),

@@ -77,8 +77,8 @@ fn main() {
     }
     let cuda = opts.device != mvsplat360_pipeline::compute::DeviceSpec::Cpu;
     if rank.is_none() && world > 1 {
-        let result = mvsplat360_train::TrainConfig::from_file(config.as_ref())
-            .and_then(|_| mvsplat360_train::dist::launch_self(world, backend, cuda, &lines.stop));
+        let result =
+            mvsplat360_train::TrainConfig::from_file(config.as_ref()).and_then(|_| mvsplat360_train::dist::launch_self(world, backend, cuda, &lines.stop));
         match result {
             Ok(()) => {}
             Err(mvsplat360_train::TrainError::Interrupted) => std::process::exit(130),

@@ -62,13 +62,27 @@ struct Material {
 
 #[derive(Debug, Clone, Copy)]
 enum Shape {
-    Sphere { c: V3, r: f64 },
+    Sphere {
+        c: V3,
+        r: f64,
+    },
     /// Box with half extents `h`, rotated by `angle` about the vertical axis.
-    Cuboid { c: V3, h: V3, angle: f64 },
+    Cuboid {
+        c: V3,
+        h: V3,
+        angle: f64,
+    },
     /// Vertical cylinder standing on the ground.
-    Cylinder { c: V3, r: f64, height: f64 },
+    Cylinder {
+        c: V3,
+        r: f64,
+        height: f64,
+    },
     /// Wall: the plane n·p = d (n horizontal), visible from the side n points to.
-    Wall { n: V3, d: f64 },
+    Wall {
+        n: V3,
+        d: f64,
+    },
 }
 
 struct Object {
@@ -86,7 +100,10 @@ struct World {
 }
 
 fn hash(x: i64, y: i64, z: i64, s: u32) -> f64 {
-    let mut h = (x as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ (y as u64).wrapping_mul(0xC2B2_AE3D_27D4_EB4F) ^ (z as u64).wrapping_mul(0x1656_67B1_9E37_79F9) ^ (s as u64) << 7;
+    let mut h = (x as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15)
+        ^ (y as u64).wrapping_mul(0xC2B2_AE3D_27D4_EB4F)
+        ^ (z as u64).wrapping_mul(0x1656_67B1_9E37_79F9)
+        ^ (s as u64) << 7;
     h ^= h >> 31;
     h = h.wrapping_mul(0xBF58_476D_1CE4_E5B9);
     h ^= h >> 29;
@@ -121,7 +138,11 @@ impl Material {
             Pattern::Checker(sc) => {
                 let q = p / sc;
                 let k = q.x.floor() as i64 + q.y.floor() as i64 + q.z.floor() as i64;
-                if k.rem_euclid(2) == 0 { 0.15 } else { 0.85 }
+                if k.rem_euclid(2) == 0 {
+                    0.15
+                } else {
+                    0.85
+                }
             }
             Pattern::Stripes(sc, axis) => 0.5 + 0.5 * (p[axis] / sc * std::f64::consts::TAU).sin(),
             Pattern::Noise(sc) => fbm(p / sc, self.seed),
@@ -383,7 +404,15 @@ fn render_view(world: &World, cam: &Camera, samples: u32) -> (Vec<f32>, Vec<f32>
 fn camera_loop(rng: &mut impl Rng, n: usize, width: u32, height: u32) -> Vec<Camera> {
     let hfov = rng.gen_range(50f64..70.0).to_radians();
     let fx = width as f64 / (2.0 * (hfov / 2.0).tan());
-    let tpl = Camera { fx, fy: fx, cx: width as f64 / 2.0, cy: height as f64 / 2.0, width, height, c2w: [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]] };
+    let tpl = Camera {
+        fx,
+        fy: fx,
+        cx: width as f64 / 2.0,
+        cy: height as f64 / 2.0,
+        width,
+        height,
+        c2w: [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]],
+    };
     let radius = rng.gen_range(8.0..11.0);
     let elev = rng.gen_range(10f64..35.0).to_radians();
     let phase = rng.gen_range(0.0..std::f64::consts::TAU);
@@ -453,7 +482,10 @@ mod tests {
     fn sphere_projects_where_the_camera_says() {
         let c = V3::new(0.7, -0.8, -0.4);
         let world = World {
-            objects: vec![Object { shape: Shape::Sphere { c, r: 0.25 }, mat: Material { a: V3::repeat(1.0), b: V3::repeat(1.0), pattern: Pattern::Checker(1.0), seed: 0 } }],
+            objects: vec![Object {
+                shape: Shape::Sphere { c, r: 0.25 },
+                mat: Material { a: V3::repeat(1.0), b: V3::repeat(1.0), pattern: Pattern::Checker(1.0), seed: 0 },
+            }],
             ground: Material { a: V3::zeros(), b: V3::zeros(), pattern: Pattern::Checker(1.0), seed: 0 },
             light: V3::new(0.0, -1.0, 0.0),
             sky_top: V3::zeros(),

@@ -83,4 +83,3 @@ pub fn with_refiner(out: &std::path::Path, steps: u64, extra_train: &str) -> Tra
     let text = base.to_toml().replacen("[data]", &format!("{TINY_REFINER}\n[data]"), 1);
     TrainConfig::from_toml(&text, std::path::Path::new("tiny-refiner.toml")).expect("refiner config parses")
 }
-

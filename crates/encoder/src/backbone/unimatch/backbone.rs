@@ -19,11 +19,7 @@ impl ResidualBlock {
     pub fn new(vb: VarBuilder, c_in: usize, c_out: usize, stride: usize) -> Result<Self> {
         let conv1 = Conv2d::new(vb.pp("conv1"), c_in, c_out, 3, stride, 1, false)?;
         let conv2 = Conv2d::new(vb.pp("conv2"), c_out, c_out, 3, 1, 1, false)?;
-        let downsample = if stride != 1 || c_in != c_out {
-            Some(Conv2d::new(vb.pp("downsample").pp("0"), c_in, c_out, 1, stride, 0, true)?)
-        } else {
-            None
-        };
+        let downsample = if stride != 1 || c_in != c_out { Some(Conv2d::new(vb.pp("downsample").pp("0"), c_in, c_out, 1, stride, 0, true)?) } else { None };
         Ok(Self { conv1, conv2, downsample })
     }
 }

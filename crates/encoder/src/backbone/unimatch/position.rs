@@ -7,9 +7,7 @@ use candle_core::{Device, Result, Tensor};
 pub fn position_embedding_sine(num_pos_feats: usize, h: usize, w: usize, device: &Device) -> Result<Tensor> {
     let scale = 2.0 * std::f32::consts::PI;
     let eps = 1e-6f32;
-    let dim_t: Vec<f32> = (0..num_pos_feats)
-        .map(|j| 10000f32.powf((2 * (j / 2)) as f32 / num_pos_feats as f32))
-        .collect();
+    let dim_t: Vec<f32> = (0..num_pos_feats).map(|j| 10000f32.powf((2 * (j / 2)) as f32 / num_pos_feats as f32)).collect();
     let embed = |i: usize, n: usize| (i as f32 + 1.0) / (n as f32 + eps) * scale;
     let c = 2 * num_pos_feats;
     let mut out = vec![0f32; c * h * w];

@@ -149,20 +149,12 @@ mod tests {
     fn banded_convolution_equals_direct() {
         let dev = Device::Cpu;
         for &(stride, padding) in &[(1usize, 1usize), (2, 1)] {
-            let conv = Conv2d {
-                weight: Tensor::randn(0f32, 0.3, (5, 3, 3, 3), &dev).unwrap(),
-                bias: Tensor::randn(0f32, 0.3, 5, &dev).unwrap(),
-                stride,
-                padding,
-            };
+            let conv =
+                Conv2d { weight: Tensor::randn(0f32, 0.3, (5, 3, 3, 3), &dev).unwrap(), bias: Tensor::randn(0f32, 0.3, 5, &dev).unwrap(), stride, padding };
             let x = Tensor::randn(0f32, 1.0, (2, 3, 11, 9), &dev).unwrap();
             // Independent reference: candle's own convolution plus bias (stride 1 takes the shifted-gemm path,
             // stride 2 the banded im2col path).
-            let direct = x
-                .conv2d(&conv.weight, padding, stride, 1, 1)
-                .unwrap()
-                .broadcast_add(&conv.bias.reshape((1, (), 1, 1)).unwrap())
-                .unwrap();
+            let direct = x.conv2d(&conv.weight, padding, stride, 1, 1).unwrap().broadcast_add(&conv.bias.reshape((1, (), 1, 1)).unwrap()).unwrap();
             for budget in [1usize, 100, 400] {
                 let banded = conv.forward_budget(&x, budget).unwrap();
                 let e = (&banded - &direct).unwrap().abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap();
