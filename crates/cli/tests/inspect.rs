@@ -51,6 +51,10 @@ fn errors_are_one_line_and_exit_nonzero() {
         assert!(!err.contains("panicked") && !err.contains("RUST_BACKTRACE"), "{err}");
         assert_eq!(err.trim_end().lines().count(), 1, "{err}");
     }
+    // The parser's message once, not repeated by the error chain.
+    let err = String::from_utf8_lossy(&bin().arg("inspect").arg(&bad).output().unwrap().stderr).to_string();
+    let cause = serde_json::from_str::<serde_json::Value>("{ broken").unwrap_err().to_string();
+    assert_eq!(err.matches(&cause).count(), 1, "{err}");
     // Unknown flag: clap's usage error, exit code 2.
     let out = bin().args(["inspect", "--nope"]).output().unwrap();
     assert_eq!(out.status.code(), Some(2));
