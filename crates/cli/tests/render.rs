@@ -140,6 +140,7 @@ fn bad_inputs_fail_before_any_work() {
         (with(&good, &["--num-context", "1"]), vec!["--num-context", "at least 2"]),
         (with(&good, &["--targets", "1,30"]), vec!["--targets", "30"]),
         (with(&good, &["--steps", "0", "--orbit", "0"]), vec!["--orbit"]),
+        (with(&good, &["--fps", "0"]), vec!["--fps", "1..=1000"]),
     ];
     for (i, (args, needles)) in cases.iter().enumerate() {
         let out = tmp.path().join(format!("out{i}"));

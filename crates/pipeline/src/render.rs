@@ -140,6 +140,9 @@ pub fn prepare(req: &RenderRequest, progress: &dyn Progress) -> Result<Prepared>
     if req.refine.vae_chunk == 0 {
         return Err(flag("--vae-chunk", "must be at least 1"));
     }
+    if req.video && !(1..=crate::video::MAX_FPS).contains(&req.fps) {
+        return Err(flag("--fps", format!("must be 1..={} (or --no-video), got {}", crate::video::MAX_FPS, req.fps)));
+    }
     if spec.refiner.is_some() && req.refine.steps == 0 {
         return Err(flag("--steps", "must be at least 1 (or use --refiner none)"));
     }
@@ -526,7 +529,7 @@ pub fn run(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSummary
         let t = Instant::now();
         progress.begin("encoding video", 2);
         let frames: Vec<_> = final_frames.iter().map(output::video_frame).collect();
-        let fps = req.fps.max(1);
+        let fps = req.fps;
         output::atomic_write(&out.join("video.mp4"), |tmp| crate::video::write_mp4(tmp, &frames, fps).map_err(|e| e.to_string()))?;
         progress.advance(1);
         let compare: Vec<_> = (0..final_frames.len())
