@@ -14,15 +14,10 @@
 //!     cargo run --release -p mvsplat360-train --example oracle -- CONFIG.toml MODEL_DIR [--sigma 0.6] SEED|DIR…
 
 use candle_core::{Device, Tensor};
-use mvsplat360_pipeline::preprocess::{InputSize, Preprocess};
 use mvsplat360_pipeline::render::raster_camera;
-use mvsplat360_pipeline::views::{choose, ContextSpec, TargetSpec};
 use mvsplat360_splat::{Gaussians, RenderOptions};
-use mvsplat360_train::data::procedural::{generate, GenOptions};
-use mvsplat360_train::sampler::{self, SamplerSettings};
-use mvsplat360_train::scenes::{read_folder_scene, TrainScene};
+use mvsplat360_train::scenes::protocol_scene;
 use mvsplat360_train::trainer::{example_from_views, render_example_full, Example, Model};
-use rand::SeedableRng;
 
 fn psnr(a: &Tensor, b: &Tensor) -> anyhow::Result<f64> {
     let a: Vec<f32> = a.clamp(0f32, 1f32)?.flatten_all()?.to_vec1()?;
@@ -89,33 +84,9 @@ fn main() -> anyhow::Result<()> {
     let (near, far) = (cfg.model.near, cfg.model.far);
     println!("| scene | nearest context | model (3DGS) | depth oracle (σ = {sigma} px) | model depth error |\n|---|---|---|---|---|");
     let mut sums = [0.0f64; 4];
-    let pre = Preprocess { size: InputSize::Fixed { width: w, height: h }, multiple: cfg.model.encoder.image_multiple() as u32 };
     for arg in &args[2..] {
-        let (scene, mut v, label) = match arg.parse::<u64>() {
-            Ok(seed) => {
-                let g = generate(seed, &GenOptions { views: 32, width: w, height: h, samples: 2 });
-                let images = g.views.iter().map(|v| mvsplat360_dataset::ImageF32 { width: w, height: h, data: v.image.clone() }).collect();
-                let depths = Some(g.views.iter().map(|v| v.depth.clone()).collect());
-                let cameras: Vec<_> = g.views.into_iter().map(|v| v.camera).collect();
-                let scene = TrainScene { name: g.name, images, cameras, depths };
-                let s = SamplerSettings { num_context: 5, num_target: 1, gap: None, gap_initial: None, warm_up: 1.0, closed_loop: true, flip: false };
-                let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
-                let v = sampler::sample(&scene.cameras, &s, &mut rng).ok_or_else(|| anyhow::anyhow!("no views"))?;
-                let label = format!("{} (seed {seed})", scene.name);
-                (scene, v, label)
-            }
-            Err(_) => {
-                let dir = std::path::Path::new(arg);
-                let scene = read_folder_scene(dir, &pre)?;
-                anyhow::ensure!(scene.depths.is_some(), "{arg}: no depth/depth.json (render it with scripts/render-povray-scene --depth)");
-                let raw = mvsplat360_dataset::read_scene(dir)?;
-                let choice = choose(&raw, &ContextSpec::Count(5), &TargetSpec::Views(vec![0]))?;
-                let v = sampler::ViewSample { context: choice.context, target: vec![], flip: false };
-                let label = dir.file_name().map_or(arg.clone(), |n| n.to_string_lossy().to_string());
-                (scene, v, label)
-            }
-        };
-        v.target = (0..scene.cameras.len()).filter(|i| !v.context.contains(i)).collect();
+        let (scene, v, label) = protocol_scene(arg, w, h, cfg.model.encoder.image_multiple() as u32)?;
+        anyhow::ensure!(scene.depths.is_some(), "{arg}: no depth/depth.json (render it with scripts/render-povray-scene --depth)");
         let ex = example_from_views(&scene, &v, near, far)?;
         let mut base = 0.0;
         for (t, tc) in ex.target_cameras.iter().enumerate() {

@@ -192,3 +192,39 @@ fn chunk_files(path: &Path) -> Result<Vec<PathBuf>> {
     }
     Ok(out)
 }
+
+/// A scene of the held-out protocol the analysis examples share (`oracle`, `fill`): 32 views on a loop, 5
+/// context views by farthest-point sampling, every other view a target. `arg` is a procedural seed (rendered
+/// at `width`×`height` with its ray distances) or a scene folder (context views as `heldout` chooses them).
+/// Returns the scene, its views and a label.
+pub fn protocol_scene(arg: &str, width: u32, height: u32, multiple: u32) -> Result<(TrainScene, crate::sampler::ViewSample, String)> {
+    use crate::sampler::{self, SamplerSettings, ViewSample};
+    use mvsplat360_pipeline::views::{choose, ContextSpec, TargetSpec};
+    use rand::SeedableRng;
+    let (scene, mut v, label) = match arg.parse::<u64>() {
+        Ok(seed) => {
+            let g = procedural::generate(seed, &GenOptions { views: 32, width, height, samples: 2 });
+            let images = g.views.iter().map(|v| ImageF32 { width, height, data: v.image.clone() }).collect();
+            let depths = Some(g.views.iter().map(|v| v.depth.clone()).collect());
+            let cameras: Vec<_> = g.views.into_iter().map(|v| v.camera).collect();
+            let scene = TrainScene { name: g.name, images, cameras, depths };
+            let s = SamplerSettings { num_context: 5, num_target: 1, gap: None, gap_initial: None, warm_up: 1.0, closed_loop: true, flip: false };
+            let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+            let v = sampler::sample(&scene.cameras, &s, &mut rng).ok_or_else(|| TrainError::Data(format!("seed {seed}: no views")))?;
+            let label = format!("{} (seed {seed})", scene.name);
+            (scene, v, label)
+        }
+        Err(_) => {
+            let dir = Path::new(arg);
+            let pre = Preprocess { size: InputSize::Fixed { width, height }, multiple };
+            let scene = read_folder_scene(dir, &pre)?;
+            let raw = mvsplat360_dataset::read_scene(dir).map_err(|e| TrainError::Data(format!("{}: {e}", dir.display())))?;
+            let choice = choose(&raw, &ContextSpec::Count(5), &TargetSpec::Views(vec![0]))?;
+            let v = ViewSample { context: choice.context, target: vec![], flip: false };
+            let label = dir.file_name().map_or(arg.to_string(), |n| n.to_string_lossy().to_string());
+            (scene, v, label)
+        }
+    };
+    v.target = (0..scene.cameras.len()).filter(|i| !v.context.contains(i)).collect();
+    Ok((scene, v, label))
+}
