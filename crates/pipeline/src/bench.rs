@@ -97,11 +97,12 @@ pub fn run_scene_bench(o: &SceneBenchOpts) -> Result<serde_json::Value> {
         };
         let t = std::time::Instant::now();
         let s = pool.install(|| render::run(&req, &Silent))?;
+        let secs = t.elapsed().as_secs_f64();
         let _ = std::fs::remove_dir_all(dir.join(format!("run{r}")));
         if r < o.warmup {
             continue;
         }
-        totals.push(t.elapsed().as_secs_f64());
+        totals.push(secs);
         gaussians = s.gaussians;
         for (name, secs) in s.stage_seconds {
             match per_stage.iter_mut().find(|(n, _)| *n == name) {
