@@ -90,10 +90,8 @@ fn main() -> anyhow::Result<()> {
     mvsplat360_pipeline::setup::init_process();
     let args: Vec<String> = std::env::args().skip(1).collect();
     anyhow::ensure!(args.len() >= 3, "usage: fill CONFIG.toml MODEL_DIR SEED|DIR…");
-    let mut cfg = mvsplat360_train::TrainConfig::from_file(args[0].as_ref())?;
-    cfg.train.init = Some(args[1].clone().into());
-    cfg.model.refiner = None;
-    let model = Model::new(&cfg)?;
+    let model = Model::encoder_with_weights(args[0].as_ref(), args[1].as_ref())?;
+    let cfg = &model.cfg;
     let (w, h) = (cfg.model.width, cfg.model.height);
     let (near, far) = (cfg.model.near, cfg.model.far);
     let names = ["nearest context", "black (3DGS)", "context mean", "nearest photo", "pull-push", "un-premultiplied", "mean α", "α<0.5 share"];

@@ -76,10 +76,8 @@ fn main() -> anyhow::Result<()> {
         args.drain(i..i + 2);
     }
     anyhow::ensure!(args.len() >= 3, "usage: oracle CONFIG.toml MODEL_DIR [--sigma S] SEED|DIR…");
-    let mut cfg = mvsplat360_train::TrainConfig::from_file(args[0].as_ref())?;
-    cfg.train.init = Some(args[1].clone().into());
-    cfg.model.refiner = None;
-    let model = Model::new(&cfg)?;
+    let model = Model::encoder_with_weights(args[0].as_ref(), args[1].as_ref())?;
+    let cfg = &model.cfg;
     let (w, h) = (cfg.model.width, cfg.model.height);
     let (near, far) = (cfg.model.near, cfg.model.far);
     println!("| scene | nearest context | model (3DGS) | depth oracle (σ = {sigma} px) | model depth error |\n|---|---|---|---|---|");

@@ -109,6 +109,15 @@ impl Model {
         Self::new_on(cfg, &Device::Cpu)
     }
 
+    /// The encoder of a training config with trained weights (a model folder or safetensors file) and no
+    /// refiner, on the CPU: what the analysis examples evaluate.
+    pub fn encoder_with_weights(config: &std::path::Path, weights: &std::path::Path) -> Result<Self> {
+        let mut cfg = TrainConfig::from_file(config)?;
+        cfg.train.init = Some(weights.to_path_buf());
+        cfg.model.refiner = None;
+        Self::new(&cfg)
+    }
+
     /// As [`Model::new`], with the encoder's weights on `dev`. The initial weights are drawn on the host, so a
     /// seed gives the same model on every device.
     pub fn new_on(cfg: &TrainConfig, dev: &Device) -> Result<Self> {
