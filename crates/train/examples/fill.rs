@@ -43,23 +43,13 @@ fn pull_push(c: &[f32], a: &[f32], h: usize, w: usize, fallback: [f32; 3]) -> Ve
     for l in (1..levels.len() - 1).rev() {
         let (lh, lw, lc, la) = &levels[l];
         let cap = (1usize << (2 * l)) as f32; // pixels per block
-        let mut nf = vec![0.0; 3 * lh * lw];
-        for y in 0..*lh {
-            for x in 0..*lw {
-                // Bilinear sample of the coarser fill at this cell's centre.
-                let sy = ((y as f32 + 0.5) * fh as f32 / *lh as f32 - 0.5).clamp(0.0, (fh - 1) as f32);
-                let sx = ((x as f32 + 0.5) * fw as f32 / *lw as f32 - 0.5).clamp(0.0, (fw - 1) as f32);
-                let (y0, x0) = (sy.floor() as usize, sx.floor() as usize);
-                let (y1, x1) = ((y0 + 1).min(fh - 1), (x0 + 1).min(fw - 1));
-                let (ty, tx) = (sy - y0 as f32, sx - x0 as f32);
-                let j = y * lw + x;
-                let cov = (la[j] / cap).min(1.0);
-                let t = (4.0 * cov).min(1.0);
+        let mut nf = upsample_bilinear(&fill, fh, fw, *lh, *lw);
+        for j in 0..lh * lw {
+            if la[j] > 1e-6 {
+                let t = (4.0 * (la[j] / cap).min(1.0)).min(1.0);
                 for k in 0..3 {
-                    let f = &fill[k * fh * fw..(k + 1) * fh * fw];
-                    let up = (1.0 - ty) * ((1.0 - tx) * f[y0 * fw + x0] + tx * f[y0 * fw + x1]) + ty * ((1.0 - tx) * f[y1 * fw + x0] + tx * f[y1 * fw + x1]);
-                    let own = if la[j] > 1e-6 { lc[k * lh * lw + j] / la[j] } else { up };
-                    nf[k * lh * lw + j] = t * own + (1.0 - t) * up;
+                    let up = &mut nf[k * lh * lw + j];
+                    *up = t * (lc[k * lh * lw + j] / la[j]) + (1.0 - t) * *up;
                 }
             }
         }
@@ -67,7 +57,12 @@ fn pull_push(c: &[f32], a: &[f32], h: usize, w: usize, fallback: [f32; 3]) -> Ve
         fh = *lh;
         fw = *lw;
     }
-    // Upsample the level-1 fill to full size.
+    // The level-1 fill at full size.
+    upsample_bilinear(&fill, fh, fw, h, w)
+}
+
+/// Bilinear resampling of (3, fh, fw) to (3, h, w), pixel centres aligned (edges clamped).
+fn upsample_bilinear(f: &[f32], fh: usize, fw: usize, h: usize, w: usize) -> Vec<f32> {
     let mut out = vec![0.0; 3 * h * w];
     for y in 0..h {
         for x in 0..w {
@@ -77,9 +72,9 @@ fn pull_push(c: &[f32], a: &[f32], h: usize, w: usize, fallback: [f32; 3]) -> Ve
             let (y1, x1) = ((y0 + 1).min(fh - 1), (x0 + 1).min(fw - 1));
             let (ty, tx) = (sy - y0 as f32, sx - x0 as f32);
             for k in 0..3 {
-                let f = &fill[k * fh * fw..(k + 1) * fh * fw];
+                let c = &f[k * fh * fw..(k + 1) * fh * fw];
                 out[k * h * w + y * w + x] =
-                    (1.0 - ty) * ((1.0 - tx) * f[y0 * fw + x0] + tx * f[y0 * fw + x1]) + ty * ((1.0 - tx) * f[y1 * fw + x0] + tx * f[y1 * fw + x1]);
+                    (1.0 - ty) * ((1.0 - tx) * c[y0 * fw + x0] + tx * c[y0 * fw + x1]) + ty * ((1.0 - tx) * c[y1 * fw + x0] + tx * c[y1 * fw + x1]);
             }
         }
     }
