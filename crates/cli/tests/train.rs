@@ -46,3 +46,26 @@ fn bad_data_parallel_flags_fail_cleanly() {
     assert!(err.contains("--dist-backend host"), "NCCL on the CPU names the fix: {err}");
     assert!(!tmp.path().join("run/log.jsonl").exists(), "nothing started");
 }
+
+/// `bench train` times real steps of a config in a throw-away folder: the config's own `train.out` stays
+/// untouched, the JSON line counts only the timed steps, and `--runs 0` is refused before any work.
+#[test]
+fn bench_train_times_steps_without_touching_the_configs_output() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("run");
+    let cfg = tmp.path().join("tiny.toml");
+    std::fs::write(&cfg, tiny_config(&out)).unwrap();
+    let o = bin().args(["bench", "train", "--runs", "2", "--warmup", "1", "--threads", "1", "--config"]).arg(&cfg).output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(v["bench"], "train");
+    assert_eq!(v["runs"], 2, "the warm-up step is not timed: {v}");
+    assert_eq!(v["threads"], 1);
+    let (med, min) = (v["step_s"].as_f64().unwrap(), v["step_s_min"].as_f64().unwrap());
+    assert!(min > 0.0 && min <= med && med.is_finite(), "{v}");
+    assert!(v["peak_rss_mib"].as_f64().unwrap() > 0.0);
+    assert!(!out.exists(), "the config's output folder is not written by a benchmark");
+    let o = bin().args(["bench", "train", "--runs", "0", "--config"]).arg(&cfg).output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("--runs"), "{err}");
+}

@@ -5,10 +5,10 @@
 //!
 //! | module | functions | CPU | CUDA (today) |
 //! |---|---|---|---|
-//! | [`conv`] | `conv2d`, `conv2d_fused`, `conv2d_epilogue`, `temporal_conv`, `Conv2d` | shifted gemm, im2col + gemm | candle `conv2d`, matmuls |
+//! | [`conv`] | `conv2d`, `conv2d_fused`, `conv2d_epilogue`, `temporal_conv`, `Conv2d`, `add_bias` | shifted gemm, im2col + gemm (bias: custom op + backward) | candle `conv2d`, matmuls |
 //! | [`attention`] | `fused_attention`, `multi_head_attention`, `multi_head_attention_seqs` | blocked, no score tensor | matmul + softmax + matmul |
 //! | [`softmax`] | `softmax_last`, `masked_softmax` | fused masked kernel | candle softmax / composed |
-//! | [`norm`] | `layer_norm`, `group_norm`, `group_norm_act`, `instance_norm` | f64 statistics, fused act | composed |
+//! | [`norm`] | `layer_norm`, `group_norm`, `group_norm_act`, `instance_norm` | f64 statistics, fused act (`group_norm_act`, `instance_norm`: custom op + backward when tracked) | composed |
 //! | [`activation`] | `gelu`, `gelu_inference`, `axpby` | vectorised (gelu: with backward) | candle `gelu_erf`, affine |
 //! | [`linear`] | `linear_fused`, `geglu_ff`, `linear_from_channels_first`, `linear_to_channels_first` | gemm, fused epilogue | matmuls |
 //! | [`grid_sample`] | `grid_sample` | custom op + backward | 4-tap `gather` (composed) |

@@ -124,3 +124,31 @@ fn shift_conv_backward_matches_candle_everywhere() {
         }
     }
 }
+
+/// The bias gradient of every conv path against its closed form: for L = Σ conv(x, w, b) · r,
+/// ∂L/∂b_c = Σ_{n,y,x} r[n, c, y, x] (summed here in f64). Tolerance 1e-4 relative to the largest entry.
+#[test]
+fn bias_gradient_is_the_per_channel_sum_of_the_output_gradient() {
+    let d = Device::Cpu;
+    // (n, c, h, w, co, k, padding, stride): stride 1 → shift path, 1×1 → pointwise gemm, stride 2 with
+    // K = 130·9 → im2col, stride 2 with K = 27 → candle's conv.
+    for &(n, c, h, w, co, k, padding, stride) in &[(2, 3, 9, 11, 4, 3, 1, 1), (3, 6, 5, 7, 5, 1, 0, 1), (1, 130, 8, 7, 3, 3, 1, 2), (2, 3, 8, 9, 6, 3, 1, 2)] {
+        let x = Tensor::randn(0f32, 1.0, (n, c, h, w), &d).unwrap();
+        let wt = Tensor::randn(0f32, 1.0, (co, c, k, k), &d).unwrap();
+        let b = Var::from_tensor(&Tensor::randn(0f32, 1.0, co, &d).unwrap()).unwrap();
+        let cfg = Conv2dConfig { padding, stride, dilation: 1 };
+        let out = conv2d(&x, &wt, Some(b.as_tensor()), cfg).unwrap();
+        let plain = conv2d(&x, &wt, None, cfg).unwrap();
+        let want_out = plain.broadcast_add(&b.as_tensor().reshape((1, co, 1, 1)).unwrap()).unwrap();
+        assert!(max_diff(&out, &want_out) < 1e-5, "forward {:?}", (n, c, h, w, co, k, stride));
+        let r = Tensor::randn(0f32, 1.0, out.dims(), &d).unwrap();
+        let grads = (&out * &r).unwrap().sum_all().unwrap().backward().unwrap();
+        let got = grads.get(b.as_tensor()).unwrap().to_vec1::<f32>().unwrap();
+        let (_, _, ho, wo) = r.dims4().unwrap();
+        let rv = r.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        for ch in 0..co {
+            let want: f64 = (0..n).flat_map(|i| rv[(i * co + ch) * ho * wo..][..ho * wo].iter()).map(|&v| v as f64).sum();
+            assert!((got[ch] as f64 - want).abs() < 1e-4 * want.abs().max(1.0), "bias grad [{ch}] {} vs {want} for {:?}", got[ch], (n, c, co, k, stride));
+        }
+    }
+}

@@ -1,6 +1,7 @@
 //! Training: losses, optimizer + one-cycle schedule, the official view sampler, data (chunks, procedural and
 //! POV-Ray scenes), checkpoints and the loop behind `mvsplat360 train`.
 
+pub mod bench;
 pub mod checkpoint;
 pub mod config;
 pub mod data;

@@ -136,6 +136,25 @@ enum What {
         #[command(flatten)]
         threads: Threads,
     },
+    /// Optimizer steps of a training config (data, forward, losses, backward, clipping, Adam) through the
+    /// `train` loop in a throw-away output folder: median and fastest seconds per step after --warmup untimed
+    /// steps, and peak memory. The config's data, model, losses and `init` are used as they are.
+    Train {
+        /// Training config (TOML), e.g. configs/train/povdepth.toml.
+        #[arg(long)]
+        config: std::path::PathBuf,
+        /// Timed steps.
+        #[arg(long, default_value_t = 5)]
+        runs: usize,
+        /// Untimed steps before the timed ones.
+        #[arg(long, default_value_t = 1)]
+        warmup: usize,
+        /// Where the steps run: `cpu`, `cuda` or `cuda:N` (CUDA needs a `--features cuda` build).
+        #[arg(long, default_value = "cpu")]
+        device: mvsplat360_pipeline::compute::DeviceSpec,
+        #[command(flatten)]
+        threads: Threads,
+    },
     /// Image metrics at 256×448: images (pairs) per second of PSNR, SSIM, LPIPS, DISTS and FID features
     /// (the networks only when their weights are installed, see scripts/metric-weights/fetch).
     Metrics {
@@ -194,6 +213,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 no_refiner,
             })?
         }
+        What::Train { config, runs, warmup, device, threads } => mvsplat360_train::bench::run_train_bench(&config, runs, warmup, threads.count(), device)?,
         What::Metrics { width, height, runs, threads } => {
             if width < 11 || height < 11 {
                 anyhow::bail!("bench metrics: --width and --height must be at least 11 (the SSIM window)");

@@ -80,7 +80,7 @@ impl Conv2d {
             }
             Tensor::cat(&per_image, 0)?
         };
-        y.broadcast_add(&self.bias.reshape((1, (), 1, 1))?)
+        mvsplat360_nn::conv::add_bias(y, Some(&self.bias))
     }
 }
 
