@@ -52,6 +52,10 @@ pub fn group_norm(x: &Tensor, groups: usize, frames: usize, weight: &Tensor, bia
         with_f32(x, |data| group_norm_cpu(data, &mut out, (bn, frames, groups, cg, c, s), &w, &b, eps, silu))?;
         return Tensor::from_vec(out, dims, x.device());
     }
+    if cpu_f32(x) && cpu_f32(weight) && cpu_f32(bias) {
+        let y = group_norm_trainable(x, weight, bias, groups, frames, eps)?;
+        return if silu { y.silu() } else { Ok(y) };
+    }
     group_norm_composed(x, groups, frames, weight, bias, eps, silu)
 }
 
@@ -209,7 +213,7 @@ pub fn group_norm_act(x: &Tensor, weight: &Tensor, bias: &Tensor, groups: usize,
     let fused = cpu_f32(x) && weight.dtype() == DType::F32 && !(x.track_op() || weight.track_op() || bias.track_op());
     if !fused {
         if cpu_f32(x) && cpu_f32(weight) && cpu_f32(bias) {
-            return apply_act(&group_norm_trainable(x, weight, bias, groups, eps)?, act);
+            return apply_act(&group_norm_trainable(x, weight, bias, groups, 1, eps)?, act);
         }
         return group_norm_act_composed(x, weight, bias, groups, eps, act);
     }
@@ -272,31 +276,58 @@ fn apply_act(y: &Tensor, act: Act) -> Result<Tensor> {
     }
 }
 
-/// GroupNorm (affine, no activation) on CPU f32 as one op with an analytic backward: the composed form records
-/// ~10 full-size ops whose backward (candle's broadcast reductions run on one thread) took ≈ 10 % of an
-/// encoder training step. Statistics in f64 as the inference kernel.
-fn group_norm_trainable(x: &Tensor, weight: &Tensor, bias: &Tensor, groups: usize, eps: f64) -> Result<Tensor> {
+/// GroupNorm (affine, no activation; statistics pooled over `frames` consecutive items) on CPU f32 as one op
+/// with an analytic backward: the composed form records ~10 full-size ops whose backward (candle's broadcast
+/// reductions run on one thread) took ≈ 10 % of an encoder training step. Statistics in f64 as the inference
+/// kernel.
+fn group_norm_trainable(x: &Tensor, weight: &Tensor, bias: &Tensor, groups: usize, frames: usize, eps: f64) -> Result<Tensor> {
     let dims = x.dims().to_vec();
     let (n, c) = (dims[0], dims[1]);
-    if c % groups != 0 || weight.elem_count() != c || bias.elem_count() != c {
-        candle_core::bail!("group_norm: {c} channels, {groups} groups, {} weights, {} biases", weight.elem_count(), bias.elem_count());
+    if c % groups != 0 || n % frames != 0 || weight.elem_count() != c || bias.elem_count() != c {
+        candle_core::bail!(
+            "group_norm: {c} channels, {groups} groups, {n} items, {frames} frames, {} weights, {} biases",
+            weight.elem_count(),
+            bias.elem_count()
+        );
     }
     let x3 = x.contiguous()?.reshape((n, c, ()))?;
-    x3.apply_op3(&weight.contiguous()?.flatten_all()?, &bias.contiguous()?.flatten_all()?, GroupNormOp { groups, eps })?.reshape(dims)
+    x3.apply_op3(&weight.contiguous()?.flatten_all()?, &bias.contiguous()?.flatten_all()?, GroupNormOp { groups, frames, eps })?.reshape(dims)
 }
 
+/// On (N, C, S): one block per (image, group), an image being `frames` consecutive items; a block is `frames`
+/// contiguous runs of C/groups · S values. Parallel passes go over the (item, group) runs.
 struct GroupNormOp {
     groups: usize,
+    frames: usize,
     eps: f64,
 }
 
 impl GroupNormOp {
-    /// (mean, 1/std) of one (image, group) block.
-    fn stats(&self, xs: &[f32]) -> (f64, f64) {
-        let len = xs.len() as f64;
-        let mean = xs.chunks(4096).map(|ch| ch.iter().map(|&v| v as f64).sum::<f64>()).sum::<f64>() / len;
-        let var = xs.chunks(4096).map(|ch| ch.iter().map(|&v| (v as f64 - mean).powi(2)).sum::<f64>()).sum::<f64>() / len;
-        (mean, 1.0 / (var + self.eps).sqrt())
+    /// (mean, 1/std) per block.
+    fn stats(&self, x: &[f32], (n, c, s): (usize, usize, usize)) -> Vec<(f64, f64)> {
+        let run = c / self.groups * s;
+        let blocks = n / self.frames * self.groups;
+        let runs = |blk: usize| {
+            let (bi, gi) = (blk / self.groups, blk % self.groups);
+            (0..self.frames).map(move |f| ((bi * self.frames + f) * self.groups + gi) * run)
+        };
+        (0..blocks)
+            .into_par_iter()
+            .map(|blk| {
+                let len = (run * self.frames) as f64;
+                let sum: f64 = runs(blk).flat_map(|o| x[o..o + run].chunks(4096)).map(|ch| ch.iter().map(|&v| v as f64).sum::<f64>()).sum();
+                let mean = sum / len;
+                let var: f64 =
+                    runs(blk).flat_map(|o| x[o..o + run].chunks(4096)).map(|ch| ch.iter().map(|&v| (v as f64 - mean).powi(2)).sum::<f64>()).sum::<f64>() / len;
+                (mean, 1.0 / (var + self.eps).sqrt())
+            })
+            .collect()
+    }
+
+    /// The block of (item, group) run number `t`.
+    fn block(&self, t: usize) -> usize {
+        let (item, gi) = (t / self.groups, t % self.groups);
+        item / self.frames * self.groups + gi
     }
 }
 
@@ -317,13 +348,14 @@ impl candle_core::CustomOp3 for GroupNormOp {
         let x = crate::mode::f32_slice(s1, l1, "group_norm")?;
         let w = crate::mode::f32_slice(s2, l2, "group_norm")?;
         let b = crate::mode::f32_slice(s3, l3, "group_norm")?;
-        let (_, c, s) = l1.shape().dims3()?;
+        let (n, c, s) = l1.shape().dims3()?;
         let cg = c / self.groups;
+        let stats = self.stats(x, (n, c, s));
         let mut out = vec![0f32; x.len()];
-        out.par_chunks_mut(cg * s).zip(x.par_chunks(cg * s)).enumerate().for_each(|(task, (dst, xs))| {
-            let (mean, rstd) = self.stats(xs);
+        out.par_chunks_mut(cg * s).zip(x.par_chunks(cg * s)).enumerate().for_each(|(t, (dst, xs))| {
+            let (mean, rstd) = stats[self.block(t)];
             for ci in 0..cg {
-                let ch = (task % self.groups) * cg + ci;
+                let ch = (t % self.groups) * cg + ci;
                 let a = (w[ch] as f64 * rstd) as f32;
                 let sh = (b[ch] as f64 - mean * w[ch] as f64 * rstd) as f32;
                 affine_act(&mut dst[ci * s..(ci + 1) * s], &xs[ci * s..(ci + 1) * s], a, sh, Act::None);
@@ -332,38 +364,48 @@ impl candle_core::CustomOp3 for GroupNormOp {
         Ok((candle_core::CpuStorage::F32(out), l1.shape().clone()))
     }
 
-    /// x̂ = (x − μ)·r, y = x̂·w + b per channel; with ĝ = dy·w and means over the group:
-    /// dx = r·(ĝ − mean ĝ − x̂·mean(ĝ·x̂)), dw = Σ dy·x̂, db = Σ dy (sums over images and pixels).
+    /// x̂ = (x − μ)·r, y = x̂·w + b per channel; with ĝ = dy·w and means over the block:
+    /// dx = r·(ĝ − mean ĝ − x̂·mean(ĝ·x̂)), dw = Σ dy·x̂, db = Σ dy (sums over items and pixels).
     fn bwd(&self, x: &Tensor, w: &Tensor, b: &Tensor, _res: &Tensor, grad: &Tensor) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
         let (n, c, s) = x.dims3()?;
         let cg = c / self.groups;
         let wv = w.to_vec1::<f32>()?;
         let mut dx = vec![0f32; n * c * s];
-        // Per (image, channel): (Σ dy·x̂, Σ dy).
-        let mut partial = vec![(0f64, 0f64); n * c];
+        let (mut dw, mut db) = (vec![0f32; c], vec![0f32; c]);
         with_f32(x, |xv| {
             with_f32(grad, |gv| {
-                dx.par_chunks_mut(cg * s).zip(partial.par_chunks_mut(cg)).enumerate().for_each(|(task, (dxs, part))| {
-                    let xs = &xv[task * cg * s..][..cg * s];
-                    let gs = &gv[task * cg * s..][..cg * s];
-                    let (mean, rstd) = self.stats(xs);
-                    let (mut sum_g, mut sum_gx) = (0f64, 0f64);
-                    for ci in 0..cg {
-                        let wc = wv[(task % self.groups) * cg + ci] as f64;
+                let stats = self.stats(xv, (n, c, s));
+                // Per (item, channel): (Σ dy·x̂, Σ dy).
+                let mut partial = vec![(0f64, 0f64); n * c];
+                partial.par_chunks_mut(cg).enumerate().for_each(|(t, part)| {
+                    let (mean, rstd) = stats[self.block(t)];
+                    let (xs, gs) = (&xv[t * cg * s..][..cg * s], &gv[t * cg * s..][..cg * s]);
+                    for (ci, p) in part.iter_mut().enumerate() {
                         let (mut dyx, mut dy) = (0f64, 0f64);
                         for (&xi, &gi) in xs[ci * s..(ci + 1) * s].iter().zip(&gs[ci * s..(ci + 1) * s]) {
-                            let xh = (xi as f64 - mean) * rstd;
-                            dyx += gi as f64 * xh;
+                            dyx += gi as f64 * (xi as f64 - mean) * rstd;
                             dy += gi as f64;
                         }
-                        part[ci] = (dyx, dy);
-                        sum_g += wc * dy;
-                        sum_gx += wc * dyx;
+                        *p = (dyx, dy);
                     }
-                    let len = (cg * s) as f64;
-                    let (mg, mgx) = (sum_g / len, sum_gx / len);
+                });
+                // Per block: (mean ĝ, mean ĝ·x̂).
+                let mut means = vec![(0f64, 0f64); stats.len()];
+                for (t, part) in partial.chunks(cg).enumerate() {
+                    let m = &mut means[self.block(t)];
+                    for (ci, &(dyx, dy)) in part.iter().enumerate() {
+                        let wc = wv[(t % self.groups) * cg + ci] as f64;
+                        m.0 += wc * dy;
+                        m.1 += wc * dyx;
+                    }
+                }
+                let len = (cg * s * self.frames) as f64;
+                dx.par_chunks_mut(cg * s).enumerate().for_each(|(t, dxs)| {
+                    let (mean, rstd) = stats[self.block(t)];
+                    let (mg, mgx) = (means[self.block(t)].0 / len, means[self.block(t)].1 / len);
+                    let (xs, gs) = (&xv[t * cg * s..][..cg * s], &gv[t * cg * s..][..cg * s]);
                     for ci in 0..cg {
-                        let wc = wv[(task % self.groups) * cg + ci] as f64;
+                        let wc = wv[(t % self.groups) * cg + ci] as f64;
                         let rows = dxs[ci * s..(ci + 1) * s].iter_mut().zip(&xs[ci * s..(ci + 1) * s]).zip(&gs[ci * s..(ci + 1) * s]);
                         for ((d, &xi), &gi) in rows {
                             let xh = (xi as f64 - mean) * rstd;
@@ -371,14 +413,13 @@ impl candle_core::CustomOp3 for GroupNormOp {
                         }
                     }
                 });
+                for ch in 0..c {
+                    let (a, bsum) = (0..n).fold((0f64, 0f64), |(a, bs), i| (a + partial[i * c + ch].0, bs + partial[i * c + ch].1));
+                    dw[ch] = a as f32;
+                    db[ch] = bsum as f32;
+                }
             })
         })??;
-        let (mut dw, mut db) = (vec![0f32; c], vec![0f32; c]);
-        for ch in 0..c {
-            let (a, bsum) = (0..n).fold((0f64, 0f64), |(a, bs), i| (a + partial[i * c + ch].0, bs + partial[i * c + ch].1));
-            dw[ch] = a as f32;
-            db[ch] = bsum as f32;
-        }
         Ok((
             Some(Tensor::from_vec(dx, (n, c, s), x.device())?),
             Some(Tensor::from_vec(dw, w.shape(), w.device())?),
@@ -392,7 +433,7 @@ pub fn instance_norm(x: &Tensor) -> Result<Tensor> {
     let (n, c, h, w) = x.dims4()?;
     if cpu_f32(x) {
         let (ones, zeros) = (Tensor::ones(c, DType::F32, x.device())?, Tensor::zeros(c, DType::F32, x.device())?);
-        return group_norm_trainable(x, &ones, &zeros, c, 1e-5);
+        return group_norm_trainable(x, &ones, &zeros, c, 1, 1e-5);
     }
     let xf = x.reshape((n, c, h * w))?;
     let mean = xf.mean_keepdim(D::Minus1)?;
