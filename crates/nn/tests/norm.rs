@@ -1,7 +1,7 @@
 //! The trainable GroupNorm / InstanceNorm (one CPU op with an analytic backward) against the normalisation
 //! written out in f64 candle ops (candle's autograd gives the reference gradients), forward and every gradient.
 
-use candle_core::{DType, Device, Tensor, Var, D};
+use candle_core::{DType, Device, Tensor, Var};
 use mvsplat360_nn::norm::{group_norm, group_norm_act, instance_norm, Act};
 
 /// GroupNorm(groups) with affine parameters from f64 tensor ops.
