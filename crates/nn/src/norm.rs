@@ -1,6 +1,7 @@
 //! Normalisations. LayerNorm / GroupNorm(+SiLU) for the refiner take f64 statistics on the CPU (candle's
 //! fused op uses E[x²]−E[x]² in f32, which loses ~1e-4 on rows with a large mean); the encoder's GroupNorm
-//! fuses its activation into one pass. Tracked inputs, differentiable mode and other devices use composed ops.
+//! fuses its activation into one pass. Training on the CPU (tracked inputs, differentiable mode) runs GroupNorm
+//! and InstanceNorm as one op with an analytic backward; LayerNorm and other devices use composed ops.
 
 use candle_core::{DType, Result, Tensor, D};
 use rayon::prelude::*;
@@ -35,7 +36,8 @@ pub(crate) fn layer_norm_composed(x: &Tensor, weight: &Tensor, bias: &Tensor, ep
 }
 
 /// GroupNorm on (N, C, ...) with statistics pooled over `frames` consecutive items (frames > 1: a GroupNorm
-/// of the (B, C, T, H, W) tensor of a temporal ResBlock), optionally followed by SiLU. CPU f32 fast path (one stats pass, one write pass), composed ops elsewhere.
+/// of the (B, C, T, H, W) tensor of a temporal ResBlock), optionally followed by SiLU. CPU f32 fast path (one stats pass, one write pass);
+/// in differentiable mode on the CPU one op with an analytic backward; composed ops on other devices.
 pub fn group_norm(x: &Tensor, groups: usize, frames: usize, weight: &Tensor, bias: &Tensor, eps: f64, silu: bool) -> Result<Tensor> {
     let dims = x.dims().to_vec();
     let (n, c) = (dims[0], dims[1]);
@@ -208,7 +210,8 @@ fn affine_act(d: &mut [f32], s: &[f32], a: f32, b: f32, act: Act) {
 }
 
 /// `act(GroupNorm(groups)(x))` on `[N, C, ...]` (the encoder's UNets; statistics as the official f32 ones, in
-/// f64 here). Inference (CPU f32, nothing tracks gradients) runs one fused pass per (image, group).
+/// f64 here). Inference (CPU f32, nothing tracks gradients) runs one fused pass per (image, group); tracked CPU
+/// inputs one op with an analytic backward, then the activation.
 pub fn group_norm_act(x: &Tensor, weight: &Tensor, bias: &Tensor, groups: usize, eps: f64, act: Act) -> Result<Tensor> {
     let fused = cpu_f32(x) && weight.dtype() == DType::F32 && !(x.track_op() || weight.track_op() || bias.track_op());
     if !fused {
