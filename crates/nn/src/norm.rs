@@ -222,34 +222,11 @@ pub fn group_norm_act(x: &Tensor, weight: &Tensor, bias: &Tensor, groups: usize,
     }
     let dims = x.dims().to_vec();
     let (n, c) = (dims[0], dims[1]);
-    let g = groups;
     let x = x.contiguous()?;
-    let hw = x.elem_count() / (n * c).max(1);
+    let s = x.elem_count() / (n * c).max(1);
     let (wv, bv) = (weight.to_vec1::<f32>()?, bias.to_vec1::<f32>()?);
-    let xs = x.flatten_all()?;
-    let (st, l) = xs.storage_and_layout();
-    let src = match (&*st, l.contiguous_offsets()) {
-        (candle_core::Storage::Cpu(candle_core::CpuStorage::F32(v)), Some((a, b))) => &v[a..b],
-        _ => candle_core::bail!("group norm: expected a contiguous CPU f32 tensor"),
-    };
-    let cg = c / g;
-    let len = cg * hw;
-    let mut out = vec![0f32; src.len()];
-    out.par_chunks_mut(len).zip(src.par_chunks(len)).enumerate().for_each(|(task, (dst, xs))| {
-        let gi = task % g;
-        // Two-pass statistics with f64 partial sums (the official code takes them in f32).
-        let sum: f64 = xs.chunks(4096).map(|ch| ch.iter().map(|&v| v as f64).sum::<f64>()).sum();
-        let mean = sum / len as f64;
-        let var: f64 = xs.chunks(4096).map(|ch| ch.iter().map(|&v| (v as f64 - mean).powi(2)).sum::<f64>()).sum::<f64>() / len as f64;
-        let rstd = 1.0 / (var + eps).sqrt();
-        for ci in 0..cg {
-            let ch = gi * cg + ci;
-            let a = (wv[ch] as f64 * rstd) as f32;
-            let b = (bv[ch] as f64 - mean * wv[ch] as f64 * rstd) as f32;
-            affine_act(&mut dst[ci * hw..(ci + 1) * hw], &xs[ci * hw..(ci + 1) * hw], a, b, act);
-        }
-    });
-    drop(st);
+    let mut out = vec![0f32; x.elem_count()];
+    with_f32(&x, |src| GroupNormOp { groups, frames: 1, eps }.normalize(src, &mut out, (n, c, s), &wv, &bv, act))?;
     Tensor::from_vec(out, dims, x.device())
 }
 
@@ -327,6 +304,22 @@ impl GroupNormOp {
             .collect()
     }
 
+    /// `act(x̂·w + b)` into `out`: statistics per block, then one scale/shift(/act) pass per channel.
+    #[allow(clippy::too_many_arguments)]
+    fn normalize(&self, x: &[f32], out: &mut [f32], (n, c, s): (usize, usize, usize), w: &[f32], b: &[f32], act: Act) {
+        let cg = c / self.groups;
+        let stats = self.stats(x, (n, c, s));
+        out.par_chunks_mut(cg * s).zip(x.par_chunks(cg * s)).enumerate().for_each(|(t, (dst, xs))| {
+            let (mean, rstd) = stats[self.block(t)];
+            for ci in 0..cg {
+                let ch = (t % self.groups) * cg + ci;
+                let a = (w[ch] as f64 * rstd) as f32;
+                let sh = (b[ch] as f64 - mean * w[ch] as f64 * rstd) as f32;
+                affine_act(&mut dst[ci * s..(ci + 1) * s], &xs[ci * s..(ci + 1) * s], a, sh, act);
+            }
+        });
+    }
+
     /// The block of (item, group) run number `t`.
     fn block(&self, t: usize) -> usize {
         let (item, gi) = (t / self.groups, t % self.groups);
@@ -351,19 +344,8 @@ impl candle_core::CustomOp3 for GroupNormOp {
         let x = crate::mode::f32_slice(s1, l1, "group_norm")?;
         let w = crate::mode::f32_slice(s2, l2, "group_norm")?;
         let b = crate::mode::f32_slice(s3, l3, "group_norm")?;
-        let (n, c, s) = l1.shape().dims3()?;
-        let cg = c / self.groups;
-        let stats = self.stats(x, (n, c, s));
         let mut out = vec![0f32; x.len()];
-        out.par_chunks_mut(cg * s).zip(x.par_chunks(cg * s)).enumerate().for_each(|(t, (dst, xs))| {
-            let (mean, rstd) = stats[self.block(t)];
-            for ci in 0..cg {
-                let ch = (t % self.groups) * cg + ci;
-                let a = (w[ch] as f64 * rstd) as f32;
-                let sh = (b[ch] as f64 - mean * w[ch] as f64 * rstd) as f32;
-                affine_act(&mut dst[ci * s..(ci + 1) * s], &xs[ci * s..(ci + 1) * s], a, sh, Act::None);
-            }
-        });
+        self.normalize(x, &mut out, l1.shape().dims3()?, w, b, Act::None);
         Ok((candle_core::CpuStorage::F32(out), l1.shape().clone()))
     }
 
