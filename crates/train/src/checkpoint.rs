@@ -97,12 +97,46 @@ pub struct Loaded {
 
 pub fn load_latest(out: &Path) -> Result<Option<Loaded>> {
     let Some((_, p)) = list(out)?.pop() else { return Ok(None) };
+    load(p).map(Some)
+}
+
+/// A step as given on a command line: a number, or `latest` (`None`: the newest checkpoint).
+pub fn parse_step(s: &str) -> std::result::Result<Option<u64>, String> {
+    match s {
+        "latest" => Ok(None),
+        n => n.parse::<u64>().map(Some).map_err(|_| format!("`{n}` is neither a step number nor `latest`")),
+    }
+}
+
+/// The checkpoint of `step`, or the newest when `None`; the error lists the steps there are.
+pub fn load_step(out: &Path, step: Option<u64>) -> Result<Loaded> {
+    let all = list(out)?;
+    let found = match step {
+        Some(s) => all.iter().find(|(n, _)| *n == s),
+        None => all.last(),
+    };
+    match found {
+        Some((_, p)) => load(p.clone()),
+        None if all.is_empty() => Err(TrainError::Checkpoint(format!("{} holds no checkpoints", dir(out).display()))),
+        None => {
+            let steps: Vec<String> = all.iter().map(|(n, _)| n.to_string()).collect();
+            Err(TrainError::Checkpoint(format!(
+                "{} has no checkpoint of step {}; it has steps {} (older ones are deleted: `train.keep_checkpoints`)",
+                dir(out).display(),
+                step.unwrap_or_default(),
+                steps.join(", ")
+            )))
+        }
+    }
+}
+
+fn load(p: PathBuf) -> Result<Loaded> {
     let cerr = |e: &dyn std::fmt::Display| TrainError::Checkpoint(format!("{}: {e}", p.display()));
     let text = std::fs::read_to_string(p.join("state.json")).map_err(|e| cerr(&e))?;
     let state: State = serde_json::from_str(&text).map_err(|e| cerr(&e))?;
     let model = candle_core::safetensors::load(p.join("model.safetensors"), &Device::Cpu).map_err(|e| cerr(&e))?;
     let optim = candle_core::safetensors::load(p.join("optimizer.safetensors"), &Device::Cpu).map_err(|e| cerr(&e))?;
-    Ok(Some(Loaded { state, model, optim, path: p }))
+    Ok(Loaded { state, model, optim, path: p })
 }
 
 /// One training run per output folder: `<out>/train.lock` holds the writer's process id while it runs and is

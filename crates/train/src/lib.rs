@@ -19,4 +19,4 @@ pub mod vae_stage;
 
 pub use config::TrainConfig;
 pub use error::{Result, TrainError};
-pub use trainer::{run, Monitor, Quiet, RunOptions, StepRecord, Summary};
+pub use trainer::{export_checkpoint, run, Monitor, Quiet, RunOptions, StepRecord, Summary};

@@ -87,6 +87,51 @@ fn killed_and_resumed_run_matches_uninterrupted() {
     assert!(worst <= 1e-6, "final weights differ by up to {worst}");
 }
 
+/// A checkpoint exported as a model folder holds the weights the run had at that step: the last one equals the
+/// run's own final model folder, an earlier one differs; a missing step names the steps there are; a changed
+/// config is refused; the stand-alone binary's `--export` writes the same folder.
+#[test]
+fn checkpoint_exports_as_a_model_folder() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = common::tiny_config(dir.path(), 4, "");
+    cfg.train.keep_checkpoints = 2;
+    mvsplat360_train::run(&cfg, &RunOptions::default(), &Quiet).unwrap();
+    let load = |p: &std::path::Path| candle_core::safetensors::load(p.join("model.safetensors"), &candle_core::Device::Cpu).unwrap();
+    let max_diff = |a: &std::collections::HashMap<String, candle_core::Tensor>, b: &std::collections::HashMap<String, candle_core::Tensor>| {
+        assert_eq!(a.len(), b.len());
+        a.iter().map(|(k, x)| (x - &b[k]).unwrap().abs().unwrap().flatten_all().unwrap().max(0).unwrap().to_scalar::<f32>().unwrap()).fold(0f32, f32::max)
+    };
+    let final_dir = dir.path().join("model");
+    let (step, last) = mvsplat360_train::export_checkpoint(&cfg, None, None).unwrap();
+    assert_eq!((step, last.clone()), (4, dir.path().join("model-4")));
+    assert_eq!(max_diff(&load(&last), &load(&final_dir)), 0.0);
+    assert_eq!(std::fs::read_to_string(last.join("config.json")).unwrap(), std::fs::read_to_string(final_dir.join("config.json")).unwrap());
+    mvsplat360_pipeline::model::read_model_dir(&last).unwrap();
+
+    let to = dir.path().join("earlier");
+    assert_eq!(mvsplat360_train::export_checkpoint(&cfg, Some(2), Some(&to)).unwrap(), (2, to.clone()));
+    assert!(max_diff(&load(&to), &load(&final_dir)) > 1e-6, "steps 2 and 4 have the same weights");
+
+    let e = mvsplat360_train::export_checkpoint(&cfg, Some(3), None).unwrap_err().to_string();
+    assert!(e.contains("no checkpoint of step 3") && e.contains("steps 2, 4"), "{e}");
+    let mut other = cfg.clone();
+    other.train.lr = 5e-4;
+    let e = mvsplat360_train::export_checkpoint(&other, Some(4), None).unwrap_err().to_string();
+    assert!(e.contains("different config"), "{e}");
+
+    let p = dir.path().join("cfg.toml");
+    std::fs::write(&p, cfg.to_toml()).unwrap();
+    let bin_dir = dir.path().join("from-bin");
+    let st = Command::new(env!("CARGO_BIN_EXE_mvsplat360-train"))
+        .args(["--config", p.to_str().unwrap(), "--export", "latest", "--export-to", bin_dir.to_str().unwrap()])
+        .status()
+        .unwrap();
+    assert!(st.success());
+    assert_eq!(max_diff(&load(&bin_dir), &load(&final_dir)), 0.0);
+    let st = Command::new(env!("CARGO_BIN_EXE_mvsplat360-train")).args(["--config", p.to_str().unwrap(), "--export", "last"]).status().unwrap();
+    assert_eq!(st.code(), Some(2), "a bad step is a usage error");
+}
+
 #[test]
 fn resume_refuses_a_changed_config_and_fresh_runs_refuse_old_checkpoints() {
     let dir = tempfile::tempdir().unwrap();

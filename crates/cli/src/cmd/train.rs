@@ -40,6 +40,22 @@ pub struct Args {
     /// this process, any device), or `auto` = nccl on GPUs, host on the CPU.
     #[arg(long, default_value = "auto")]
     pub dist_backend: mvsplat360_train::dist::Backend,
+    /// Instead of training, write the checkpoint of this step (or `latest`) in `train.out` as a model folder
+    /// (`config.json` + `model.safetensors`, for `render --ckpt`, `eval`, `view`), then exit. The config must
+    /// be the one the run was started with.
+    #[arg(long, value_name = "STEP|latest", value_parser = parse_step)]
+    pub export: Option<Step>,
+    /// Where `--export` writes the model folder (default: `<train.out>/model-<STEP>`).
+    #[arg(long, value_name = "DIR", requires = "export")]
+    pub export_to: Option<PathBuf>,
+}
+
+/// A checkpoint step for `--export`: `None` = the newest.
+#[derive(Clone, Copy, Debug)]
+pub struct Step(Option<u64>);
+
+fn parse_step(s: &str) -> Result<Step, String> {
+    mvsplat360_train::checkpoint::parse_step(s).map(Step)
 }
 
 struct Bar {
@@ -74,6 +90,12 @@ pub fn run(a: Args, quiet: bool) -> anyhow::Result<()> {
     let mut cfg = TrainConfig::from_file(&a.config)?;
     if let Some(o) = a.out {
         cfg.train.out = o;
+    }
+    if let Some(Step(step)) = a.export {
+        let (step, dir) = mvsplat360_train::export_checkpoint(&cfg, step, a.export_to.as_deref())
+            .with_context(|| format!("exporting a checkpoint of {}", cfg.train.out.display()))?;
+        eprintln!("checkpoint of step {step} written as the model folder {} (render it with --ckpt {})", dir.display(), dir.display());
+        return Ok(());
     }
     let rank = mvsplat360_train::dist::Rank::from_env()?;
     let stop = Arc::new(AtomicBool::new(false));

@@ -1,6 +1,7 @@
 //! Stand-alone trainer (`mvsplat360-train --config C [--resume]`): the same loop as `mvsplat360 train`, in a
 //! small binary for background jobs and the crate's kill-and-resume test. Prints one JSON line per step.
 //! `--world-size N` trains data-parallel: this binary starts N copies of itself (ranks), rank 0 prints the lines.
+//! `--export STEP|latest [--export-to DIR]` writes a checkpoint as a model folder instead of training.
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -9,11 +10,24 @@ fn main() {
     let mut config = None;
     let mut opts = mvsplat360_train::RunOptions::default();
     let (mut world, mut backend) = (1usize, mvsplat360_train::dist::Backend::Auto);
+    let (mut export, mut export_to): (Option<Option<u64>>, Option<std::path::PathBuf>) = (None, None);
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         match a.as_str() {
             "--config" => config = args.next(),
             "--resume" => opts.resume = true,
+            "--export" => match args.next().as_deref().map(mvsplat360_train::checkpoint::parse_step) {
+                Some(Ok(s)) => export = Some(s),
+                Some(Err(e)) => {
+                    eprintln!("error: --export: {e}");
+                    std::process::exit(2);
+                }
+                None => {
+                    eprintln!("error: --export needs a checkpoint step or `latest`");
+                    std::process::exit(2);
+                }
+            },
+            "--export-to" => export_to = args.next().map(Into::into),
             "--weights-dir" => opts.weights_dir = args.next().map(Into::into),
             "--device" => match args.next().map(|d| d.parse()) {
                 Some(Ok(d)) => opts.device = d,
@@ -47,7 +61,8 @@ fn main() {
             "-h" | "--help" => {
                 println!(
                     "usage: mvsplat360-train --config <toml> [--resume] [--weights-dir DIR] [--device cpu|cuda|cuda:N] \
-                     [--world-size N] [--dist-backend auto|host|nccl]"
+                     [--world-size N] [--dist-backend auto|host|nccl]\n       mvsplat360-train --config <toml> --export STEP|latest \
+                     [--export-to DIR]   (a checkpoint as a model folder, default <train.out>/model-STEP)"
                 );
                 return;
             }
@@ -61,6 +76,21 @@ fn main() {
         eprintln!("error: --config <toml> is required");
         std::process::exit(2);
     };
+    if let Some(step) = export {
+        let result =
+            mvsplat360_train::TrainConfig::from_file(config.as_ref()).and_then(|cfg| mvsplat360_train::export_checkpoint(&cfg, step, export_to.as_deref()));
+        match result {
+            Ok((step, dir)) => eprintln!("checkpoint of step {step} written as the model folder {}", dir.display()),
+            Err(e) => {
+                eprintln!("error: {e}");
+                std::process::exit(1);
+            }
+        }
+        return;
+    } else if export_to.is_some() {
+        eprintln!("error: --export-to goes with --export STEP|latest");
+        std::process::exit(2);
+    }
     mvsplat360_pipeline::setup::init_process();
     let rank = match mvsplat360_train::dist::Rank::from_env() {
         Ok(r) => r,
