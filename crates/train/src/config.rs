@@ -1,5 +1,7 @@
 //! The training configuration (`mvsplat360 train --config <toml>`). Encoder fields keep the official YAML names;
-//! paths are relative to the working directory.
+//! paths are relative to the working directory. A config may start from another: `base = "other.toml"` (relative
+//! to the config's folder) takes that file's settings, and the config's own tables override them key by key
+//! (a value that is not a table, such as `data.sources`, replaces the base's whole).
 
 use std::path::{Path, PathBuf};
 
@@ -237,7 +239,8 @@ impl TrainConfig {
     }
 
     pub fn from_toml(text: &str, path: &Path) -> Result<Self> {
-        let cfg: Self = toml::from_str(text).map_err(|e| TrainError::Config { path: path.into(), msg: e.to_string() })?;
+        let table = resolve_base(text, path, &mut vec![path.canonicalize().unwrap_or_else(|_| path.into())])?;
+        let cfg: Self = table.try_into().map_err(|e: toml::de::Error| TrainError::Config { path: path.into(), msg: e.to_string() })?;
         cfg.validate(path)?;
         Ok(cfg)
     }
@@ -336,6 +339,38 @@ impl TrainConfig {
     }
 }
 
+/// `text` as a TOML table with its `base` chain merged in; `chain` holds the files being read, to refuse cycles.
+fn resolve_base(text: &str, path: &Path, chain: &mut Vec<PathBuf>) -> Result<toml::Table> {
+    let err = |msg: String| TrainError::Config { path: path.into(), msg };
+    let mut table: toml::Table = toml::from_str(text).map_err(|e| err(e.to_string()))?;
+    let Some(base) = table.remove("base") else { return Ok(table) };
+    let toml::Value::String(rel) = base else { return Err(err("`base`: expected the path of another config (a string)".into())) };
+    let base_path = path.parent().unwrap_or(Path::new("")).join(&rel);
+    let key = base_path.canonicalize().unwrap_or_else(|_| base_path.clone());
+    if chain.contains(&key) || chain.len() >= 16 {
+        return Err(err(format!("`base`: {} is already in the chain of bases (a cycle)", base_path.display())));
+    }
+    let base_text = std::fs::read_to_string(&base_path)
+        .map_err(|e| err(format!("`base`: cannot read {} ({e}); the path is relative to this config's folder", base_path.display())))?;
+    chain.push(key);
+    let mut merged = resolve_base(&base_text, &base_path, chain)?;
+    chain.pop();
+    merge(&mut merged, table);
+    Ok(merged)
+}
+
+/// Tables merge key by key; any other value replaces.
+fn merge(into: &mut toml::Table, over: toml::Table) {
+    for (k, v) in over {
+        match (into.get_mut(&k), v) {
+            (Some(toml::Value::Table(a)), toml::Value::Table(b)) => merge(a, b),
+            (_, v) => {
+                into.insert(k, v);
+            }
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -384,5 +419,44 @@ out = "out/x"
         assert!(n >= 2, "expected the shipped and curriculum recipes in {}", dir.display());
         let e = TrainConfig::from_toml(&MIN.replace("count = 10 }]", "count = 10 }]\ngap_initial = [6, 3]"), Path::new("c.toml")).unwrap_err().to_string();
         assert!(e.contains("data.gap_initial"), "{e}");
+    }
+
+    /// t16.toml written out in full equals stage 8's t15.toml as a base with t16's changes on top.
+    #[test]
+    fn base_config_with_overrides_equals_the_full_config() {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/train");
+        let full = TrainConfig::from_file(&dir.join("t16.toml")).unwrap();
+        let text = r#"
+base = "t15.toml"
+[data]
+sources = [
+    { kind = "procedural", count = 100000, seed = 500000, views = 32 },
+    { kind = "folder", path = "data/povray-train" },
+    { kind = "folder", path = "data/povray-train2" },
+]
+[train]
+steps = 1400
+seed = 20261230
+out = "out/train/t16"
+"#;
+        let derived = TrainConfig::from_toml(text, &dir.join("derived.toml")).unwrap();
+        assert_eq!(derived, full);
+        // Without the override of one key the base's value stays: the merge is per key, not per table.
+        let e = TrainConfig::from_toml(&text.replace("steps = 1400\n", ""), &dir.join("derived.toml")).unwrap();
+        assert_eq!((e.train.steps, e.train.lr, e.model.width), (1200, 1e-4, 128));
+    }
+
+    #[test]
+    fn base_errors_name_the_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let (a, b) = (dir.path().join("a.toml"), dir.path().join("b.toml"));
+        std::fs::write(&a, "base = \"b.toml\"\n").unwrap();
+        std::fs::write(&b, "base = \"a.toml\"\n").unwrap();
+        let e = TrainConfig::from_file(&a).unwrap_err().to_string();
+        assert!(e.contains("cycle") && e.contains("a.toml"), "{e}");
+        let e = TrainConfig::from_toml("base = \"missing.toml\"\n", &a).unwrap_err().to_string();
+        assert!(e.contains("missing.toml") && e.contains("a.toml") && e.contains("relative to this config"), "{e}");
+        let e = TrainConfig::from_toml("base = 3\n", &a).unwrap_err().to_string();
+        assert!(e.contains("`base`"), "{e}");
     }
 }
