@@ -374,13 +374,19 @@ fn lpips_term(cfg: &TrainConfig, lpips: Option<&Lpips>, step: u64, pred: &Tensor
     }
 }
 
+/// Whether a checkpoint was written with `cfg`, compared as parsed configs, so that a field added later with its
+/// default value does not block a resume or an export.
+fn written_with(ck: &checkpoint::Loaded, cfg: &TrainConfig) -> bool {
+    ck.state.config == cfg.to_toml() || TrainConfig::from_toml(&ck.state.config, &ck.path).is_ok_and(|c| c == *cfg)
+}
+
 /// Write the checkpoint of `step` (the newest when `None`) in `cfg`'s `train.out` as a model folder: `to`, or
 /// `<out>/model-<step>`. The checkpoint must have been written with `cfg` (as for `--resume`). Returns the step
 /// and the folder.
 pub fn export_checkpoint(cfg: &TrainConfig, step: Option<u64>, to: Option<&std::path::Path>) -> Result<(u64, PathBuf)> {
     let out = &cfg.train.out;
     let ck = checkpoint::load_step(out, step)?;
-    if ck.state.config != cfg.to_toml() && !TrainConfig::from_toml(&ck.state.config, &ck.path).is_ok_and(|c| c == *cfg) {
+    if !written_with(&ck, cfg) {
         return Err(TrainError::Checkpoint(format!(
             "{} was written with a different config; export with the config the run was started with",
             ck.path.display()
@@ -442,9 +448,7 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
     let mut train_seconds = 0.0;
     if opts.resume {
         if let Some(ck) = checkpoint::load_latest(&out)? {
-            // Compared as parsed configs, so a field added later with its default does not block a resume.
-            let same = ck.state.config == config_text || TrainConfig::from_toml(&ck.state.config, &ck.path).is_ok_and(|c| c == *cfg);
-            if !same {
+            if !written_with(&ck, cfg) {
                 return Err(TrainError::Checkpoint(format!(
                     "{} was written with a different config; resume with the same config or choose another `train.out`",
                     ck.path.display()
