@@ -635,7 +635,9 @@ pub fn multi_head_attention_seqs(q: &Tensor, k: &Tensor, v: &Tensor, layout: Seq
     Tensor::from_vec(out, (rows, inner), q.device())
 }
 
-/// [`multi_head_attention_seqs`] for other devices: gather the sequences, attend, scatter back.
+/// [`multi_head_attention_seqs`] for other devices: gather the sequences, attend, gather back. The way back is a
+/// gather by the inverse row map (a zero row for rows in no sequence), not `index_add`: candle's CUDA
+/// `index_add` walks all rows serially in one thread per column (≈ 200k steps per call for a 14-frame SVD UNet).
 pub(crate) fn multi_head_attention_seqs_composed(
     q: &Tensor,
     k: &Tensor,
@@ -646,11 +648,41 @@ pub(crate) fn multi_head_attention_seqs_composed(
 ) -> Result<Tensor> {
     let inner = *q.dims().last().unwrap_or(&1);
     let rows = q.elem_count() / inner.max(1);
-    let idx: Vec<u32> = (0..layout.count).flat_map(|g| (0..layout.len).map(move |p| layout.row(g, p) as u32)).collect();
-    let idx = Tensor::from_vec(idx, layout.count * layout.len, q.device())?;
-    let gather = |t: &Tensor| t.reshape((rows, inner))?.index_select(&idx, 0)?.reshape((layout.count, layout.len, inner));
-    let a = multi_head_attention_composed(&gather(q)?, &gather(k)?, &gather(v)?, heads, max_score_elems)?.reshape((rows, inner))?;
-    Tensor::zeros((rows, inner), a.dtype(), a.device())?.index_add(&idx, &a, 0)
+    let taken = layout.count * layout.len;
+    let order: Vec<usize> = (0..layout.count).flat_map(|g| (0..layout.len).map(move |p| layout.row(g, p))).collect();
+    if order.iter().any(|&r| r >= rows) {
+        candle_core::bail!("attention: sequence layout {layout:?} reaches past the {rows} rows");
+    }
+    let attend = |q: &Tensor, k: &Tensor, v: &Tensor| -> Result<Tensor> {
+        let seqs = |t: &Tensor| t.reshape((layout.count, layout.len, inner));
+        multi_head_attention_composed(&seqs(q)?, &seqs(k)?, &seqs(v)?, heads, max_score_elems)?.reshape((taken, inner))
+    };
+    if taken == rows && order.iter().enumerate().all(|(j, &r)| j == r) {
+        return attend(q, k, v);
+    }
+    // Sequences strided through blocks (temporal attention over frame-major rows): a transpose each way, whose
+    // backward needs no scatter either.
+    let ic = layout.inner_count;
+    if taken == rows && layout.count % ic == 0 && layout.inner == 1 && layout.pos == ic && layout.outer == layout.len * ic {
+        let blocks = layout.count / ic;
+        let swap = |t: &Tensor, a: usize, b: usize| t.reshape((blocks, a, b, inner))?.transpose(1, 2)?.contiguous()?.reshape((rows, inner));
+        let a = attend(&swap(q, layout.len, ic)?, &swap(k, layout.len, ic)?, &swap(v, layout.len, ic)?)?;
+        return swap(&a, ic, layout.len);
+    }
+    let mut back = vec![u32::MAX; rows];
+    for (j, &r) in order.iter().enumerate() {
+        if back[r] != u32::MAX {
+            candle_core::bail!("attention: sequence layout {layout:?} uses row {r} twice");
+        }
+        back[r] = j as u32;
+    }
+    let zero_row = taken as u32;
+    let back: Vec<u32> = back.into_iter().map(|j| if j == u32::MAX { zero_row } else { j }).collect();
+    let order: Vec<u32> = order.into_iter().map(|r| r as u32).collect();
+    let (order, back) = (Tensor::from_vec(order, taken, q.device())?, Tensor::from_vec(back, rows, q.device())?);
+    let gather = |t: &Tensor| t.reshape((rows, inner))?.index_select(&order, 0);
+    let a = attend(&gather(q)?, &gather(k)?, &gather(v)?)?;
+    Tensor::cat(&[&a, &Tensor::zeros((1, inner), a.dtype(), a.device())?], 0)?.index_select(&back, 0)
 }
 
 #[cfg(test)]
@@ -758,5 +790,38 @@ mod tests {
         let one = multi_head_attention_composed(&q, &k.narrow(1, 0, 1).unwrap(), &v.narrow(1, 0, 1).unwrap(), 2, usize::MAX).unwrap();
         let d = (one - v.narrow(1, 0, 1).unwrap().broadcast_as((3, 17, 8)).unwrap()).unwrap().abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap();
         assert!(d < 1e-6);
+    }
+
+    /// The composed path (reshape, transpose or gather) against the CPU kernel, which reads the layout in place:
+    /// contiguous, temporal windows (frame-major), and layouts leaving rows out or skipping rows (zeros there).
+    #[test]
+    fn composed_sequence_layouts_match_the_kernel() {
+        let dev = Device::Cpu;
+        let (heads, d) = (2, 4);
+        let (b, t, s) = (2, 6, 5);
+        let rows = b * t * s;
+        let x = Tensor::randn(0f32, 1.0, (rows, heads * d), &dev).unwrap();
+        let y = Tensor::randn(0f32, 1.0, (rows, heads * d), &dev).unwrap();
+        let z = Tensor::randn(0f32, 1.0, (rows, heads * d), &dev).unwrap();
+        let layouts = [
+            ("contiguous", SeqLayout::contiguous(b * t, s)),
+            ("temporal, 2 windows", SeqLayout { count: b * 2 * s, len: t / 2, inner_count: s, outer: t / 2 * s, inner: 1, pos: s }),
+            ("rows left out", SeqLayout::contiguous(b * t - 3, s)),
+            ("every other row", SeqLayout { count: 3, len: 10, inner_count: 1, outer: 20, inner: 0, pos: 2 }),
+            ("windows inside frames", SeqLayout { count: 8, len: 3, inner_count: 2, outer: 15, inner: 1, pos: 5 }),
+        ];
+        for (what, layout) in layouts {
+            let want = multi_head_attention_seqs(&x, &y, &z, layout, heads, usize::MAX).unwrap();
+            let got = multi_head_attention_seqs_composed(&x, &y, &z, layout, heads, 7 * 11).unwrap();
+            let diff = (got - &want).unwrap().abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap();
+            assert!(diff < 1e-5, "{what}: {diff}");
+            let zero_rows = want.abs().unwrap().sum(1).unwrap().to_vec1::<f32>().unwrap().iter().filter(|v| **v == 0.0).count();
+            let covered = layout.count * layout.len;
+            assert_eq!(zero_rows, rows - covered, "{what}: rows in no sequence are zero");
+        }
+        let twice = SeqLayout { count: 2, len: 3, inner_count: 1, outer: 1, inner: 0, pos: 1 };
+        assert!(multi_head_attention_seqs_composed(&x, &y, &z, twice, heads, usize::MAX).is_err());
+        let past = SeqLayout::contiguous(b * t + 1, s);
+        assert!(multi_head_attention_seqs_composed(&x, &y, &z, past, heads, usize::MAX).is_err());
     }
 }
