@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""PyTorch reference for `mvsplat360 bench refiner`: the SVD refiner's UNet step and temporal VAE decode on CPU.
+"""PyTorch reference for `mvsplat360 bench refiner`: the SVD refiner's UNet step and temporal VAE decode (CPU, or a GPU
+with --device cuda --dtype bf16, for `bench scene --device cuda`'s stage times).
 
 Models (diffusers, random weights = the default initialisers after `torch.manual_seed(--seed)`):
 - `UNetSpatioTemporalConditionModel` at the SVD img2vid size as MVSplat360 uses it: in_channels 8 (4 noisy latent
@@ -79,7 +80,11 @@ def main():
     ap.add_argument("--skip-vae", action="store_true")
     ap.add_argument("--skip-unet", action="store_true")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (inputs are drawn on the CPU, then moved)")
+    ap.add_argument("--dtype", default="f32", choices=["f32", "f16", "bf16"], help="weights and inputs (GPU: bf16)")
     args = ap.parse_args()
+    dev = torch.device(args.device)
+    dtype = {"f32": torch.float32, "f16": torch.float16, "bf16": torch.bfloat16}[args.dtype]
     set_threads(args.threads)
     from diffusers import AutoencoderKLTemporalDecoder, UNetSpatioTemporalConditionModel
 
@@ -92,7 +97,7 @@ def main():
     if not args.skip_unet:
         torch.manual_seed(args.seed)
         t0 = time.perf_counter()
-        unet = UNetSpatioTemporalConditionModel(**UNET_CONFIG).eval()
+        unet = UNetSpatioTemporalConditionModel(**UNET_CONFIG).eval().to(dev, dtype)
         init_ms = (time.perf_counter() - t0) * 1e3
         n_params = sum(p.numel() for p in unet.parameters())
         sigma = 700.0
@@ -110,6 +115,7 @@ def main():
             sys.exit("--batch must be 1 or 2")
         timestep = torch.full((B,), c_noise)
         added_time_ids = torch.full((B, 1), 0.02)
+        sample, ctx, timestep, added_time_ids = (t.to(dev, dtype) for t in (sample, ctx, timestep, added_time_ids))
         log(f"unet: {n_params} parameters ({init_ms:.0f} ms to build), input {tuple(sample.shape)}, "
             f"{torch.get_num_threads()} threads")
         out = {}
@@ -128,9 +134,9 @@ def main():
 
     if not args.skip_vae:
         torch.manual_seed(args.seed + 2)
-        vae = AutoencoderKLTemporalDecoder(**VAE_CONFIG).eval()
+        vae = AutoencoderKLTemporalDecoder(**VAE_CONFIG).eval().to(dev, dtype)
         n_params = sum(p.numel() for p in vae.decoder.parameters())
-        z = torch.randn(args.vae_frames, 4, h, w, generator=g)
+        z = torch.randn(args.vae_frames, 4, h, w, generator=g).to(dev, dtype)
         log(f"vae decoder: {n_params} parameters, {args.vae_frames} frame(s) {h}x{w} latents -> {8 * h}x{8 * w}")
         res = {}
 
@@ -147,7 +153,10 @@ def main():
                     "vae_output_finite": bool(torch.isfinite(res["img"]).all())})
 
     rec.update({"peak_mib": round(peak_rss_mib(), 1), "threads": torch.get_num_threads(),
-                "torch": torch.__version__})
+                "torch": torch.__version__, "device": str(dev), "dtype": args.dtype})
+    if dev.type == "cuda":
+        rec["gpu_peak_mib"] = round(torch.cuda.max_memory_allocated(dev) / 2**20, 1)
+        rec["gpu_name"] = torch.cuda.get_device_name(dev)
     import diffusers
     rec["diffusers"] = diffusers.__version__
     emit(rec)
