@@ -143,6 +143,43 @@ fn softmax_and_norm_compositions_match_kernels() {
     }
 }
 
+/// Half-precision inference takes candle's fused LayerNorm for LayerNorm and GroupNorm (frames pooled by a
+/// transpose). Reference: the f32 kernel on the same half-rounded inputs, so what differs is four half
+/// roundings (normalised value, ×weight, +bias, SiLU; u = 2⁻⁸ bf16, 2⁻¹¹ f16, relative) and f32 statistics:
+/// |a − b| ≤ 4u·(1 + |b|). Per-frame instead of pooled statistics, or a group's channels mixed up, move
+/// outputs by ≥ 0.1.
+#[test]
+fn half_precision_norms_match_the_f32_kernels() {
+    let x = (randn(&[6, 64, 3, 5], 1.5) + 0.5).unwrap();
+    let (w, b) = ((randn(&[64], 0.2) + 1.0).unwrap(), randn(&[64], 0.1));
+    let xl = (randn(&[3, 7, 48], 2.0) + 0.7).unwrap();
+    let (wl, bl) = ((randn(&[48], 0.3) + 1.0).unwrap(), randn(&[48], 0.3));
+    for (dtype, u) in [(DType::BF16, 2f32.powi(-8)), (DType::F16, 2f32.powi(-11))] {
+        let half = |t: &Tensor| t.to_dtype(dtype).unwrap();
+        let back = |t: &Tensor| half(t).to_dtype(DType::F32).unwrap();
+        let check = |what: &str, got: &Tensor, want: &Tensor| {
+            assert_eq!(got.dtype(), dtype, "{what}: stays in {dtype:?}");
+            let g = got.flatten_all().unwrap().to_dtype(DType::F32).unwrap().to_vec1::<f32>().unwrap();
+            let w = want.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+            for (i, (a, b)) in g.iter().zip(&w).enumerate() {
+                assert!((a - b).abs() <= 4.0 * u * (1.0 + b.abs()), "{what} {dtype:?}: element {i}: f32 kernel {b}, half {a}");
+            }
+        };
+        for (frames, silu) in [(1, false), (1, true), (3, true), (6, false)] {
+            check(
+                &format!("group_norm frames {frames} silu {silu}"),
+                &norm::group_norm(&half(&x), 32, frames, &half(&w), &half(&b), 1e-5, silu).unwrap(),
+                &norm::group_norm(&back(&x), 32, frames, &back(&w), &back(&b), 1e-5, silu).unwrap(),
+            );
+        }
+        check(
+            "layer_norm",
+            &norm::layer_norm(&half(&xl), &half(&wl), &half(&bl), 1e-5).unwrap(),
+            &norm::layer_norm(&back(&xl), &back(&wl), &back(&bl), 1e-5).unwrap(),
+        );
+    }
+}
+
 #[test]
 fn elementwise_and_linear_compositions_match_kernels() {
     let x = randn(&[3, 700], 3.0);
