@@ -78,7 +78,7 @@ pub fn group_norm(x: &Tensor, groups: usize, frames: usize, weight: &Tensor, bia
 
 /// [`group_norm`] in half precision: each (item, group) as one row of the fused LayerNorm (frames moved next to
 /// each other first when pooled), then the per-channel affine and SiLU.
-pub(crate) fn group_norm_fused_half(x: &Tensor, groups: usize, frames: usize, weight: &Tensor, bias: &Tensor, eps: f64, silu: bool) -> Result<Tensor> {
+fn group_norm_fused_half(x: &Tensor, groups: usize, frames: usize, weight: &Tensor, bias: &Tensor, eps: f64, silu: bool) -> Result<Tensor> {
     let dims = x.dims().to_vec();
     let (n, c) = (dims[0], dims[1]);
     let s: usize = dims[2..].iter().product();
