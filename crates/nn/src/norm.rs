@@ -76,6 +76,17 @@ pub fn group_norm(x: &Tensor, groups: usize, frames: usize, weight: &Tensor, bia
     group_norm_composed(x, groups, frames, weight, bias, eps, silu)
 }
 
+/// `x (N, C, S)·weight[c] + bias[c]`, optionally followed by SiLU: the end of both non-kernel GroupNorm paths.
+fn channel_affine(x: &Tensor, weight: &Tensor, bias: &Tensor, silu: bool) -> Result<Tensor> {
+    let c = x.dim(1)?;
+    let y = x.broadcast_mul(&weight.reshape((1, c, 1))?)?.broadcast_add(&bias.reshape((1, c, 1))?)?;
+    if silu {
+        y.silu()
+    } else {
+        Ok(y)
+    }
+}
+
 /// [`group_norm`] in half precision: each (item, group) as one row of the fused LayerNorm (frames moved next to
 /// each other first when pooled), then the per-channel affine and SiLU.
 fn group_norm_fused_half(x: &Tensor, groups: usize, frames: usize, weight: &Tensor, bias: &Tensor, eps: f64, silu: bool) -> Result<Tensor> {
@@ -92,9 +103,7 @@ fn group_norm_fused_half(x: &Tensor, groups: usize, frames: usize, weight: &Tens
     let (ones, zeros) = (Tensor::ones(len, x.dtype(), x.device())?, Tensor::zeros(len, x.dtype(), x.device())?);
     let xn = candle_nn::ops::layer_norm(&rows.contiguous()?, &ones, &zeros, eps as f32)?;
     let xn = if frames == 1 { xn } else { xn.reshape((bn, groups, frames, cg * s))?.transpose(1, 2)?.contiguous()? };
-    let (w, b) = (weight.to_dtype(x.dtype())?.reshape((1, c, 1))?, bias.to_dtype(x.dtype())?.reshape((1, c, 1))?);
-    let y = xn.reshape((n, c, s))?.broadcast_mul(&w)?.broadcast_add(&b)?;
-    let y = if silu { y.silu()? } else { y };
+    let y = channel_affine(&xn.reshape((n, c, s))?, &weight.to_dtype(x.dtype())?, &bias.to_dtype(x.dtype())?, silu)?;
     y.reshape(dims)
 }
 
@@ -109,8 +118,7 @@ pub(crate) fn group_norm_composed(x: &Tensor, groups: usize, frames: usize, weig
     let xc = xr.broadcast_sub(&mean)?;
     let var = xc.sqr()?.mean_keepdim(3)?.mean_keepdim(1)?;
     let xn = xc.broadcast_div(&(var + eps)?.sqrt()?)?.reshape((n, c, s))?;
-    let y = xn.broadcast_mul(&weight.reshape((1, c, 1))?)?.broadcast_add(&bias.reshape((1, c, 1))?)?;
-    let y = if silu { y.silu()? } else { y };
+    let y = channel_affine(&xn, weight, bias, silu)?;
     y.reshape(dims)
 }
 
