@@ -384,6 +384,10 @@ fn settings_json(req: &EvalRequest, spec: &crate::model::ModelSpec, size: InputS
         "scene_scale": req.scene_scale,
         "refine": spec.refiner.as_ref().map(|_| &req.refine),
     });
+    // Fitting changes every frame; none adds nothing, so folders of earlier runs still resume.
+    if spec.fit.steps > 0 {
+        v["fit"] = json!(spec.fit);
+    }
     // Half precision changes the refined frames; f32 adds nothing, so folders of earlier runs still resume.
     let dtype = req.model.compute.refiner_dtype;
     if spec.refiner.is_some() && dtype != candle_core::DType::F32 {
@@ -642,6 +646,7 @@ fn render_scene(cx: &Ctx, scene: Scene, plan: &ScenePlan, warnings: &mut Vec<Str
     };
 
     let g = render::encode(&p, cx.progress)?;
+    let (g, _) = render::fit_to_context(&p, g, cx.progress)?;
     record.gaussians = g.means.dim(0).map_err(compute("encoder"))?;
     let renders = render::rasterize_targets(&g, &p.target_cameras, spec.encoder.near, spec.encoder.far, cx.progress)?;
     drop(g);

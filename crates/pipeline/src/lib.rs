@@ -9,6 +9,7 @@ pub mod bench;
 pub mod compute;
 pub mod error;
 pub mod eval;
+pub mod fit;
 pub mod model;
 pub mod output;
 pub mod preprocess;

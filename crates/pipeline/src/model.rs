@@ -63,6 +63,10 @@ pub struct ModelConfig {
     /// Absent: the model renders 3DGS only.
     #[serde(default)]
     pub refiner: Option<RefinerModelConfig>,
+    /// Test-time fitting of the Gaussians to the context photos that `render` runs by default for this model
+    /// (see [`crate::fit`]); absent: none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fit: Option<crate::fit::FitSettings>,
 }
 
 pub const MODEL_FORMAT: &str = "mvsplat360-model/1";
@@ -82,6 +86,8 @@ pub struct ModelArgs {
     pub experiment: Option<String>,
     /// `--device` and `--dtype`: where the model runs and the refiner's precision.
     pub compute: crate::compute::Compute,
+    /// `--fit-steps`: overrides the model's default test-time fitting step count (0 = off).
+    pub fit_steps: Option<usize>,
 }
 
 #[derive(Debug, Clone, PartialEq)]
@@ -106,6 +112,8 @@ pub struct ModelSpec {
     pub refiner: Option<(RefinerModelConfig, RefinerWeights)>,
     /// Human description for logs and run.json.
     pub description: String,
+    /// The model's default test-time fitting (steps 0 = none; only model folders set it).
+    pub fit: crate::fit::FitSettings,
 }
 
 /// Where the refiner's weights are.
@@ -147,6 +155,14 @@ pub fn experiment_encoder(data: &DataConfig) -> EncoderCostVolumeCfg {
 
 /// Resolve the command-line model choice. Files are checked to exist; weights are read later.
 pub fn resolve(args: &ModelArgs) -> Result<ModelSpec> {
+    let mut spec = resolve_weights(args)?;
+    if let Some(n) = args.fit_steps {
+        spec.fit.steps = n;
+    }
+    Ok(spec)
+}
+
+fn resolve_weights(args: &ModelArgs) -> Result<ModelSpec> {
     let missing = |flag: &'static str, p: &Path| PipelineError::Flag { flag, msg: format!("{}: no such file or folder", p.display()) };
     if let Some(ck) = &args.ckpt {
         if args.encoder.is_some() {
@@ -190,7 +206,7 @@ pub fn resolve(args: &ModelArgs) -> Result<ModelSpec> {
             }
         };
         let desc = format!("encoder {}{}", enc.display(), if refiner.is_some() { " + refiner" } else { " (3DGS only)" });
-        return Ok(ModelSpec { encoder: experiment_encoder(&data), data, encoder_file: enc.clone(), refiner, description: desc });
+        return Ok(ModelSpec { encoder: experiment_encoder(&data), data, encoder_file: enc.clone(), refiner, description: desc, fit: Default::default() });
     }
     if let Some(RefinerArg::File(_)) = &args.refiner {
         return Err(PipelineError::Flag { flag: "--refiner", msg: "a refiner file needs an encoder: pass --encoder FILE or --ckpt".into() });
@@ -224,6 +240,7 @@ fn official_ckpt(path: &Path, experiment: Option<&str>) -> Result<ModelSpec> {
         encoder_file: path.to_path_buf(),
         refiner: Some((RefinerModelConfig::default(), refiner_weights(path))),
         description: format!("official checkpoint {}", path.display()),
+        fit: Default::default(),
     })
 }
 
@@ -241,6 +258,8 @@ pub fn read_model_dir(dir: &Path) -> Result<ModelSpec> {
     if !weights.is_file() {
         return Err(PipelineError::Model { path: weights, msg: "missing: a model folder holds config.json and model.safetensors".into() });
     }
+    let fit = cfg.fit.unwrap_or_default();
+    fit.validate().map_err(|e| PipelineError::Model { path: cfg_path.clone(), msg: format!("invalid `fit` settings: {e}") })?;
     let mut encoder = cfg.encoder.clone();
     encoder.near = cfg.data.near;
     encoder.far = cfg.data.far;
@@ -250,6 +269,7 @@ pub fn read_model_dir(dir: &Path) -> Result<ModelSpec> {
         encoder_file: weights.clone(),
         refiner: cfg.refiner.map(|r| (r, RefinerWeights::File(weights.clone()))),
         description: format!("model folder {}", dir.display()),
+        fit,
     })
 }
 
@@ -310,7 +330,7 @@ pub fn tiny_config(with_refiner: bool) -> ModelConfig {
         vae: AutoencoderConfig { ch: 32, ch_mult: vec![1, 1, 2, 2], num_res_blocks: 1, ..AutoencoderConfig::default() },
         clip: ClipVisionConfig { width: 32, layers: 2, heads: 2, mlp_width: 64, patch_size: 8, image_size: 32, output_dim: 32, ..ClipVisionConfig::default() },
     });
-    ModelConfig { format: MODEL_FORMAT.into(), data, encoder, refiner }
+    ModelConfig { format: MODEL_FORMAT.into(), data, encoder, refiner, fit: None }
 }
 
 /// Seeded random weights for `cfg` under the official key names (what a model folder's safetensors holds).

@@ -236,6 +236,17 @@ pub fn encode(p: &Prepared, progress: &dyn Progress) -> Result<Gaussians> {
     Ok(g)
 }
 
+/// The model's test-time fitting of `g` to the context photos (see [`crate::fit`]), when its step count is not 0:
+/// the fitted Gaussians and the fitting loss before and after.
+pub fn fit_to_context(p: &Prepared, g: Gaussians, progress: &dyn Progress) -> Result<(Gaussians, Option<[f64; 2]>)> {
+    if p.spec.fit.steps == 0 {
+        return Ok((g, None));
+    }
+    let (near, far) = (p.spec.encoder.near, p.spec.encoder.far);
+    let (f, losses) = crate::fit::fit(&g, &p.context_cameras, &p.context_images, near, far, &p.spec.fit, progress)?;
+    Ok((f, Some(losses)))
+}
+
 /// Fail instead of writing NaN/inf.
 pub fn check_finite(stage: &'static str, t: &Tensor) -> Result<()> {
     let v = t.to_dtype(DType::F32).and_then(|t| t.flatten_all()).and_then(|t| t.to_vec1::<f32>()).map_err(compute(stage))?;
@@ -455,6 +466,12 @@ pub fn run(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSummary
     let t = Instant::now();
     let g = encode(&p, progress)?;
     times.push(("encoder".into(), t.elapsed().as_secs_f64()));
+    let t = Instant::now();
+    let (g, fit_losses) = fit_to_context(&p, g, progress)?;
+    if let Some([a, b]) = fit_losses {
+        progress.note(&format!("fitting: loss {a:.5} → {b:.5} in {} steps", p.spec.fit.steps));
+        times.push(("fit".into(), t.elapsed().as_secs_f64()));
+    }
     let n_gauss = g.means.dim(0).map_err(compute("encoder"))?;
 
     let t = Instant::now();
@@ -583,6 +600,8 @@ pub fn run(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSummary
             "far": far,
             "refiner": refine_file.is_some(),
             "refine": req.refine,
+            "fit": p.spec.fit,
+            "fit_loss": fit_losses,
             "device": req.model.compute.device.to_string(),
             "refiner_dtype": p.refiner_dtype.as_str(),
             "fps": req.fps,

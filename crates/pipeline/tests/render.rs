@@ -214,3 +214,44 @@ fn windows_pad_the_last_one() {
     assert_eq!(render::windows(56, 14), vec![(0, 14), (14, 14), (28, 14), (42, 14)]);
     assert_eq!(render::windows(5, 14), vec![(0, 5)]);
 }
+
+/// A model folder's `fit` runs by default, `--fit-steps 0` turns it off (then the frames are the encoder's
+/// Gaussians' renders, as for a folder without `fit`), and bad settings are refused naming the file and key.
+#[test]
+fn model_fit_settings_default_override_and_validation() {
+    let tmp = tempfile::tempdir().unwrap();
+    let plain = tiny_model(tmp.path(), false);
+    let fitted = tmp.path().join("fitted");
+    std::fs::create_dir_all(&fitted).unwrap();
+    std::fs::copy(plain.join("model.safetensors"), fitted.join("model.safetensors")).unwrap();
+    let mut cfg: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(plain.join("config.json")).unwrap()).unwrap();
+    cfg["fit"] = serde_json::json!({"steps": 3, "lr": 0.05, "self_weight": 1.0});
+    std::fs::write(fitted.join("config.json"), cfg.to_string()).unwrap();
+    let run = |m: &Path, name: &str, steps: Option<usize>| {
+        let out = tmp.path().join(name);
+        let mut req = request(m, &out, TargetSpec::Views(vec![3]));
+        req.video = false;
+        req.model.fit_steps = steps;
+        render::run(&req, &Silent).unwrap();
+        let j: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("run.json")).unwrap()).unwrap();
+        (png(&out.join("frames/gsplat/0000.png")), j["settings"]["fit_loss"].clone())
+    };
+    let (base, none) = run(&plain, "plain", None);
+    assert!(none.is_null());
+    let (with_fit, losses) = run(&fitted, "fitted", None);
+    let l: Vec<f64> = losses.as_array().expect("fit ran").iter().map(|x| x.as_f64().unwrap()).collect();
+    assert!(l.len() == 2 && l.iter().all(|x| x.is_finite()), "{losses}");
+    assert_ne!(base.as_raw(), with_fit.as_raw(), "3 fitting steps change the render");
+    let (off, none) = run(&fitted, "off", Some(0));
+    assert!(none.is_null());
+    assert_eq!(base.as_raw(), off.as_raw(), "--fit-steps 0 renders the encoder's Gaussians");
+
+    cfg["fit"] = serde_json::json!({"steps": 3, "lr": -1.0});
+    std::fs::write(fitted.join("config.json"), cfg.to_string()).unwrap();
+    let e = model::read_model_dir(&fitted).unwrap_err().to_string();
+    assert!(e.contains("config.json") && e.contains("fit.lr"), "{e}");
+    cfg["fit"] = serde_json::json!({"step": 3});
+    std::fs::write(fitted.join("config.json"), cfg.to_string()).unwrap();
+    let e = model::read_model_dir(&fitted).unwrap_err().to_string();
+    assert!(e.contains("config.json") && e.contains("step"), "{e}");
+}

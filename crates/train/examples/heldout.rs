@@ -5,6 +5,9 @@
 //! histogram-matched to the 3DGS renders); `--refiner none` as a second `--model` entry skips them
 //! (`--model name=DIR:norefine`).
 //!
+//! The 3DGS renders are `render`'s: after the model's default test-time fitting (`--fit-steps N` overrides it
+//! for every model, 0 = none; the row says "fitted N" when it ran).
+//!
 //!     cargo run --release -p mvsplat360-train --example heldout -- \
 //!         --model step0=out/train/shipped/model-step0 --model final=assets/models/default data/heldout/*
 
@@ -60,6 +63,7 @@ fn main() -> anyhow::Result<()> {
     let mut scenes: Vec<PathBuf> = Vec::new();
     let mut json_out: Option<PathBuf> = None;
     let mut dump: Option<PathBuf> = None;
+    let mut fit_steps: Option<usize> = None;
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         match a.as_str() {
@@ -74,10 +78,11 @@ fn main() -> anyhow::Result<()> {
             }
             "--json" => json_out = args.next().map(Into::into),
             "--dump" => dump = args.next().map(Into::into),
+            "--fit-steps" => fit_steps = Some(args.next().ok_or_else(|| anyhow::anyhow!("--fit-steps N"))?.parse()?),
             _ => scenes.push(a.into()),
         }
     }
-    anyhow::ensure!(!models.is_empty() && !scenes.is_empty(), "usage: heldout --model name=DIR [--model …] [--json FILE] [--dump DIR] SCENE…");
+    anyhow::ensure!(!models.is_empty() && !scenes.is_empty(), "usage: heldout --model name=DIR [--model …] [--fit-steps N] [--json FILE] [--dump DIR] SCENE…");
     let lp = mvsplat360_metrics::lpips::Lpips::load(None, mvsplat360_metrics::lpips::Net::Vgg, &Device::Cpu)?;
     let mut rows = Vec::new();
     println!("| scene | method | PSNR ↑ | SSIM ↑ | LPIPS ↓ |\n|---|---|---|---|---|");
@@ -91,7 +96,12 @@ fn main() -> anyhow::Result<()> {
                 scene_key: None,
                 context: ContextSpec::Count(5),
                 targets: TargetSpec::Views((0..n).collect()),
-                model: ModelArgs { ckpt: Some(dir.clone()), refiner: (!refine).then_some(mvsplat360_pipeline::model::RefinerArg::None), ..Default::default() },
+                model: ModelArgs {
+                    ckpt: Some(dir.clone()),
+                    refiner: (!refine).then_some(mvsplat360_pipeline::model::RefinerArg::None),
+                    fit_steps,
+                    ..Default::default()
+                },
                 size: None,
                 scene_scale: mvsplat360_pipeline::scale::SceneScale::Auto,
                 refine: Default::default(),
@@ -127,6 +137,8 @@ fn main() -> anyhow::Result<()> {
                 baseline_done = true;
             }
             let g = render::encode(&p, &Silent)?;
+            let (g, fitted) = render::fit_to_context(&p, g, &Silent)?;
+            let kind = if fitted.is_some() { format!("3DGS, fitted {}", p.spec.fit.steps) } else { "3DGS".to_string() };
             let near = p.spec.data.near;
             let far = p.spec.data.far;
             let out = render::rasterize_targets(&g, &p.target_cameras, near, far, &Silent)?;
@@ -141,8 +153,8 @@ fn main() -> anyhow::Result<()> {
                 contact_sheet(&d.join(format!("{name}-{mname}.png")), &preds, &gts)?;
             }
             let [ps, ss, ls] = scores(&lp, &preds, &gts)?;
-            println!("| {name} | {mname} (3DGS) | {ps:.2} | {ss:.3} | {ls:.3} |");
-            rows.push(serde_json::json!({"scene": name, "method": format!("{mname} 3DGS"), "psnr": ps, "ssim": ss, "lpips": ls, "targets": gts.len()}));
+            println!("| {name} | {mname} ({kind}) | {ps:.2} | {ss:.3} | {ls:.3} |");
+            rows.push(serde_json::json!({"scene": name, "method": format!("{mname} {kind}"), "psnr": ps, "ssim": ss, "lpips": ls, "targets": gts.len()}));
             if let Some((rcfg, w)) = &p.spec.refiner {
                 let file = mvsplat360_pipeline::model::refiner_safetensors(w, &|_| {})?;
                 // What the refiner's decoder can give at best: the photos encoded (posterior mode) and decoded.

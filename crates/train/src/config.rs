@@ -39,6 +39,10 @@ pub struct ModelSection {
     /// only. Present: its UNet is trained with the diffusion and latent-alignment losses, VAE and CLIP frozen.
     #[serde(default)]
     pub refiner: Option<mvsplat360_pipeline::model::RefinerModelConfig>,
+    /// Test-time fitting that `render` runs by default with the exported model (`[model.fit]`; not trained,
+    /// written into the model folder's config).
+    #[serde(default)]
+    pub fit: Option<mvsplat360_pipeline::fit::FitSettings>,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

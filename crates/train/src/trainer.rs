@@ -216,6 +216,7 @@ impl Model {
             data: DataConfig { experiment: m.experiment.clone(), image_width: m.width, image_height: m.height, near: m.near, far: m.far },
             encoder: self.cfg.encoder(),
             refiner: self.cfg.model.refiner.clone(),
+            fit: self.cfg.model.fit,
         }
     }
 }

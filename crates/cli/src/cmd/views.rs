@@ -81,6 +81,11 @@ pub struct ModelFlags {
     /// refiner's memory and on a GPU is faster. The encoder and rasterizer always run in f32.
     #[arg(long, default_value = "f32", value_parser = parse_dtype)]
     pub dtype: candle_core::DType,
+    /// Steps of test-time fitting: the Gaussians' distances along their pixel rays and opacities are adjusted
+    /// so that each context photo is reproduced by the other views' Gaussians (not in the official pipeline).
+    /// Default: the model's own setting (the shipped model: see its MODEL.md; official weights: 0 = off).
+    #[arg(long)]
+    pub fit_steps: Option<usize>,
 }
 
 impl ModelFlags {
@@ -91,6 +96,7 @@ impl ModelFlags {
             refiner: self.refiner.clone(),
             experiment: self.experiment.clone(),
             compute: Compute { device: self.device, refiner_dtype: self.dtype },
+            fit_steps: self.fit_steps,
         }
     }
 }

@@ -1,0 +1,199 @@
+//! Test-time fitting of the encoder's Gaussians to the context photos (not in the official pipeline; off for
+//! official weights, on by default for models whose `config.json` asks for it — the shipped model, see its
+//! MODEL.md for what it adds on held-out scenes).
+//!
+//! Each context view is rendered from the *other* views' Gaussians and compared with its photo, where that
+//! render covers the pixel: a view's own Gaussians reproduce its photo whatever their depth, so only the
+//! leave-one-out renders say whether the geometry agrees across views. Optimised, with Adam: each Gaussian's
+//! distance along its pixel ray (a log scale; its covariance is scaled with it, so its footprint in its own
+//! view is unchanged) and its opacity (a logit). Colours, shapes and features stay as the encoder made them.
+
+use candle_core::{DType, Device, Tensor, Var};
+use candle_nn::{AdamW, Optimizer, ParamsAdamW};
+use mvsplat360_camera::Camera;
+use mvsplat360_dataset::ImageF32;
+use mvsplat360_splat::op::{render as rasterize, RenderOptions};
+use mvsplat360_splat::Gaussians;
+use serde::{Deserialize, Serialize};
+
+use crate::error::{compute, flag, PipelineError, Result};
+use crate::render::{raster_camera, Progress};
+
+/// How the Gaussians are fitted (a model folder's `config.json` key `fit`; `render --fit-steps` overrides the
+/// step count).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct FitSettings {
+    /// Adam steps (0 = off).
+    pub steps: usize,
+    /// Learning rate of the log distance scale; the opacity logits use `opacity_lr_scale` times it.
+    pub lr: f64,
+    pub opacity_lr_scale: f64,
+    /// Pixels count where the leave-one-out render's accumulated opacity is at least this.
+    pub min_alpha: f32,
+    /// Weight of a second term: each context view rendered from all the Gaussians against its photo (keeps a
+    /// view's own Gaussians from fading where the other views disagree with them).
+    pub self_weight: f64,
+}
+
+impl Default for FitSettings {
+    fn default() -> Self {
+        Self { steps: 0, lr: 0.01, opacity_lr_scale: 5.0, min_alpha: 0.5, self_weight: 0.0 }
+    }
+}
+
+impl FitSettings {
+    pub fn validate(&self) -> Result<()> {
+        if !(self.lr.is_finite() && self.lr > 0.0) {
+            return Err(flag("fit.lr", format!("must be a positive number, got {}", self.lr)));
+        }
+        if !(self.opacity_lr_scale.is_finite() && self.opacity_lr_scale >= 0.0) {
+            return Err(flag("fit.opacity_lr_scale", format!("must be ≥ 0, got {}", self.opacity_lr_scale)));
+        }
+        if !(self.self_weight.is_finite() && self.self_weight >= 0.0) {
+            return Err(flag("fit.self_weight", format!("must be ≥ 0, got {}", self.self_weight)));
+        }
+        if !(0.0..1.0).contains(&self.min_alpha) {
+            return Err(flag("fit.min_alpha", format!("must be in [0, 1), got {}", self.min_alpha)));
+        }
+        Ok(())
+    }
+}
+
+/// The Gaussians of a fit in progress.
+struct Fitted<'a> {
+    g: &'a Gaussians,
+    origins: Tensor,
+    log_scale: Var,
+    logit: Var,
+}
+
+impl Fitted<'_> {
+    fn gaussians(&self) -> candle_core::Result<Gaussians> {
+        let s = self.log_scale.as_tensor().exp()?;
+        let means = (&self.origins + self.g.means.sub(&self.origins)?.broadcast_mul(&s)?)?;
+        let covariances = self.g.covariances.broadcast_mul(&s.sqr()?.unsqueeze(2)?)?;
+        let opacities = candle_nn::ops::sigmoid(self.logit.as_tensor())?;
+        Ok(Gaussians { means, covariances, opacities, harmonics: self.g.harmonics.clone(), feature_harmonics: self.g.feature_harmonics.clone() })
+    }
+}
+
+fn subset(g: &Gaussians, idx: &Tensor) -> candle_core::Result<Gaussians> {
+    Ok(Gaussians {
+        means: g.means.index_select(idx, 0)?,
+        covariances: g.covariances.index_select(idx, 0)?,
+        opacities: g.opacities.index_select(idx, 0)?,
+        harmonics: g.harmonics.index_select(idx, 0)?,
+        feature_harmonics: g.feature_harmonics.index_select(idx, 0)?,
+    })
+}
+
+/// The fitting loss: mean over context views of the leave-one-out render's masked MSE, plus `self_weight` × the
+/// MSE of the render from all Gaussians.
+fn fit_loss(g: &Gaussians, others: &[Tensor], cams: &[Camera], photos: &[Tensor], near: f32, far: f32, s: &FitSettings) -> candle_core::Result<Tensor> {
+    let render =
+        |g: &Gaussians, c: &Camera| rasterize(g, &raster_camera(c, near, far), &RenderOptions::default()).map_err(|e| candle_core::Error::Msg(e.to_string()));
+    let mut total = Tensor::zeros((), DType::F32, g.means.device())?;
+    for ((idx, c), photo) in others.iter().zip(cams).zip(photos) {
+        let r = render(&subset(g, idx)?, c)?;
+        let mask = r.alpha.detach().ge(s.min_alpha)?.to_dtype(DType::F32)?;
+        total = (total + (r.rgb - photo)?.broadcast_mul(&mask)?.sqr()?.mean_all()?)?;
+        if s.self_weight > 0.0 {
+            let r = render(g, c)?;
+            total = (total + ((r.rgb - photo)?.sqr()?.mean_all()? * s.self_weight)?)?;
+        }
+    }
+    total / cams.len() as f64
+}
+
+/// Fit `g` (the encoder's Gaussians of `cams.len()` views, view-major, the same number per view) to the
+/// context photos; returns the fitted Gaussians and the loss before and after.
+pub fn fit(
+    g: &Gaussians,
+    cams: &[Camera],
+    photos: &[ImageF32],
+    near: f32,
+    far: f32,
+    s: &FitSettings,
+    progress: &dyn Progress,
+) -> Result<(Gaussians, [f64; 2])> {
+    s.validate()?;
+    let stage = "fitting";
+    let dev: Device = g.means.device().clone();
+    let n = g.means.dim(0).map_err(compute(stage))?;
+    let v = cams.len();
+    if v < 2 || photos.len() != v || n == 0 || n % v != 0 {
+        return Err(PipelineError::Compute {
+            stage,
+            msg: format!(
+                "needs ≥ 2 context views with one photo each and the same number of Gaussians per view (views {v}, photos {}, Gaussians {n})",
+                photos.len()
+            ),
+        });
+    }
+    let per = n / v;
+    let mut origins = Vec::with_capacity(3 * n);
+    for c in cams {
+        let o = c.center();
+        for _ in 0..per {
+            origins.extend_from_slice(&[o.x as f32, o.y as f32, o.z as f32]);
+        }
+    }
+    let run = || -> candle_core::Result<(Gaussians, [f64; 2])> {
+        let origins = Tensor::from_vec(origins.clone(), (n, 3), &dev)?;
+        let others: Vec<Tensor> = (0..v)
+            .map(|j| {
+                let idx: Vec<u32> = (0..n as u32).filter(|&i| i as usize / per != j).collect();
+                Tensor::from_vec(idx, n - per, &dev)
+            })
+            .collect::<candle_core::Result<_>>()?;
+        let photos: Vec<Tensor> =
+            photos.iter().map(|p| Tensor::from_slice(&p.data, (3, p.height as usize, p.width as usize), &dev)).collect::<candle_core::Result<_>>()?;
+        let op = g.opacities.detach().clamp(1e-4f32, 1.0 - 1e-4)?;
+        let logit = Var::from_tensor(&(op.log()? - (op.neg()? + 1.0)?.log()?)?)?;
+        let log_scale = Var::zeros((n, 1), DType::F32, &dev)?;
+        let params = |lr: f64| ParamsAdamW { lr, weight_decay: 0.0, ..ParamsAdamW::default() };
+        let mut opt_s = AdamW::new(vec![log_scale.clone()], params(s.lr))?;
+        let mut opt_o = AdamW::new(vec![logit.clone()], params(s.lr * s.opacity_lr_scale))?;
+        let detached = Gaussians {
+            means: g.means.detach(),
+            covariances: g.covariances.detach(),
+            opacities: g.opacities.detach(),
+            harmonics: g.harmonics.detach(),
+            feature_harmonics: g.feature_harmonics.detach(),
+        };
+        let f = Fitted { g: &detached, origins, log_scale, logit };
+        let mut first = f64::NAN;
+        for _ in 0..s.steps {
+            let loss = fit_loss(&f.gaussians()?, &others, cams, &photos, near, far, s)?;
+            let lv = loss.to_scalar::<f32>()? as f64;
+            if !lv.is_finite() {
+                candle_core::bail!("the fitting loss is {lv}");
+            }
+            if first.is_nan() {
+                first = lv;
+            }
+            // Each optimiser updates only its own variable from the shared gradient store.
+            let grads = loss.backward()?;
+            opt_s.step(&grads)?;
+            opt_o.step(&grads)?;
+            progress.advance(1);
+        }
+        let out = f.gaussians()?;
+        let last = fit_loss(&out, &others, cams, &photos, near, far, s)?.to_scalar::<f32>()? as f64;
+        let out = Gaussians {
+            means: out.means.detach(),
+            covariances: out.covariances.detach(),
+            opacities: out.opacities.detach(),
+            harmonics: out.harmonics,
+            feature_harmonics: out.feature_harmonics,
+        };
+        Ok((out, [if first.is_nan() { last } else { first }, last]))
+    };
+    progress.begin(stage, s.steps as u64);
+    let r = run().map_err(compute(stage));
+    progress.end();
+    let (out, losses) = r?;
+    crate::render::check_finite("fitting (Gaussian means)", &out.means)?;
+    Ok((out, losses))
+}

@@ -1,0 +1,225 @@
+//! Test-time fitting on the context photos alone, measured on the held-out protocol's targets (32-view loop, 5
+//! context views by farthest-point sampling, the other 27 views as targets): target PSNR after each listed
+//! step count. Modes:
+//! - `product`: `render`'s fitting (`mvsplat360_pipeline::fit`) with `--lr`, `--self`, `--mask`;
+//! - `gauss`: the exploration variant it came from (own loop; `--pyramid` levels of 2× pooling in the loss,
+//!   `--colour S` also fits the SH DC at S × the rate);
+//! - `net`: fine-tunes the encoder's weights on the same leave-one-out loss instead.
+//!
+//!     cargo run --release -p mvsplat360-train --example tto -- CONFIG.toml MODEL_DIR \
+//!         [--mode product|gauss|net] [--steps 0,25,50,100] [--lr 0.01] [--mask 0.5] [--self 0] \
+//!         [--pyramid 3] [--colour 0] SEED|DIR…
+
+use candle_core::{DType, Device, IndexOp, Tensor, Var};
+use mvsplat360_pipeline::render::raster_camera;
+use mvsplat360_splat::{Gaussians, RenderOptions};
+use mvsplat360_train::optim::{Adam, Param};
+use mvsplat360_train::scenes::protocol_scene;
+use mvsplat360_train::trainer::{example_from_views, render_example_full, Example, Model};
+
+fn psnr(a: &Tensor, b: &Tensor) -> anyhow::Result<f64> {
+    let a: Vec<f32> = a.clamp(0f32, 1f32)?.flatten_all()?.to_vec1()?;
+    let b: Vec<f32> = b.flatten_all()?.to_vec1()?;
+    Ok(mvsplat360_metrics::psnr::psnr(&a, &b))
+}
+
+fn targets_psnr(g: &Gaussians, ex: &Example, near: f32, far: f32) -> anyhow::Result<f64> {
+    let mut s = 0.0;
+    for (t, c) in ex.target_cameras.iter().enumerate() {
+        let r = mvsplat360_splat::render(g, &raster_camera(c, near, far), &RenderOptions::default())?;
+        s += psnr(&r.rgb, &ex.target_images.i(t)?)?;
+    }
+    Ok(s / ex.target_cameras.len() as f64)
+}
+
+fn subset(g: &Gaussians, idx: &Tensor) -> candle_core::Result<Gaussians> {
+    Ok(Gaussians {
+        means: g.means.index_select(idx, 0)?,
+        covariances: g.covariances.index_select(idx, 0)?,
+        opacities: g.opacities.index_select(idx, 0)?,
+        harmonics: g.harmonics.index_select(idx, 0)?,
+        feature_harmonics: g.feature_harmonics.index_select(idx, 0)?,
+    })
+}
+
+struct Opts {
+    mask: f32,
+    pyramid: usize,
+    self_weight: f64,
+}
+
+/// Leave-one-out loss: each context view rendered from the other views' Gaussians against its photo, at
+/// `pyramid` scales (2× average pooling each), only where the render covers the pixel (α > mask, if > 0).
+fn loo_loss(g: &Gaussians, ex: &Example, near: f32, far: f32, o: &Opts) -> anyhow::Result<Tensor> {
+    let v = ex.context_cameras.len();
+    let n = g.means.dim(0)?;
+    let per = n / v;
+    let mut total: Option<Tensor> = None;
+    for (j, c) in ex.context_cameras.iter().enumerate() {
+        if o.self_weight > 0.0 {
+            let r = mvsplat360_splat::render(g, &raster_camera(c, near, far), &RenderOptions::default())?;
+            let l = ((r.rgb - ex.context_images.i(j)?)?.sqr()?.mean_all()? * o.self_weight)?;
+            total = Some(match total {
+                Some(t) => (t + l)?,
+                None => l,
+            });
+        }
+        let idx: Vec<u32> = (0..n as u32).filter(|&i| (i as usize) / per != j).collect();
+        let idx = Tensor::from_vec(idx, n - per, &Device::Cpu)?;
+        let r = mvsplat360_splat::render(&subset(g, &idx)?, &raster_camera(c, near, far), &RenderOptions::default())?;
+        let gt = ex.context_images.i(j)?;
+        let mut diff = (r.rgb - gt)?;
+        if o.mask > 0.0 {
+            let m = r.alpha.detach().ge(o.mask)?.to_dtype(DType::F32)?;
+            diff = diff.broadcast_mul(&m)?;
+        }
+        let mut d = diff.unsqueeze(0)?;
+        for _ in 0..o.pyramid.max(1) {
+            let l = d.sqr()?.mean_all()?;
+            total = Some(match total {
+                Some(t) => (t + l)?,
+                None => l,
+            });
+            d = d.avg_pool2d(2)?;
+        }
+    }
+    Ok(total.expect("views"))
+}
+
+fn main() -> anyhow::Result<()> {
+    mvsplat360_pipeline::setup::init_process();
+    let mut args: Vec<String> = std::env::args().skip(1).collect();
+    let mut take = |flag: &str, default: &str| -> String {
+        match args.iter().position(|a| a == flag) {
+            Some(i) => {
+                let v = args.remove(i + 1);
+                args.remove(i);
+                v
+            }
+            None => default.to_string(),
+        }
+    };
+    let mode = take("--mode", "gauss");
+    let steps: Vec<usize> = take("--steps", "0,25,50,100").split(',').map(|s| s.parse()).collect::<Result<_, _>>()?;
+    let lr: f64 = take("--lr", if mode == "net" { "2e-5" } else { "0.01" }).parse()?;
+    let colour: f64 = take("--colour", "0").parse()?;
+    let o = Opts { mask: take("--mask", "0.5").parse()?, pyramid: take("--pyramid", "3").parse()?, self_weight: take("--self", "0").parse()? };
+    anyhow::ensure!(args.len() >= 3, "usage: tto CONFIG.toml MODEL_DIR [flags] SEED|DIR…");
+    let max_steps = *steps.iter().max().unwrap_or(&0);
+    println!("mode {mode}, lr {lr}, mask {}, pyramid {}", o.mask, o.pyramid);
+    println!("| scene | {} |\n|---|{}", steps.iter().map(|s| format!("step {s}")).collect::<Vec<_>>().join(" | "), "---|".repeat(steps.len()));
+    let mut sums = vec![0.0; steps.len()];
+    let nscenes = args.len() - 2;
+    for arg in &args[2..] {
+        let model = Model::encoder_with_weights(args[0].as_ref(), args[1].as_ref())?;
+        let cfg = model.cfg.clone();
+        let (w, h) = (cfg.model.width, cfg.model.height);
+        let (near, far) = (cfg.model.near, cfg.model.far);
+        let (scene, v, label) = protocol_scene(arg, w, h, cfg.model.encoder.image_multiple() as u32)?;
+        let ex = example_from_views(&scene, &v, near, far)?;
+        let mut row = Vec::new();
+        let t0 = std::time::Instant::now();
+        match mode.as_str() {
+            "gauss" => {
+                let g0 = render_example_full(&model, &ex)?.gaussians;
+                let g0 = Gaussians {
+                    means: g0.means.detach(),
+                    covariances: g0.covariances.detach(),
+                    opacities: g0.opacities.detach(),
+                    harmonics: g0.harmonics.detach(),
+                    feature_harmonics: g0.feature_harmonics.detach(),
+                };
+                let n = g0.means.dim(0)?;
+                let per = n / ex.context_cameras.len();
+                // Ray origin of each Gaussian: its view's camera centre.
+                let mut orig = Vec::with_capacity(3 * n);
+                for i in 0..n {
+                    let c = ex.context_cameras[i / per].center();
+                    orig.extend_from_slice(&[c.x as f32, c.y as f32, c.z as f32]);
+                }
+                let orig = Tensor::from_vec(orig, (n, 3), &Device::Cpu)?;
+                let log_s = Var::zeros((n, 1), DType::F32, &Device::Cpu)?;
+                let op0 = g0.opacities.clamp(1e-4f32, 1.0 - 1e-4)?;
+                let logit = Var::from_tensor(&(op0.log()? - (op0.neg()? + 1.0)?.log()?)?)?;
+                let dc = Var::from_tensor(&g0.harmonics.narrow(2, 0, 1)?.contiguous()?)?;
+                let rest = g0.harmonics.narrow(2, 1, g0.harmonics.dim(2)? - 1)?.contiguous()?;
+                let mut params =
+                    vec![Param { name: "log_s".into(), var: log_s.clone(), lr_scale: 1.0 }, Param { name: "logit".into(), var: logit.clone(), lr_scale: 5.0 }];
+                if colour > 0.0 {
+                    params.push(Param { name: "dc".into(), var: dc.clone(), lr_scale: colour });
+                }
+                let mut opt = Adam::new(params)?;
+                let build = || -> anyhow::Result<Gaussians> {
+                    let s = log_s.as_tensor().exp()?;
+                    let means = (&orig + (g0.means.sub(&orig)?.broadcast_mul(&s)?))?;
+                    let covariances = g0.covariances.broadcast_mul(&s.sqr()?.unsqueeze(2)?)?;
+                    let opacities = candle_nn::ops::sigmoid(logit.as_tensor())?;
+                    Ok(Gaussians {
+                        means,
+                        covariances,
+                        opacities,
+                        harmonics: Tensor::cat(&[dc.as_tensor(), &rest], 2)?,
+                        feature_harmonics: g0.feature_harmonics.clone(),
+                    })
+                };
+                for step in 0..=max_steps {
+                    if steps.contains(&step) {
+                        row.push(targets_psnr(&build()?, &ex, near, far)?);
+                    }
+                    if step == max_steps {
+                        break;
+                    }
+                    let loss = loo_loss(&build()?, &ex, near, far, &o)?;
+                    let grads = loss.backward()?;
+                    let gs: Vec<Option<Tensor>> = opt.params.iter().map(|p| grads.get(p.var.as_tensor()).cloned()).collect();
+                    opt.step(&gs, lr)?;
+                }
+            }
+            "product" => {
+                // `render`'s fitting with these settings, scored after each listed step count.
+                let g0 = render_example_full(&model, &ex)?.gaussians;
+                let photos: Vec<mvsplat360_dataset::ImageF32> = (0..ex.context_cameras.len())
+                    .map(|i| Ok(mvsplat360_dataset::ImageF32 { width: w, height: h, data: ex.context_images.i(i)?.flatten_all()?.to_vec1()? }))
+                    .collect::<anyhow::Result<_>>()?;
+                for &n in &steps {
+                    let fs = mvsplat360_pipeline::fit::FitSettings { steps: n, lr, self_weight: o.self_weight, min_alpha: o.mask, ..Default::default() };
+                    let (g, _) = mvsplat360_pipeline::fit::fit(&g0, &ex.context_cameras, &photos, near, far, &fs, &mvsplat360_pipeline::render::Silent)?;
+                    row.push(targets_psnr(&g, &ex, near, far)?);
+                }
+            }
+            "net" => {
+                let vars = model.vars();
+                let mut opt = Adam::new(vars.iter().map(|(k, v)| Param { name: k.clone(), var: v.clone(), lr_scale: 1.0 }).collect())?;
+                for step in 0..=max_steps {
+                    let r = render_example_full(&model, &ex)?;
+                    if steps.contains(&step) {
+                        let g = &r.gaussians;
+                        let gd = Gaussians {
+                            means: g.means.detach(),
+                            covariances: g.covariances.detach(),
+                            opacities: g.opacities.detach(),
+                            harmonics: g.harmonics.detach(),
+                            feature_harmonics: g.feature_harmonics.detach(),
+                        };
+                        row.push(targets_psnr(&gd, &ex, near, far)?);
+                    }
+                    if step == max_steps {
+                        break;
+                    }
+                    let loss = loo_loss(&r.gaussians, &ex, near, far, &o)?;
+                    let grads = loss.backward()?;
+                    let mut gs: Vec<Option<Tensor>> = opt.params.iter().map(|p| grads.get(p.var.as_tensor()).cloned()).collect();
+                    mvsplat360_train::optim::clip_grad_norm(&mut gs, 0.5)?;
+                    opt.step(&gs, lr)?;
+                }
+            }
+            m => anyhow::bail!("--mode gauss|net, got {m}"),
+        }
+        println!("| {label} | {} |  ({:.0} s)", row.iter().map(|x| format!("{x:.2}")).collect::<Vec<_>>().join(" | "), t0.elapsed().as_secs_f64());
+        for (s, r) in sums.iter_mut().zip(&row) {
+            *s += r / nscenes as f64;
+        }
+    }
+    println!("| **mean** | {} |", sums.iter().map(|x| format!("{x:.2}")).collect::<Vec<_>>().join(" | "));
+    Ok(())
+}
