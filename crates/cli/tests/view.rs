@@ -50,7 +50,7 @@ fn render(out: &Path) {
         .arg(root().join("assets/woodbox"))
         .arg("--ckpt")
         .arg(root().join("assets/models/default"))
-        .args(["--size", "128x64", "--context", "0,5,10,15,19", "--targets", "2,8,13,22", "--no-metrics", "--out"])
+        .args(["--size", "128x64", "--context", "0,5,10,15,19", "--targets", "2,8,13,22", "--fit-steps", "2", "--no-metrics", "--out"])
         .arg(out)
         .output()
         .unwrap();

@@ -37,14 +37,28 @@ pub struct Args {
     /// Data conventions for weights without a config (`dl3dv` or `re10k`).
     #[arg(long)]
     experiment: Option<String>,
+    /// Steps of test-time fitting of the Gaussians to the context photos, as `render --fit-steps` (default: the
+    /// model's own setting, so the file holds the Gaussians `render` rasterizes; 0 = the encoder's as they are).
+    #[arg(long)]
+    fit_steps: Option<usize>,
 }
 
 pub fn run(args: Args, quiet: bool) -> anyhow::Result<()> {
     let model = match &args.ckpt {
-        Some(p) if p.is_file() => {
-            ModelArgs { encoder: Some(p.clone()), refiner: Some(RefinerArg::None), experiment: args.experiment.clone(), ..Default::default() }
-        }
-        other => ModelArgs { ckpt: other.clone(), refiner: Some(RefinerArg::None), experiment: args.experiment.clone(), ..Default::default() },
+        Some(p) if p.is_file() => ModelArgs {
+            encoder: Some(p.clone()),
+            refiner: Some(RefinerArg::None),
+            experiment: args.experiment.clone(),
+            fit_steps: args.fit_steps,
+            ..Default::default()
+        },
+        other => ModelArgs {
+            ckpt: other.clone(),
+            refiner: Some(RefinerArg::None),
+            experiment: args.experiment.clone(),
+            fit_steps: args.fit_steps,
+            ..Default::default()
+        },
     };
     let req = RenderRequest {
         scene: args.scene.clone(),
@@ -74,6 +88,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<()> {
     }
     let t0 = std::time::Instant::now();
     let gaussians = mvsplat360_pipeline::render::encode(&p, &bars)?;
+    let (gaussians, _) = mvsplat360_pipeline::render::fit_to_context(&p, gaussians, &bars)?;
     if !quiet {
         eprintln!("predicted {} Gaussians in {:.1} s", gaussians.means.dim(0)?, t0.elapsed().as_secs_f64());
     }
