@@ -16,7 +16,13 @@ fn main() {
         "tiny" => model::tiny_config(refiner),
         "full" => {
             let data = DataConfig::dl3dv();
-            ModelConfig { format: MODEL_FORMAT.into(), encoder: model::experiment_encoder(&data), data, refiner: refiner.then(RefinerModelConfig::default) }
+            ModelConfig {
+                format: MODEL_FORMAT.into(),
+                fit: None,
+                encoder: model::experiment_encoder(&data),
+                data,
+                refiner: refiner.then(RefinerModelConfig::default),
+            }
         }
         other => {
             eprintln!("unknown size `{other}` (tiny or full)");

@@ -34,11 +34,14 @@ pub struct FitSettings {
     /// Weight of a second term: each context view rendered from all the Gaussians against its photo (keeps a
     /// view's own Gaussians from fading where the other views disagree with them).
     pub self_weight: f64,
+    /// Rate of a per-Gaussian size factor (on the covariance, apart from the distance's) relative to `lr`;
+    /// 0 = sizes stay the encoder's.
+    pub size_lr_scale: f64,
 }
 
 impl Default for FitSettings {
     fn default() -> Self {
-        Self { steps: 0, lr: 0.01, opacity_lr_scale: 5.0, min_alpha: 0.5, self_weight: 0.0 }
+        Self { steps: 0, lr: 0.01, opacity_lr_scale: 5.0, min_alpha: 0.5, self_weight: 0.0, size_lr_scale: 0.0 }
     }
 }
 
@@ -49,6 +52,9 @@ impl FitSettings {
         }
         if !(self.opacity_lr_scale.is_finite() && self.opacity_lr_scale >= 0.0) {
             return Err(flag("fit.opacity_lr_scale", format!("must be ≥ 0, got {}", self.opacity_lr_scale)));
+        }
+        if !(self.size_lr_scale.is_finite() && self.size_lr_scale >= 0.0) {
+            return Err(flag("fit.size_lr_scale", format!("must be ≥ 0, got {}", self.size_lr_scale)));
         }
         if !(self.self_weight.is_finite() && self.self_weight >= 0.0) {
             return Err(flag("fit.self_weight", format!("must be ≥ 0, got {}", self.self_weight)));
@@ -65,6 +71,7 @@ struct Fitted<'a> {
     g: &'a Gaussians,
     origins: Tensor,
     log_scale: Var,
+    log_size: Var,
     logit: Var,
 }
 
@@ -72,7 +79,8 @@ impl Fitted<'_> {
     fn gaussians(&self) -> candle_core::Result<Gaussians> {
         let s = self.log_scale.as_tensor().exp()?;
         let means = (&self.origins + self.g.means.sub(&self.origins)?.broadcast_mul(&s)?)?;
-        let covariances = self.g.covariances.broadcast_mul(&s.sqr()?.unsqueeze(2)?)?;
+        let k = (self.log_scale.as_tensor() + self.log_size.as_tensor())?.affine(2.0, 0.0)?.exp()?;
+        let covariances = self.g.covariances.broadcast_mul(&k.unsqueeze(2)?)?;
         let opacities = candle_nn::ops::sigmoid(self.logit.as_tensor())?;
         Ok(Gaussians { means, covariances, opacities, harmonics: self.g.harmonics.clone(), feature_harmonics: self.g.feature_harmonics.clone() })
     }
@@ -152,9 +160,11 @@ pub fn fit(
         let op = g.opacities.detach().clamp(1e-4f32, 1.0 - 1e-4)?;
         let logit = Var::from_tensor(&(op.log()? - (op.neg()? + 1.0)?.log()?)?)?;
         let log_scale = Var::zeros((n, 1), DType::F32, &dev)?;
+        let log_size = Var::zeros((n, 1), DType::F32, &dev)?;
         let params = |lr: f64| ParamsAdamW { lr, weight_decay: 0.0, ..ParamsAdamW::default() };
         let mut opt_s = AdamW::new(vec![log_scale.clone()], params(s.lr))?;
         let mut opt_o = AdamW::new(vec![logit.clone()], params(s.lr * s.opacity_lr_scale))?;
+        let mut opt_z = AdamW::new(vec![log_size.clone()], params(s.lr * s.size_lr_scale))?;
         let detached = Gaussians {
             means: g.means.detach(),
             covariances: g.covariances.detach(),
@@ -162,7 +172,7 @@ pub fn fit(
             harmonics: g.harmonics.detach(),
             feature_harmonics: g.feature_harmonics.detach(),
         };
-        let f = Fitted { g: &detached, origins, log_scale, logit };
+        let f = Fitted { g: &detached, origins, log_scale, log_size, logit };
         let mut first = f64::NAN;
         for _ in 0..s.steps {
             let loss = fit_loss(&f.gaussians()?, &others, cams, &photos, near, far, s)?;
@@ -177,6 +187,9 @@ pub fn fit(
             let grads = loss.backward()?;
             opt_s.step(&grads)?;
             opt_o.step(&grads)?;
+            if s.size_lr_scale > 0.0 {
+                opt_z.step(&grads)?;
+            }
             progress.advance(1);
         }
         let out = f.gaussians()?;

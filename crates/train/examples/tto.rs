@@ -103,6 +103,7 @@ fn main() -> anyhow::Result<()> {
     let steps: Vec<usize> = take("--steps", "0,25,50,100").split(',').map(|s| s.parse()).collect::<Result<_, _>>()?;
     let lr: f64 = take("--lr", if mode == "net" { "2e-5" } else { "0.01" }).parse()?;
     let colour: f64 = take("--colour", "0").parse()?;
+    let size: f64 = take("--size", "0").parse()?;
     let o = Opts { mask: take("--mask", "0.5").parse()?, pyramid: take("--pyramid", "3").parse()?, self_weight: take("--self", "0").parse()? };
     anyhow::ensure!(args.len() >= 3, "usage: tto CONFIG.toml MODEL_DIR [flags] SEED|DIR…");
     let max_steps = *steps.iter().max().unwrap_or(&0);
@@ -182,7 +183,14 @@ fn main() -> anyhow::Result<()> {
                     .map(|i| Ok(mvsplat360_dataset::ImageF32 { width: w, height: h, data: ex.context_images.i(i)?.flatten_all()?.to_vec1()? }))
                     .collect::<anyhow::Result<_>>()?;
                 for &n in &steps {
-                    let fs = mvsplat360_pipeline::fit::FitSettings { steps: n, lr, self_weight: o.self_weight, min_alpha: o.mask, ..Default::default() };
+                    let fs = mvsplat360_pipeline::fit::FitSettings {
+                        steps: n,
+                        lr,
+                        self_weight: o.self_weight,
+                        min_alpha: o.mask,
+                        size_lr_scale: size,
+                        ..Default::default()
+                    };
                     let (g, _) = mvsplat360_pipeline::fit::fit(&g0, &ex.context_cameras, &photos, near, far, &fs, &mvsplat360_pipeline::render::Silent)?;
                     row.push(targets_psnr(&g, &ex, near, far)?);
                 }
