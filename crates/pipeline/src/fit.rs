@@ -72,6 +72,8 @@ struct Fitted<'a> {
     origins: Tensor,
     log_scale: Var,
     log_size: Var,
+    /// Whether `log_size` takes part (off: the covariance is exactly the distance factor's).
+    fit_size: bool,
     logit: Var,
 }
 
@@ -79,7 +81,10 @@ impl Fitted<'_> {
     fn gaussians(&self) -> candle_core::Result<Gaussians> {
         let s = self.log_scale.as_tensor().exp()?;
         let means = (&self.origins + self.g.means.sub(&self.origins)?.broadcast_mul(&s)?)?;
-        let k = (self.log_scale.as_tensor() + self.log_size.as_tensor())?.affine(2.0, 0.0)?.exp()?;
+        let mut k = s.sqr()?;
+        if self.fit_size {
+            k = (k * self.log_size.as_tensor().affine(2.0, 0.0)?.exp()?)?;
+        }
         let covariances = self.g.covariances.broadcast_mul(&k.unsqueeze(2)?)?;
         let opacities = candle_nn::ops::sigmoid(self.logit.as_tensor())?;
         Ok(Gaussians { means, covariances, opacities, harmonics: self.g.harmonics.clone(), feature_harmonics: self.g.feature_harmonics.clone() })
@@ -172,7 +177,7 @@ pub fn fit(
             harmonics: g.harmonics.detach(),
             feature_harmonics: g.feature_harmonics.detach(),
         };
-        let f = Fitted { g: &detached, origins, log_scale, log_size, logit };
+        let f = Fitted { g: &detached, origins, log_scale, log_size, fit_size: s.size_lr_scale > 0.0, logit };
         let mut first = f64::NAN;
         for _ in 0..s.steps {
             let loss = fit_loss(&f.gaussians()?, &others, cams, &photos, near, far, s)?;
