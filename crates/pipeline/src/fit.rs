@@ -39,9 +39,10 @@ pub struct FitSettings {
     pub size_lr_scale: f64,
 }
 
+/// Off, with the shipped model's validated recipe for `--fit-steps N` on a model folder without `fit`.
 impl Default for FitSettings {
     fn default() -> Self {
-        Self { steps: 0, lr: 0.01, opacity_lr_scale: 5.0, min_alpha: 0.5, self_weight: 0.0, size_lr_scale: 0.0 }
+        Self { steps: 0, lr: 0.02, opacity_lr_scale: 5.0, min_alpha: 0.5, self_weight: 1.0, size_lr_scale: 0.0 }
     }
 }
 

@@ -101,8 +101,8 @@ fn fitting_moves_noisy_depths_toward_the_truth_and_improves_novel_views() {
     let (m0, m1) = (targets_mse(&g, &ex), targets_mse(&f, &ex));
     eprintln!("loss {l0:.5} → {l1:.5}, depth error {e0:.4} → {e1:.4}, target MSE {m0:.5} → {m1:.5}");
     assert!(l1 < 0.75 * l0, "the leave-one-out loss must fall: {l0} → {l1}");
-    // Measured: loss 0.0020 → 0.0010, depth error 0.155 → 0.141, target MSE 0.0025 → 0.0020 (40 steps move a
-    // distance by at most ≈ 40 · lr in ln d; much of the gain is opacity). The bounds ask for half of each change.
+    // Measured with the default recipe (lr 0.02, self weight 1): loss 0.0035 → 0.0013, depth error 0.155 → 0.136,
+    // target MSE 0.0025 → 0.0017 (much of the gain is opacity). The bounds ask for well under each change.
     assert!(e1 < 0.95 * e0, "the fitted distances must move toward the truth: {e0} → {e1}");
     assert!(m1 < 0.9 * m0, "the held-out views must get closer to their photos: MSE {m0} → {m1}");
 }
