@@ -92,16 +92,6 @@ impl Fitted<'_> {
     }
 }
 
-fn subset(g: &Gaussians, idx: &Tensor) -> candle_core::Result<Gaussians> {
-    Ok(Gaussians {
-        means: g.means.index_select(idx, 0)?,
-        covariances: g.covariances.index_select(idx, 0)?,
-        opacities: g.opacities.index_select(idx, 0)?,
-        harmonics: g.harmonics.index_select(idx, 0)?,
-        feature_harmonics: g.feature_harmonics.index_select(idx, 0)?,
-    })
-}
-
 /// The fitting loss: mean over context views of the leave-one-out render's masked MSE, plus `self_weight` × the
 /// MSE of the render from all Gaussians.
 fn fit_loss(g: &Gaussians, others: &[Tensor], cams: &[Camera], photos: &[Tensor], near: f32, far: f32, s: &FitSettings) -> candle_core::Result<Tensor> {
@@ -109,7 +99,7 @@ fn fit_loss(g: &Gaussians, others: &[Tensor], cams: &[Camera], photos: &[Tensor]
         |g: &Gaussians, c: &Camera| rasterize(g, &raster_camera(c, near, far), &RenderOptions::default()).map_err(|e| candle_core::Error::Msg(e.to_string()));
     let mut total = Tensor::zeros((), DType::F32, g.means.device())?;
     for ((idx, c), photo) in others.iter().zip(cams).zip(photos) {
-        let r = render(&subset(g, idx)?, c)?;
+        let r = render(&g.select(idx)?, c)?;
         let mask = r.alpha.detach().ge(s.min_alpha)?.to_dtype(DType::F32)?;
         total = (total + (r.rgb - photo)?.broadcast_mul(&mask)?.sqr()?.mean_all()?)?;
         if s.self_weight > 0.0 {
@@ -171,13 +161,7 @@ pub fn fit(
         let mut opt_s = AdamW::new(vec![log_scale.clone()], params(s.lr))?;
         let mut opt_o = AdamW::new(vec![logit.clone()], params(s.lr * s.opacity_lr_scale))?;
         let mut opt_z = AdamW::new(vec![log_size.clone()], params(s.lr * s.size_lr_scale))?;
-        let detached = Gaussians {
-            means: g.means.detach(),
-            covariances: g.covariances.detach(),
-            opacities: g.opacities.detach(),
-            harmonics: g.harmonics.detach(),
-            feature_harmonics: g.feature_harmonics.detach(),
-        };
+        let detached = g.detach();
         let f = Fitted { g: &detached, origins, log_scale, log_size, fit_size: s.size_lr_scale > 0.0, logit };
         let mut first = f64::NAN;
         for _ in 0..s.steps {
@@ -200,13 +184,7 @@ pub fn fit(
         }
         let out = f.gaussians()?;
         let last = fit_loss(&out, &others, cams, &photos, near, far, s)?.to_scalar::<f32>()? as f64;
-        let out = Gaussians {
-            means: out.means.detach(),
-            covariances: out.covariances.detach(),
-            opacities: out.opacities.detach(),
-            harmonics: out.harmonics,
-            feature_harmonics: out.feature_harmonics,
-        };
+        let out = out.detach();
         Ok((out, [if first.is_nan() { last } else { first }, last]))
     };
     progress.begin(stage, s.steps as u64);

@@ -16,3 +16,27 @@ pub struct Gaussians {
     /// (N,C,9) latent-feature SH of degree 2, world frame (C = 4 in the pipeline).
     pub feature_harmonics: Tensor,
 }
+
+impl Gaussians {
+    /// The same values, cut from the autograd graph.
+    pub fn detach(&self) -> Self {
+        Self {
+            means: self.means.detach(),
+            covariances: self.covariances.detach(),
+            opacities: self.opacities.detach(),
+            harmonics: self.harmonics.detach(),
+            feature_harmonics: self.feature_harmonics.detach(),
+        }
+    }
+
+    /// The Gaussians at indices `idx` (u32, along the first axis), gradients flowing back to these.
+    pub fn select(&self, idx: &Tensor) -> candle_core::Result<Self> {
+        Ok(Self {
+            means: self.means.index_select(idx, 0)?,
+            covariances: self.covariances.index_select(idx, 0)?,
+            opacities: self.opacities.index_select(idx, 0)?,
+            harmonics: self.harmonics.index_select(idx, 0)?,
+            feature_harmonics: self.feature_harmonics.index_select(idx, 0)?,
+        })
+    }
+}

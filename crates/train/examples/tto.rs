@@ -32,16 +32,6 @@ fn targets_psnr(g: &Gaussians, ex: &Example, near: f32, far: f32) -> anyhow::Res
     Ok(s / ex.target_cameras.len() as f64)
 }
 
-fn subset(g: &Gaussians, idx: &Tensor) -> candle_core::Result<Gaussians> {
-    Ok(Gaussians {
-        means: g.means.index_select(idx, 0)?,
-        covariances: g.covariances.index_select(idx, 0)?,
-        opacities: g.opacities.index_select(idx, 0)?,
-        harmonics: g.harmonics.index_select(idx, 0)?,
-        feature_harmonics: g.feature_harmonics.index_select(idx, 0)?,
-    })
-}
-
 struct Opts {
     mask: f32,
     pyramid: usize,
@@ -66,7 +56,7 @@ fn loo_loss(g: &Gaussians, ex: &Example, near: f32, far: f32, o: &Opts) -> anyho
         }
         let idx: Vec<u32> = (0..n as u32).filter(|&i| (i as usize) / per != j).collect();
         let idx = Tensor::from_vec(idx, n - per, &Device::Cpu)?;
-        let r = mvsplat360_splat::render(&subset(g, &idx)?, &raster_camera(c, near, far), &RenderOptions::default())?;
+        let r = mvsplat360_splat::render(&g.select(&idx)?, &raster_camera(c, near, far), &RenderOptions::default())?;
         let gt = ex.context_images.i(j)?;
         let mut diff = (r.rgb - gt)?;
         if o.mask > 0.0 {
@@ -123,13 +113,7 @@ fn main() -> anyhow::Result<()> {
         match mode.as_str() {
             "gauss" => {
                 let g0 = render_example_full(&model, &ex)?.gaussians;
-                let g0 = Gaussians {
-                    means: g0.means.detach(),
-                    covariances: g0.covariances.detach(),
-                    opacities: g0.opacities.detach(),
-                    harmonics: g0.harmonics.detach(),
-                    feature_harmonics: g0.feature_harmonics.detach(),
-                };
+                let g0 = g0.detach();
                 let n = g0.means.dim(0)?;
                 let per = n / ex.context_cameras.len();
                 // Ray origin of each Gaussian: its view's camera centre.
@@ -201,14 +185,7 @@ fn main() -> anyhow::Result<()> {
                 for step in 0..=max_steps {
                     let r = render_example_full(&model, &ex)?;
                     if steps.contains(&step) {
-                        let g = &r.gaussians;
-                        let gd = Gaussians {
-                            means: g.means.detach(),
-                            covariances: g.covariances.detach(),
-                            opacities: g.opacities.detach(),
-                            harmonics: g.harmonics.detach(),
-                            feature_harmonics: g.feature_harmonics.detach(),
-                        };
+                        let gd = r.gaussians.detach();
                         row.push(targets_psnr(&gd, &ex, near, far)?);
                     }
                     if step == max_steps {
