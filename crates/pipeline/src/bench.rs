@@ -221,3 +221,83 @@ fn write_synthetic_scene(dir: &Path, views: usize, width: u32, height: u32) -> R
     let p = dir.join("transforms.json");
     std::fs::write(&p, t.to_string()).map_err(|e| werr(&p, &e))
 }
+
+/// `mvsplat360 bench fit`: the test-time fitting of a model folder's Gaussians on a scene's context views, the
+/// encoder run once outside the timing.
+#[derive(Debug, Clone)]
+pub struct FitBenchOpts {
+    /// Model folder (its `fit` settings are used; `steps` overrides the step count).
+    pub model: PathBuf,
+    pub scene: PathBuf,
+    pub views: usize,
+    pub steps: Option<usize>,
+    pub warmup: usize,
+    pub runs: usize,
+    pub threads: usize,
+    pub device: DeviceSpec,
+}
+
+pub fn run_fit_bench(o: &FitBenchOpts) -> Result<serde_json::Value> {
+    let bad = |msg: String| PipelineError::Flag { flag: "bench fit", msg };
+    if o.runs == 0 || o.views < 2 || o.steps == Some(0) {
+        return Err(bad(format!("need --runs ≥ 1, --views ≥ 2 and --steps ≥ 1 (got {}, {}, {:?})", o.runs, o.views, o.steps)));
+    }
+    let req = RenderRequest {
+        scene: o.scene.clone(),
+        scene_key: None,
+        context: ContextSpec::Count(o.views),
+        targets: TargetSpec::Orbit(1),
+        model: ModelArgs { ckpt: Some(o.model.clone()), compute: Compute { device: o.device, ..Compute::default() }, fit_steps: o.steps, ..Default::default() },
+        size: None,
+        scene_scale: crate::scale::SceneScale::Auto,
+        refine: RefineSettings::default(),
+        splat: false,
+        metrics: false,
+        weights_dir: None,
+        video: false,
+        fps: 30,
+        out: std::env::temp_dir().join("mvsplat360-bench-fit-unused"),
+    };
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(o.threads).build().map_err(|e| bad(e.to_string()))?;
+    pool.install(|| {
+        let p = render::prepare(&req, &Silent)?;
+        if p.spec.fit.steps == 0 {
+            return Err(bad(format!("{} has no `fit` in its config.json; pass --steps N", o.model.display())));
+        }
+        let g = render::encode(&p, &Silent)?;
+        let gaussians = g.means.dim(0).map_err(crate::error::compute("bench fit"))?;
+        let mut secs = Vec::new();
+        let mut losses = [f64::NAN; 2];
+        for r in 0..o.warmup + o.runs {
+            let t = std::time::Instant::now();
+            let (_, l) = render::fit_to_context(&p, g.clone(), &Silent)?;
+            if r >= o.warmup {
+                secs.push(t.elapsed().as_secs_f64());
+            }
+            losses = l.unwrap_or(losses);
+        }
+        let steps = p.spec.fit.steps;
+        let fastest = secs.iter().copied().fold(f64::INFINITY, f64::min);
+        let m = median(secs);
+        Ok(json!({
+            "bench": "fit",
+            "device": o.device.to_string(),
+            "model": o.model.display().to_string(),
+            "scene": o.scene.display().to_string(),
+            "views": o.views,
+            "width": p.context_images[0].width,
+            "height": p.context_images[0].height,
+            "gaussians": gaussians,
+            "steps": steps,
+            "warmup": o.warmup,
+            "runs": o.runs,
+            "threads": o.threads,
+            "fit_seconds": m,
+            "fit_seconds_fastest": fastest,
+            "seconds_per_step": m / steps as f64,
+            "loss_before": losses[0],
+            "loss_after": losses[1],
+            "peak_rss_mib": crate::setup::peak_rss_mib(),
+        }))
+    })
+}

@@ -67,10 +67,37 @@ impl FitSettings {
     }
 }
 
-/// The Gaussians of a fit in progress.
-struct Fitted<'a> {
-    g: &'a Gaussians,
+/// A fixed subset of the encoder's Gaussians (all of them, or all but one view's), with what stays constant
+/// during the fit gathered once: colours, ray origins, offsets from them, covariances. Latent features are left
+/// out: the fit compares RGB only, so rendering them would only cost time.
+struct Part {
+    /// Indices into the full set (None = all, in order).
+    idx: Option<Tensor>,
     origins: Tensor,
+    offsets: Tensor,
+    covariances: Tensor,
+    harmonics: Tensor,
+    no_features: Tensor,
+}
+
+impl Part {
+    fn new(g: &Gaussians, origins: &Tensor, idx: Option<Tensor>) -> candle_core::Result<Self> {
+        let take = |t: &Tensor| match &idx {
+            Some(i) => t.index_select(i, 0),
+            None => Ok(t.clone()),
+        };
+        let means = take(&g.means)?;
+        let origins = take(origins)?;
+        let offsets = means.sub(&origins)?;
+        // Stored (N,K,3) and viewed as (N,3,K): the rasterizer's packing transposes to (N,K·3), then a free reshape.
+        let harmonics = take(&g.harmonics)?.transpose(1, 2)?.contiguous()?.transpose(1, 2)?;
+        let no_features = Tensor::zeros((harmonics.dim(0)?, 0, 1), DType::F32, harmonics.device())?;
+        Ok(Self { origins, offsets, covariances: take(&g.covariances)?, harmonics, no_features, idx })
+    }
+}
+
+/// The per-Gaussian variables of a fit.
+struct Vars {
     log_scale: Var,
     log_size: Var,
     /// Whether `log_size` takes part (off: the covariance is exactly the distance factor's).
@@ -78,31 +105,43 @@ struct Fitted<'a> {
     logit: Var,
 }
 
-impl Fitted<'_> {
-    fn gaussians(&self) -> candle_core::Result<Gaussians> {
-        let s = self.log_scale.as_tensor().exp()?;
-        let means = (&self.origins + self.g.means.sub(&self.origins)?.broadcast_mul(&s)?)?;
+impl Vars {
+    /// The fitted Gaussians of `part` (its variables gathered by its indices); RGB only.
+    fn gaussians(&self, part: &Part) -> candle_core::Result<Gaussians> {
+        let take = |v: &Var| match &part.idx {
+            Some(i) => v.as_tensor().index_select(i, 0),
+            None => Ok(v.as_tensor().clone()),
+        };
+        let s = take(&self.log_scale)?.exp()?;
+        let means = (&part.origins + part.offsets.broadcast_mul(&s)?)?;
         let mut k = s.sqr()?;
         if self.fit_size {
-            k = (k * self.log_size.as_tensor().affine(2.0, 0.0)?.exp()?)?;
+            k = (k * take(&self.log_size)?.affine(2.0, 0.0)?.exp()?)?;
         }
-        let covariances = self.g.covariances.broadcast_mul(&k.unsqueeze(2)?)?;
-        let opacities = candle_nn::ops::sigmoid(self.logit.as_tensor())?;
-        Ok(Gaussians { means, covariances, opacities, harmonics: self.g.harmonics.clone(), feature_harmonics: self.g.feature_harmonics.clone() })
+        let covariances = part.covariances.broadcast_mul(&k.unsqueeze(2)?)?;
+        let opacities = candle_nn::ops::sigmoid(&take(&self.logit)?)?;
+        Ok(Gaussians { means, covariances, opacities, harmonics: part.harmonics.clone(), feature_harmonics: part.no_features.clone() })
+    }
+
+    /// The fitted Gaussians with the encoder's latent features (the fit's result).
+    fn result(&self, g: &Gaussians, all: &Part) -> candle_core::Result<Gaussians> {
+        let out = self.gaussians(all)?;
+        Ok(Gaussians { feature_harmonics: g.feature_harmonics.clone(), ..out })
     }
 }
 
 /// The fitting loss: mean over context views of the leave-one-out render's masked MSE, plus `self_weight` × the
 /// MSE of the render from all Gaussians.
-fn fit_loss(g: &Gaussians, others: &[Tensor], cams: &[Camera], photos: &[Tensor], near: f32, far: f32, s: &FitSettings) -> candle_core::Result<Tensor> {
+fn fit_loss(x: &Vars, all: &Part, others: &[Part], cams: &[Camera], photos: &[Tensor], near: f32, far: f32, s: &FitSettings) -> candle_core::Result<Tensor> {
     let render =
         |g: &Gaussians, c: &Camera| rasterize(g, &raster_camera(c, near, far), &RenderOptions::default()).map_err(|e| candle_core::Error::Msg(e.to_string()));
-    let mut total = Tensor::zeros((), DType::F32, g.means.device())?;
-    for ((idx, c), photo) in others.iter().zip(cams).zip(photos) {
-        let r = render(&g.select(idx)?, c)?;
+    let whole = if s.self_weight > 0.0 { Some(x.gaussians(all)?) } else { None };
+    let mut total = Tensor::zeros((), DType::F32, all.origins.device())?;
+    for ((part, c), photo) in others.iter().zip(cams).zip(photos) {
+        let r = render(&x.gaussians(part)?, c)?;
         let mask = r.alpha.detach().ge(s.min_alpha)?.to_dtype(DType::F32)?;
         total = (total + (r.rgb - photo)?.broadcast_mul(&mask)?.sqr()?.mean_all()?)?;
-        if s.self_weight > 0.0 {
+        if let Some(g) = &whole {
             let r = render(g, c)?;
             total = (total + ((r.rgb - photo)?.sqr()?.mean_all()? * s.self_weight)?)?;
         }
@@ -145,10 +184,12 @@ pub fn fit(
     }
     let run = || -> candle_core::Result<(Gaussians, [f64; 2])> {
         let origins = Tensor::from_vec(origins.clone(), (n, 3), &dev)?;
-        let others: Vec<Tensor> = (0..v)
+        let detached = g.detach();
+        let all = Part::new(&detached, &origins, None)?;
+        let others: Vec<Part> = (0..v)
             .map(|j| {
                 let idx: Vec<u32> = (0..n as u32).filter(|&i| i as usize / per != j).collect();
-                Tensor::from_vec(idx, n - per, &dev)
+                Part::new(&detached, &origins, Some(Tensor::from_vec(idx, n - per, &dev)?))
             })
             .collect::<candle_core::Result<_>>()?;
         let photos: Vec<Tensor> =
@@ -161,11 +202,10 @@ pub fn fit(
         let mut opt_s = AdamW::new(vec![log_scale.clone()], params(s.lr))?;
         let mut opt_o = AdamW::new(vec![logit.clone()], params(s.lr * s.opacity_lr_scale))?;
         let mut opt_z = AdamW::new(vec![log_size.clone()], params(s.lr * s.size_lr_scale))?;
-        let detached = g.detach();
-        let f = Fitted { g: &detached, origins, log_scale, log_size, fit_size: s.size_lr_scale > 0.0, logit };
+        let x = Vars { log_scale, log_size, fit_size: s.size_lr_scale > 0.0, logit };
         let mut first = f64::NAN;
         for _ in 0..s.steps {
-            let loss = fit_loss(&f.gaussians()?, &others, cams, &photos, near, far, s)?;
+            let loss = fit_loss(&x, &all, &others, cams, &photos, near, far, s)?;
             let lv = loss.to_scalar::<f32>()? as f64;
             if !lv.is_finite() {
                 candle_core::bail!("the fitting loss is {lv}");
@@ -182,9 +222,8 @@ pub fn fit(
             }
             progress.advance(1);
         }
-        let out = f.gaussians()?;
-        let last = fit_loss(&out, &others, cams, &photos, near, far, s)?.to_scalar::<f32>()? as f64;
-        let out = out.detach();
+        let last = fit_loss(&x, &all, &others, cams, &photos, near, far, s)?.to_scalar::<f32>()? as f64;
+        let out = x.result(&detached, &all)?.detach();
         Ok((out, [if first.is_nan() { last } else { first }, last]))
     };
     progress.begin(stage, s.steps as u64);

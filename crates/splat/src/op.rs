@@ -139,7 +139,8 @@ impl CustomOp1 for RasterOp {
             alpha: Some(&g[(3 + nf) * hw..(4 + nf) * hw]),
             depth: Some(&g[(4 + nf) * hw..(5 + nf) * hw]),
         };
-        let cached = self.state.lock().ok().and_then(|s| s.clone());
+        // Taken, not cloned: a backward runs once per forward (a second one recomputes the forward below).
+        let cached = self.state.lock().ok().and_then(|mut s| s.take());
         let fwd = match cached {
             Some(f) => f,
             None => cpu::forward(&inp, &self.settings).map_err(to_candle)?,

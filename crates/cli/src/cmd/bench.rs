@@ -155,6 +155,34 @@ enum What {
         #[command(flatten)]
         threads: Threads,
     },
+    /// Test-time fitting (a model folder's `fit`, see `render --fit-steps`) of the encoder's Gaussians on a
+    /// scene's context views: seconds per fit and per step (median after --warmup untimed fits) and peak memory.
+    /// The encoder runs once, untimed. Defaults: the shipped model on the bundled scene, as `demo` runs it.
+    Fit {
+        /// Model folder (default: the shipped model, assets/models/default).
+        #[arg(long)]
+        model: Option<std::path::PathBuf>,
+        /// Scene folder (default: the bundled scene, assets/woodbox).
+        #[arg(long)]
+        scene: Option<std::path::PathBuf>,
+        /// Context views, picked by farthest-point sampling.
+        #[arg(long, default_value_t = 5)]
+        views: usize,
+        /// Fitting steps (default: the model's `fit.steps`).
+        #[arg(long)]
+        steps: Option<usize>,
+        /// Timed fits.
+        #[arg(long, default_value_t = 3)]
+        runs: usize,
+        /// Untimed fits before the timed ones.
+        #[arg(long, default_value_t = 1)]
+        warmup: usize,
+        /// Where the fit runs: `cpu`, `cuda` or `cuda:N` (CUDA needs a `--features cuda` build).
+        #[arg(long, default_value = "cpu")]
+        device: mvsplat360_pipeline::compute::DeviceSpec,
+        #[command(flatten)]
+        threads: Threads,
+    },
     /// Image metrics at 256×448: images (pairs) per second of PSNR, SSIM, LPIPS, DISTS and FID features
     /// (the networks only when their weights are installed, see scripts/metric-weights/fetch).
     Metrics {
@@ -214,6 +242,29 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             })?
         }
         What::Train { config, runs, warmup, device, threads } => mvsplat360_train::bench::run_train_bench(&config, runs, warmup, threads.count(), device)?,
+        What::Fit { model, scene, views, steps, runs, warmup, device, threads } => {
+            let model = match model {
+                Some(m) => m,
+                None => mvsplat360_pipeline::model::default_model_dir()
+                    .ok_or_else(|| anyhow::anyhow!("bench fit: the shipped model assets/models/default is missing; pass --model DIR"))?,
+            };
+            let scene = match scene {
+                Some(s) => s,
+                None => {
+                    super::demo::bundled_scene().ok_or_else(|| anyhow::anyhow!("bench fit: the bundled scene assets/woodbox is missing; pass --scene DIR"))?
+                }
+            };
+            mvsplat360_pipeline::bench::run_fit_bench(&mvsplat360_pipeline::bench::FitBenchOpts {
+                model,
+                scene,
+                views,
+                steps,
+                warmup,
+                runs,
+                threads: threads.count(),
+                device,
+            })?
+        }
         What::Metrics { width, height, runs, threads } => {
             if width < 11 || height < 11 {
                 anyhow::bail!("bench metrics: --width and --height must be at least 11 (the SSIM window)");
