@@ -123,10 +123,10 @@ impl Vars {
         Ok(Gaussians { means, covariances, opacities, harmonics: part.harmonics.clone(), feature_harmonics: part.no_features.clone() })
     }
 
-    /// The fitted Gaussians with the encoder's latent features (the fit's result).
+    /// The fitted Gaussians with the encoder's colours (contiguous, unlike `all`'s view) and latent features.
     fn result(&self, g: &Gaussians, all: &Part) -> candle_core::Result<Gaussians> {
         let out = self.gaussians(all)?;
-        Ok(Gaussians { feature_harmonics: g.feature_harmonics.clone(), ..out })
+        Ok(Gaussians { harmonics: g.harmonics.clone(), feature_harmonics: g.feature_harmonics.clone(), ..out })
     }
 }
 

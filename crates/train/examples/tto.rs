@@ -24,8 +24,27 @@ fn psnr(a: &Tensor, b: &Tensor) -> anyhow::Result<f64> {
 }
 
 fn targets_psnr(g: &Gaussians, ex: &Example, near: f32, far: f32) -> anyhow::Result<f64> {
+    targets_psnr_nearest(g, ex, near, far, usize::MAX)
+}
+
+/// Each target rendered from the Gaussians of its `k` nearest context views (camera centres) only.
+fn targets_psnr_nearest(g: &Gaussians, ex: &Example, near: f32, far: f32, k: usize) -> anyhow::Result<f64> {
+    let v = ex.context_cameras.len();
+    let per = g.means.dim(0)? / v;
     let mut s = 0.0;
     for (t, c) in ex.target_cameras.iter().enumerate() {
+        let sub;
+        let g = if k < v {
+            let mut order: Vec<usize> = (0..v).collect();
+            order.sort_by(|&a, &b| (ex.context_cameras[a].center() - c.center()).norm().total_cmp(&(ex.context_cameras[b].center() - c.center()).norm()));
+            let mut idx: Vec<u32> = order[..k].iter().flat_map(|&j| (j * per) as u32..((j + 1) * per) as u32).collect();
+            idx.sort_unstable();
+            let n = idx.len();
+            sub = g.select(&Tensor::from_vec(idx, n, &Device::Cpu)?)?;
+            &sub
+        } else {
+            g
+        };
         let r = mvsplat360_splat::render(g, &raster_camera(c, near, far), &RenderOptions::default())?;
         s += psnr(&r.rgb, &ex.target_images.i(t)?)?;
     }
@@ -94,12 +113,17 @@ fn main() -> anyhow::Result<()> {
     let lr: f64 = take("--lr", if mode == "net" { "2e-5" } else { "0.01" }).parse()?;
     let colour: f64 = take("--colour", "0").parse()?;
     let size: f64 = take("--size", "0").parse()?;
+    // Product mode: also score each target rendered from its K nearest context views' Gaussians, K in this list.
+    let nearest: Vec<usize> = take("--nearest", "").split(',').filter(|s| !s.is_empty()).map(|s| s.parse()).collect::<Result<_, _>>()?;
     let o = Opts { mask: take("--mask", "0.5").parse()?, pyramid: take("--pyramid", "3").parse()?, self_weight: take("--self", "0").parse()? };
     anyhow::ensure!(args.len() >= 3, "usage: tto CONFIG.toml MODEL_DIR [flags] SEED|DIR…");
     let max_steps = *steps.iter().max().unwrap_or(&0);
     println!("mode {mode}, lr {lr}, mask {}, pyramid {}", o.mask, o.pyramid);
     println!("| scene | {} |\n|---|{}", steps.iter().map(|s| format!("step {s}")).collect::<Vec<_>>().join(" | "), "---|".repeat(steps.len()));
-    let mut sums = vec![0.0; steps.len()];
+    if !nearest.is_empty() {
+        println!("(each step count: all views, then nearest {nearest:?})");
+    }
+    let mut sums = vec![0.0; steps.len() * (1 + nearest.len())];
     let nscenes = args.len() - 2;
     for arg in &args[2..] {
         let model = Model::encoder_with_weights(args[0].as_ref(), args[1].as_ref())?;
@@ -177,6 +201,9 @@ fn main() -> anyhow::Result<()> {
                     };
                     let (g, _) = mvsplat360_pipeline::fit::fit(&g0, &ex.context_cameras, &photos, near, far, &fs, &mvsplat360_pipeline::render::Silent)?;
                     row.push(targets_psnr(&g, &ex, near, far)?);
+                    for &k in &nearest {
+                        row.push(targets_psnr_nearest(&g, &ex, near, far, k)?);
+                    }
                 }
             }
             "net" => {

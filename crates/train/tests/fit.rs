@@ -105,6 +105,19 @@ fn fitting_moves_noisy_depths_toward_the_truth_and_improves_novel_views() {
     // target MSE 0.0025 → 0.0017 (much of the gain is opacity). The bounds ask for well under each change.
     assert!(e1 < 0.95 * e0, "the fitted distances must move toward the truth: {e0} → {e1}");
     assert!(m1 < 0.9 * m0, "the held-out views must get closer to their photos: MSE {m0} → {m1}");
+    // What callers do with the result (export, subsets) needs plain tensors: same shapes as the input, contiguous.
+    for (name, a, b) in [
+        ("means", &f.means, &g.means),
+        ("covariances", &f.covariances, &g.covariances),
+        ("opacities", &f.opacities, &g.opacities),
+        ("harmonics", &f.harmonics, &g.harmonics),
+        ("feature_harmonics", &f.feature_harmonics, &g.feature_harmonics),
+    ] {
+        assert_eq!(a.dims(), b.dims(), "{name}");
+        assert!(a.is_contiguous(), "fitted {name} must be contiguous");
+    }
+    assert_eq!(f.harmonics.to_vec3::<f32>().unwrap(), g.harmonics.to_vec3::<f32>().unwrap(), "colours are not fitted");
+    f.select(&candle_core::Tensor::new(&[0u32, 5], &candle_core::Device::Cpu).unwrap()).unwrap();
 }
 
 #[test]
