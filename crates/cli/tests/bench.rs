@@ -101,12 +101,29 @@ fn bad_sizes_are_clear_errors() {
         (&["encoder", "--height", "100"][..], "multiples of 64"),
         (&["refiner", "--latent-h", "12"][..], "multiples of 8"),
         (&["metrics", "--width", "5"][..], "at least 11"),
+        (&["fit", "--steps", "0"][..], "--steps ≥ 1"),
+        (&["fit", "--scene", "/nonexistent-scene"][..], "/nonexistent-scene"),
     ] {
         let out = Command::new(env!("CARGO_BIN_EXE_mvsplat360")).arg("bench").args(args).output().unwrap();
         assert!(!out.status.success(), "{args:?} should fail");
         let err = String::from_utf8_lossy(&out.stderr);
         assert!(err.contains(needle), "{args:?}: expected `{needle}` in {err}");
     }
+}
+
+#[test]
+fn fit_times_the_shipped_models_fitting_on_the_bundled_scene() {
+    let v = bench(&["fit", "--steps", "2", "--runs", "1", "--warmup", "0", "--threads", "1"]);
+    assert_eq!(v["bench"], "fit");
+    assert_eq!((v["views"].as_u64(), v["steps"].as_u64(), v["runs"].as_u64(), v["threads"].as_u64()), (Some(5), Some(2), Some(1), Some(1)), "{v}");
+    // The shipped model's input size; one pixel-aligned Gaussian per context pixel.
+    assert_eq!((v["width"].as_u64(), v["height"].as_u64(), v["gaussians"].as_u64()), (Some(128), Some(64), Some(5 * 128 * 64)), "{v}");
+    for k in ["fit_seconds", "fit_seconds_fastest", "seconds_per_step"] {
+        time_field(&v, k);
+    }
+    let (l0, l1) = (v["loss_before"].as_f64().unwrap(), v["loss_after"].as_f64().unwrap());
+    assert!(l0.is_finite() && l1.is_finite() && l1 < l0, "two fitting steps must lower the loss: {v}");
+    assert!(v["peak_rss_mib"].as_f64().is_some_and(|m| m > 0.0), "{v}");
 }
 
 #[test]

@@ -240,7 +240,8 @@ pub struct FitBenchOpts {
 pub fn run_fit_bench(o: &FitBenchOpts) -> Result<serde_json::Value> {
     let bad = |msg: String| PipelineError::Flag { flag: "bench fit", msg };
     if o.runs == 0 || o.views < 2 || o.steps == Some(0) {
-        return Err(bad(format!("need --runs ≥ 1, --views ≥ 2 and --steps ≥ 1 (got {}, {}, {:?})", o.runs, o.views, o.steps)));
+        let steps = o.steps.map_or("the model's".to_string(), |s| s.to_string());
+        return Err(bad(format!("need --runs ≥ 1, --views ≥ 2 and --steps ≥ 1 (got {}, {}, {steps})", o.runs, o.views)));
     }
     let req = RenderRequest {
         scene: o.scene.clone(),

@@ -37,12 +37,23 @@ pub struct FitSettings {
     /// Rate of a per-Gaussian size factor (on the covariance, apart from the distance's) relative to `lr`;
     /// 0 = sizes stay the encoder's.
     pub size_lr_scale: f64,
+    /// Adam's ε: a Gaussian whose gradients stay well below it hardly moves (Adam alone would step every
+    /// Gaussian at the full rate, however little it shows in the photos). Written out only when not the default,
+    /// so that eval folders of earlier runs still resume.
+    #[serde(skip_serializing_if = "is_default_eps")]
+    pub adam_eps: f64,
+}
+
+const DEFAULT_ADAM_EPS: f64 = 1e-8;
+
+fn is_default_eps(e: &f64) -> bool {
+    *e == DEFAULT_ADAM_EPS
 }
 
 /// Off, with the shipped model's validated recipe for `--fit-steps N` on a model folder without `fit`.
 impl Default for FitSettings {
     fn default() -> Self {
-        Self { steps: 0, lr: 0.02, opacity_lr_scale: 5.0, min_alpha: 0.5, self_weight: 1.0, size_lr_scale: 0.0 }
+        Self { steps: 0, lr: 0.02, opacity_lr_scale: 5.0, min_alpha: 0.5, self_weight: 1.0, size_lr_scale: 0.0, adam_eps: DEFAULT_ADAM_EPS }
     }
 }
 
@@ -59,6 +70,9 @@ impl FitSettings {
         }
         if !(self.self_weight.is_finite() && self.self_weight >= 0.0) {
             return Err(flag("fit.self_weight", format!("must be ≥ 0, got {}", self.self_weight)));
+        }
+        if !(self.adam_eps.is_finite() && self.adam_eps > 0.0) {
+            return Err(flag("fit.adam_eps", format!("must be a positive number, got {}", self.adam_eps)));
         }
         if !(0.0..1.0).contains(&self.min_alpha) {
             return Err(flag("fit.min_alpha", format!("must be in [0, 1), got {}", self.min_alpha)));
@@ -198,7 +212,7 @@ pub fn fit(
         let logit = Var::from_tensor(&(op.log()? - (op.neg()? + 1.0)?.log()?)?)?;
         let log_scale = Var::zeros((n, 1), DType::F32, &dev)?;
         let log_size = Var::zeros((n, 1), DType::F32, &dev)?;
-        let params = |lr: f64| ParamsAdamW { lr, weight_decay: 0.0, ..ParamsAdamW::default() };
+        let params = |lr: f64| ParamsAdamW { lr, weight_decay: 0.0, eps: s.adam_eps, ..ParamsAdamW::default() };
         let mut opt_s = AdamW::new(vec![log_scale.clone()], params(s.lr))?;
         let mut opt_o = AdamW::new(vec![logit.clone()], params(s.lr * s.opacity_lr_scale))?;
         let mut opt_z = AdamW::new(vec![log_size.clone()], params(s.lr * s.size_lr_scale))?;

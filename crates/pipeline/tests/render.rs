@@ -250,6 +250,10 @@ fn model_fit_settings_default_override_and_validation() {
     std::fs::write(fitted.join("config.json"), cfg.to_string()).unwrap();
     let e = model::read_model_dir(&fitted).unwrap_err().to_string();
     assert!(e.contains("config.json") && e.contains("fit.lr"), "{e}");
+    cfg["fit"] = serde_json::json!({"steps": 3, "adam_eps": 0.0});
+    std::fs::write(fitted.join("config.json"), cfg.to_string()).unwrap();
+    let e = model::read_model_dir(&fitted).unwrap_err().to_string();
+    assert!(e.contains("config.json") && e.contains("fit.adam_eps"), "{e}");
     cfg["fit"] = serde_json::json!({"step": 3});
     std::fs::write(fitted.join("config.json"), cfg.to_string()).unwrap();
     let e = model::read_model_dir(&fitted).unwrap_err().to_string();

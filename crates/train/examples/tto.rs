@@ -113,6 +113,7 @@ fn main() -> anyhow::Result<()> {
     let lr: f64 = take("--lr", if mode == "net" { "2e-5" } else { "0.01" }).parse()?;
     let colour: f64 = take("--colour", "0").parse()?;
     let size: f64 = take("--size", "0").parse()?;
+    let adam_eps: f64 = take("--eps", "1e-8").parse()?;
     // Product mode: also score each target rendered from its K nearest context views' Gaussians, K in this list.
     let nearest: Vec<usize> = take("--nearest", "").split(',').filter(|s| !s.is_empty()).map(|s| s.parse()).collect::<Result<_, _>>()?;
     let o = Opts { mask: take("--mask", "0.5").parse()?, pyramid: take("--pyramid", "3").parse()?, self_weight: take("--self", "0").parse()? };
@@ -197,6 +198,7 @@ fn main() -> anyhow::Result<()> {
                         self_weight: o.self_weight,
                         min_alpha: o.mask,
                         size_lr_scale: size,
+                        adam_eps,
                         ..Default::default()
                     };
                     let (g, _) = mvsplat360_pipeline::fit::fit(&g0, &ex.context_cameras, &photos, near, far, &fs, &mvsplat360_pipeline::render::Silent)?;
