@@ -51,6 +51,26 @@ fn targets_psnr_nearest(g: &Gaussians, ex: &Example, near: f32, far: f32, k: usi
     Ok(s / ex.target_cameras.len() as f64)
 }
 
+/// Mean |ln d − ln truth| of each Gaussian's distance from its view's camera over surfaces nearer than 0.9 far,
+/// when the scene knows its depths (procedural scenes).
+fn depth_error(g: &Gaussians, ex: &Example, far: f32) -> anyhow::Result<Option<f64>> {
+    let Some(depths) = ex.context_depths.as_ref() else { return Ok(None) };
+    let t: Vec<f32> = depths.flatten_all()?.to_vec1()?;
+    let m: Vec<f32> = g.means.flatten_all()?.to_vec1()?;
+    let per = t.len() / ex.context_cameras.len();
+    let (mut s, mut n) = (0.0, 0);
+    for (i, &t) in t.iter().enumerate() {
+        if t >= 0.9 * far {
+            continue;
+        }
+        let o = ex.context_cameras[i / per].center();
+        let d = ((m[3 * i] as f64 - o.x).powi(2) + (m[3 * i + 1] as f64 - o.y).powi(2) + (m[3 * i + 2] as f64 - o.z).powi(2)).sqrt();
+        s += (d / t as f64).ln().abs();
+        n += 1;
+    }
+    Ok(Some(s / n.max(1) as f64))
+}
+
 struct Opts {
     mask: f32,
     pyramid: usize,
@@ -114,6 +134,8 @@ fn main() -> anyhow::Result<()> {
     let colour: f64 = take("--colour", "0").parse()?;
     let size: f64 = take("--size", "0").parse()?;
     let adam_eps: f64 = take("--eps", "1e-8").parse()?;
+    let grid: Vec<usize> = take("--grid", "0,0").split(',').map(|s| s.parse()).collect::<Result<_, _>>()?;
+    let grid_lr: f64 = take("--grid-lr", "1").parse()?;
     // Product mode: also score each target rendered from its K nearest context views' Gaussians, K in this list.
     let nearest: Vec<usize> = take("--nearest", "").split(',').filter(|s| !s.is_empty()).map(|s| s.parse()).collect::<Result<_, _>>()?;
     let o = Opts { mask: take("--mask", "0.5").parse()?, pyramid: take("--pyramid", "3").parse()?, self_weight: take("--self", "0").parse()? };
@@ -134,6 +156,7 @@ fn main() -> anyhow::Result<()> {
         let (scene, v, label) = protocol_scene(arg, w, h, cfg.model.encoder.image_multiple() as u32)?;
         let ex = example_from_views(&scene, &v, near, far)?;
         let mut row = Vec::new();
+        let mut derr: Vec<String> = Vec::new();
         let t0 = std::time::Instant::now();
         match mode.as_str() {
             "gauss" => {
@@ -199,10 +222,15 @@ fn main() -> anyhow::Result<()> {
                         min_alpha: o.mask,
                         size_lr_scale: size,
                         adam_eps,
+                        grid: [grid[0], grid[1]],
+                        grid_lr_scale: grid_lr,
                         ..Default::default()
                     };
                     let (g, _) = mvsplat360_pipeline::fit::fit(&g0, &ex.context_cameras, &photos, near, far, &fs, &mvsplat360_pipeline::render::Silent)?;
                     row.push(targets_psnr(&g, &ex, near, far)?);
+                    if let Some(e) = depth_error(&g, &ex, far)? {
+                        derr.push(format!("{e:.3}"));
+                    }
                     for &k in &nearest {
                         row.push(targets_psnr_nearest(&g, &ex, near, far, k)?);
                     }
@@ -229,7 +257,12 @@ fn main() -> anyhow::Result<()> {
             }
             m => anyhow::bail!("--mode gauss|net, got {m}"),
         }
-        println!("| {label} | {} |  ({:.0} s)", row.iter().map(|x| format!("{x:.2}")).collect::<Vec<_>>().join(" | "), t0.elapsed().as_secs_f64());
+        println!(
+            "| {label} | {} |  ({:.0} s){}",
+            row.iter().map(|x| format!("{x:.2}")).collect::<Vec<_>>().join(" | "),
+            t0.elapsed().as_secs_f64(),
+            if derr.is_empty() { String::new() } else { format!(" depth error {}", derr.join(" / ")) }
+        );
         for (s, r) in sums.iter_mut().zip(&row) {
             *s += r / nscenes as f64;
         }
