@@ -42,16 +42,6 @@ pub struct FitSettings {
     /// so that eval folders of earlier runs still resume.
     #[serde(skip_serializing_if = "is_default_eps")]
     pub adam_eps: f64,
-    /// A smooth per-view correction of the distances: a (rows, cols) grid of log factors per view, bilinearly
-    /// spread over its pixels' Gaussians (one per pixel); [0, 0] = off. Written out only when on.
-    #[serde(skip_serializing_if = "is_off")]
-    pub grid: [usize; 2],
-    /// Rate of the grid relative to `lr`.
-    pub grid_lr_scale: f64,
-}
-
-fn is_off(g: &[usize; 2]) -> bool {
-    g[0] == 0 || g[1] == 0
 }
 
 const DEFAULT_ADAM_EPS: f64 = 1e-8;
@@ -63,17 +53,7 @@ fn is_default_eps(e: &f64) -> bool {
 /// Off, with the shipped model's validated recipe for `--fit-steps N` on a model folder without `fit`.
 impl Default for FitSettings {
     fn default() -> Self {
-        Self {
-            steps: 0,
-            lr: 0.02,
-            opacity_lr_scale: 5.0,
-            min_alpha: 0.5,
-            self_weight: 1.0,
-            size_lr_scale: 0.0,
-            adam_eps: DEFAULT_ADAM_EPS,
-            grid: [0, 0],
-            grid_lr_scale: 1.0,
-        }
+        Self { steps: 0, lr: 0.02, opacity_lr_scale: 5.0, min_alpha: 0.5, self_weight: 1.0, size_lr_scale: 0.0, adam_eps: DEFAULT_ADAM_EPS }
     }
 }
 
@@ -93,9 +73,6 @@ impl FitSettings {
         }
         if !(self.adam_eps.is_finite() && self.adam_eps > 0.0) {
             return Err(flag("fit.adam_eps", format!("must be a positive number, got {}", self.adam_eps)));
-        }
-        if !(self.grid_lr_scale.is_finite() && self.grid_lr_scale >= 0.0) {
-            return Err(flag("fit.grid_lr_scale", format!("must be ≥ 0, got {}", self.grid_lr_scale)));
         }
         if !(0.0..1.0).contains(&self.min_alpha) {
             return Err(flag("fit.min_alpha", format!("must be in [0, 1), got {}", self.min_alpha)));
@@ -140,23 +117,16 @@ struct Vars {
     /// Whether `log_size` takes part (off: the covariance is exactly the distance factor's).
     fit_size: bool,
     logit: Var,
-    /// (views, cells) log factors and the (cells, pixels) bilinear weights that spread them.
-    grid: Option<(Var, Tensor)>,
 }
 
 impl Vars {
     /// The fitted Gaussians of `part` (its variables gathered by its indices); RGB only.
     fn gaussians(&self, part: &Part) -> candle_core::Result<Gaussians> {
-        let take_t = |t: &Tensor| match &part.idx {
-            Some(i) => t.index_select(i, 0),
-            None => Ok(t.clone()),
+        let take = |v: &Var| match &part.idx {
+            Some(i) => v.as_tensor().index_select(i, 0),
+            None => Ok(v.as_tensor().clone()),
         };
-        let take = |v: &Var| take_t(v.as_tensor());
-        let mut log_scale = self.log_scale.as_tensor().clone();
-        if let Some((grid, weights)) = &self.grid {
-            log_scale = (&log_scale + grid.as_tensor().matmul(weights)?.reshape(((), 1))?)?;
-        }
-        let s = take_t(&log_scale)?.exp()?;
+        let s = take(&self.log_scale)?.exp()?;
         let means = (&part.origins + part.offsets.broadcast_mul(&s)?)?;
         let mut k = s.sqr()?;
         if self.fit_size {
@@ -191,31 +161,6 @@ fn fit_loss(x: &Vars, all: &Part, others: &[Part], cams: &[Camera], photos: &[Te
         }
     }
     total / cams.len() as f64
-}
-
-/// (rows·cols, h·w) weights of a bilinear spread of a grid over an image (cell centres at the grid's even
-/// spacing, clamped at the borders), row-major on both sides.
-fn bilinear_weights(rows: usize, cols: usize, h: usize, w: usize) -> Vec<f32> {
-    let axis = |cells: usize, size: usize, i: usize| -> (usize, usize, f32) {
-        let x = ((i as f32 + 0.5) * cells as f32 / size as f32 - 0.5).clamp(0.0, (cells - 1) as f32);
-        let a = x.floor() as usize;
-        let b = (a + 1).min(cells - 1);
-        (a, b, x - a as f32)
-    };
-    let mut m = vec![0f32; rows * cols * h * w];
-    for y in 0..h {
-        let (y0, y1, fy) = axis(rows, h, y);
-        for x in 0..w {
-            let (x0, x1, fx) = axis(cols, w, x);
-            let p = y * w + x;
-            for (r, wy) in [(y0, 1.0 - fy), (y1, fy)] {
-                for (c, wx) in [(x0, 1.0 - fx), (x1, fx)] {
-                    m[(r * cols + c) * h * w + p] += wy * wx;
-                }
-            }
-        }
-    }
-    m
 }
 
 /// Fit `g` (the encoder's Gaussians of `cams.len()` views, view-major, the same number per view) to the
@@ -271,19 +216,7 @@ pub fn fit(
         let mut opt_s = AdamW::new(vec![log_scale.clone()], params(s.lr))?;
         let mut opt_o = AdamW::new(vec![logit.clone()], params(s.lr * s.opacity_lr_scale))?;
         let mut opt_z = AdamW::new(vec![log_size.clone()], params(s.lr * s.size_lr_scale))?;
-        let grid = match s.grid {
-            [gh, gw] if gh > 0 && gw > 0 => {
-                let (w, h) = (photos[0].dim(2)?, photos[0].dim(1)?);
-                if per != w * h {
-                    candle_core::bail!("fit.grid needs one Gaussian per pixel ({per} per view for {w}×{h} photos)");
-                }
-                let weights = Tensor::from_vec(bilinear_weights(gh, gw, h, w), (gh * gw, h * w), &dev)?;
-                Some((Var::zeros((v, gh * gw), DType::F32, &dev)?, weights))
-            }
-            _ => None,
-        };
-        let mut opt_g = AdamW::new(grid.iter().map(|(g, _)| g.clone()).collect(), params(s.lr * s.grid_lr_scale))?;
-        let x = Vars { log_scale, log_size, fit_size: s.size_lr_scale > 0.0, logit, grid };
+        let x = Vars { log_scale, log_size, fit_size: s.size_lr_scale > 0.0, logit };
         let mut first = f64::NAN;
         for _ in 0..s.steps {
             let loss = fit_loss(&x, &all, &others, cams, &photos, near, far, s)?;
@@ -301,7 +234,6 @@ pub fn fit(
             if s.size_lr_scale > 0.0 {
                 opt_z.step(&grads)?;
             }
-            opt_g.step(&grads)?;
             progress.advance(1);
         }
         let last = fit_loss(&x, &all, &others, cams, &photos, near, far, s)?.to_scalar::<f32>()? as f64;
@@ -314,36 +246,4 @@ pub fn fit(
     let (out, losses) = r?;
     crate::render::check_finite("fitting (Gaussian means)", &out.means)?;
     Ok((out, losses))
-}
-
-#[cfg(test)]
-mod tests {
-    use super::bilinear_weights;
-
-    /// Closed-form properties of bilinear interpolation: weights of each pixel sum to 1, a 1×1 grid is constant,
-    /// and a grid holding a linear function of the cell centres reproduces that function at pixels between them.
-    #[test]
-    fn bilinear_weights_interpolate_linear_functions_exactly() {
-        let (rows, cols, h, w) = (3, 4, 12, 20);
-        let m = bilinear_weights(rows, cols, h, w);
-        let hw = h * w;
-        for p in 0..hw {
-            let s: f32 = (0..rows * cols).map(|c| m[c * hw + p]).sum();
-            assert!((s - 1.0).abs() < 1e-6, "pixel {p}: weights sum to {s}");
-        }
-        assert!(bilinear_weights(1, 1, 4, 6).iter().all(|&x| (x - 1.0).abs() < 1e-7));
-        // Cell centres in pixel units (pixel centres at i + 0.5): (r + 0.5) · h / rows.
-        let f = |y: f32, x: f32| 0.3 * y - 0.7 * x + 2.0;
-        let grid: Vec<f32> = (0..rows)
-            .flat_map(|r| (0..cols).map(move |c| ((r as f32 + 0.5) * h as f32 / rows as f32, (c as f32 + 0.5) * w as f32 / cols as f32)))
-            .map(|(y, x)| f(y, x))
-            .collect();
-        for y in 2..h - 2 {
-            for x in 3..w - 3 {
-                let v: f32 = (0..rows * cols).map(|c| grid[c] * m[c * hw + y * w + x]).sum();
-                let want = f(y as f32 + 0.5, x as f32 + 0.5);
-                assert!((v - want).abs() < 1e-4, "pixel ({y}, {x}): {v} vs {want}");
-            }
-        }
-    }
 }

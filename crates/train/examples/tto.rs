@@ -1,14 +1,16 @@
 //! Test-time fitting on the context photos alone, measured on the held-out protocol's targets (32-view loop, 5
 //! context views by farthest-point sampling, the other 27 views as targets): target PSNR after each listed
 //! step count. Modes:
-//! - `product`: `render`'s fitting (`mvsplat360_pipeline::fit`) with `--lr`, `--self`, `--mask`;
+//! - `product`: `render`'s fitting (`mvsplat360_pipeline::fit`) with `--lr`, `--self`, `--mask`, `--size`,
+//!   `--eps` (Adam's ε); `--nearest 4,3` also scores each target rendered from its K nearest context views'
+//!   Gaussians only; on procedural scenes the row ends with the fitted distances' mean |ln d − ln truth|;
 //! - `gauss`: the exploration variant it came from (own loop; `--pyramid` levels of 2× pooling in the loss,
 //!   `--colour S` also fits the SH DC at S × the rate);
 //! - `net`: fine-tunes the encoder's weights on the same leave-one-out loss instead.
 //!
 //!     cargo run --release -p mvsplat360-train --example tto -- CONFIG.toml MODEL_DIR \
 //!         [--mode product|gauss|net] [--steps 0,25,50,100] [--lr 0.01] [--mask 0.5] [--self 0] \
-//!         [--pyramid 3] [--colour 0] SEED|DIR…
+//!         [--pyramid 3] [--colour 0] [--size 0] [--eps 1e-8] [--nearest K,…] SEED|DIR…
 
 use candle_core::{DType, Device, IndexOp, Tensor, Var};
 use mvsplat360_pipeline::render::raster_camera;
@@ -134,8 +136,6 @@ fn main() -> anyhow::Result<()> {
     let colour: f64 = take("--colour", "0").parse()?;
     let size: f64 = take("--size", "0").parse()?;
     let adam_eps: f64 = take("--eps", "1e-8").parse()?;
-    let grid: Vec<usize> = take("--grid", "0,0").split(',').map(|s| s.parse()).collect::<Result<_, _>>()?;
-    let grid_lr: f64 = take("--grid-lr", "1").parse()?;
     // Product mode: also score each target rendered from its K nearest context views' Gaussians, K in this list.
     let nearest: Vec<usize> = take("--nearest", "").split(',').filter(|s| !s.is_empty()).map(|s| s.parse()).collect::<Result<_, _>>()?;
     let o = Opts { mask: take("--mask", "0.5").parse()?, pyramid: take("--pyramid", "3").parse()?, self_weight: take("--self", "0").parse()? };
@@ -222,8 +222,6 @@ fn main() -> anyhow::Result<()> {
                         min_alpha: o.mask,
                         size_lr_scale: size,
                         adam_eps,
-                        grid: [grid[0], grid[1]],
-                        grid_lr_scale: grid_lr,
                         ..Default::default()
                     };
                     let (g, _) = mvsplat360_pipeline::fit::fit(&g0, &ex.context_cameras, &photos, near, far, &fs, &mvsplat360_pipeline::render::Silent)?;
