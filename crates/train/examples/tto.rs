@@ -53,26 +53,6 @@ fn targets_psnr_nearest(g: &Gaussians, ex: &Example, near: f32, far: f32, k: usi
     Ok(s / ex.target_cameras.len() as f64)
 }
 
-/// Mean |ln d − ln truth| of each Gaussian's distance from its view's camera over surfaces nearer than 0.9 far,
-/// when the scene knows its depths (procedural scenes).
-fn depth_error(g: &Gaussians, ex: &Example, far: f32) -> anyhow::Result<Option<f64>> {
-    let Some(depths) = ex.context_depths.as_ref() else { return Ok(None) };
-    let t: Vec<f32> = depths.flatten_all()?.to_vec1()?;
-    let m: Vec<f32> = g.means.flatten_all()?.to_vec1()?;
-    let per = t.len() / ex.context_cameras.len();
-    let (mut s, mut n) = (0.0, 0);
-    for (i, &t) in t.iter().enumerate() {
-        if t >= 0.9 * far {
-            continue;
-        }
-        let o = ex.context_cameras[i / per].center();
-        let d = ((m[3 * i] as f64 - o.x).powi(2) + (m[3 * i + 1] as f64 - o.y).powi(2) + (m[3 * i + 2] as f64 - o.z).powi(2)).sqrt();
-        s += (d / t as f64).ln().abs();
-        n += 1;
-    }
-    Ok(Some(s / n.max(1) as f64))
-}
-
 struct Opts {
     mask: f32,
     pyramid: usize,
@@ -226,7 +206,7 @@ fn main() -> anyhow::Result<()> {
                     };
                     let (g, _) = mvsplat360_pipeline::fit::fit(&g0, &ex.context_cameras, &photos, near, far, &fs, &mvsplat360_pipeline::render::Silent)?;
                     row.push(targets_psnr(&g, &ex, near, far)?);
-                    if let Some(e) = depth_error(&g, &ex, far)? {
+                    if let Some(e) = ex.context_distance_error(&g, far)? {
                         derr.push(format!("{e:.3}"));
                     }
                     for &k in &nearest {

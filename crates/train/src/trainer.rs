@@ -246,6 +246,27 @@ impl Example {
             ..self
         })
     }
+
+    /// Mean |ln d − ln d_true| of pixel-aligned, view-major Gaussians `g` of the context views, d = each
+    /// Gaussian's distance from its view's camera, over the pixels whose true distance is below 0.9 `far`
+    /// (sky and the far background left out); None when the source knows no depths.
+    pub fn context_distance_error(&self, g: &Gaussians, far: f32) -> Result<Option<f64>> {
+        let Some(depths) = self.context_depths.as_ref() else { return Ok(None) };
+        let truth: Vec<f32> = depths.flatten_all()?.to_vec1()?;
+        let m: Vec<f32> = g.means.flatten_all()?.to_vec1()?;
+        let per = truth.len() / self.context_cameras.len();
+        let (mut s, mut n) = (0.0, 0);
+        for (i, &t) in truth.iter().enumerate() {
+            if t as f64 >= 0.9 * far as f64 {
+                continue;
+            }
+            let o = self.context_cameras[i / per].center();
+            let d = ((m[3 * i] as f64 - o.x).powi(2) + (m[3 * i + 1] as f64 - o.y).powi(2) + (m[3 * i + 2] as f64 - o.z).powi(2)).sqrt();
+            s += (d / t as f64).ln().abs();
+            n += 1;
+        }
+        Ok(Some(s / n.max(1) as f64))
+    }
 }
 
 /// What the encoder and rasterizer make of an example.

@@ -16,13 +16,13 @@ const FAR: f32 = 40.0;
 
 /// Pixel-aligned opaque Gaussians with the pixels' colours at the true ray distances × exp(e), e drawn per view
 /// in ±`noise` (a view-wide error, like a misjudged scale).
-fn noisy_gaussians(ex: &Example, noise: f64, seed: u64) -> (Gaussians, Vec<f64>) {
+fn noisy_gaussians(ex: &Example, noise: f64, seed: u64) -> Gaussians {
     let depths = ex.context_depths.as_ref().expect("procedural scenes know their depth");
     let (v, _, h, w) = ex.context_images.dims4().unwrap();
     let imgs: Vec<f32> = ex.context_images.flatten_all().unwrap().to_vec1().unwrap();
     let ds: Vec<f32> = depths.flatten_all().unwrap().to_vec1().unwrap();
     let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
-    let (mut means, mut covs, mut sh, mut truth) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let (mut means, mut covs, mut sh) = (Vec::new(), Vec::new(), Vec::new());
     let c0 = mvsplat360_splat::sh::C0;
     for (k, cam) in ex.context_cameras.iter().enumerate() {
         let e = if noise > 0.0 { rng.gen_range(-noise..noise) } else { 0.0 };
@@ -30,7 +30,6 @@ fn noisy_gaussians(ex: &Example, noise: f64, seed: u64) -> (Gaussians, Vec<f64>)
             for x in 0..w {
                 let i = (k * h + y) * w + x;
                 let t = (ds[i] as f64).min(0.9 * FAR as f64);
-                truth.push(t);
                 let d = t * e.exp();
                 let dc = [(x as f64 + 0.5 - cam.cx) / cam.fx, (y as f64 + 0.5 - cam.cy) / cam.fy, 1.0];
                 let n = (dc[0] * dc[0] + dc[1] * dc[1] + 1.0).sqrt();
@@ -57,24 +56,7 @@ fn noisy_gaussians(ex: &Example, noise: f64, seed: u64) -> (Gaussians, Vec<f64>)
         harmonics: Tensor::from_vec(sh, (n, 3, 25), &dev).unwrap(),
         feature_harmonics: Tensor::zeros((n, 4, 9), DType::F32, &dev).unwrap(),
     };
-    (g, truth)
-}
-
-/// Mean |ln d − ln truth| of each Gaussian's distance from its view's camera, over surfaces nearer than far.
-fn depth_error(g: &Gaussians, ex: &Example, truth: &[f64]) -> f64 {
-    let m: Vec<f32> = g.means.flatten_all().unwrap().to_vec1().unwrap();
-    let per = truth.len() / ex.context_cameras.len();
-    let (mut s, mut n) = (0.0, 0);
-    for (i, &t) in truth.iter().enumerate() {
-        if t >= 0.9 * FAR as f64 {
-            continue;
-        }
-        let o = ex.context_cameras[i / per].center();
-        let d = ((m[3 * i] as f64 - o.x).powi(2) + (m[3 * i + 1] as f64 - o.y).powi(2) + (m[3 * i + 2] as f64 - o.z).powi(2)).sqrt();
-        s += (d / t).ln().abs();
-        n += 1;
-    }
-    s / n as f64
+    g
 }
 
 fn targets_mse(g: &Gaussians, ex: &Example) -> f64 {
@@ -91,13 +73,14 @@ fn fitting_moves_noisy_depths_toward_the_truth_and_improves_novel_views() {
     let (scene, mut v, _) = protocol_scene("9000003", 64, 32, 16).unwrap();
     v.target = v.target.into_iter().step_by(3).collect();
     let ex = example_from_views(&scene, &v, NEAR, FAR).unwrap();
-    let (g, truth) = noisy_gaussians(&ex, 0.3, 7);
+    let g = noisy_gaussians(&ex, 0.3, 7);
     let photos: Vec<mvsplat360_dataset::ImageF32> = (0..ex.context_cameras.len())
         .map(|i| mvsplat360_dataset::ImageF32 { width: 64, height: 32, data: ex.context_images.i(i).unwrap().flatten_all().unwrap().to_vec1().unwrap() })
         .collect();
     let s = FitSettings { steps: 40, ..FitSettings::default() };
     let (f, [l0, l1]) = fit(&g, &ex.context_cameras, &photos, NEAR, FAR, &s, &Silent).unwrap();
-    let (e0, e1) = (depth_error(&g, &ex, &truth), depth_error(&f, &ex, &truth));
+    let error = |g: &Gaussians| ex.context_distance_error(g, FAR).unwrap().expect("procedural scenes know their depth");
+    let (e0, e1) = (error(&g), error(&f));
     let (m0, m1) = (targets_mse(&g, &ex), targets_mse(&f, &ex));
     eprintln!("loss {l0:.5} → {l1:.5}, depth error {e0:.4} → {e1:.4}, target MSE {m0:.5} → {m1:.5}");
     assert!(l1 < 0.75 * l0, "the leave-one-out loss must fall: {l0} → {l1}");
@@ -124,7 +107,7 @@ fn fitting_moves_noisy_depths_toward_the_truth_and_improves_novel_views() {
 fn fitting_refuses_mismatched_inputs_instead_of_panicking() {
     let (scene, v, _) = protocol_scene("9000003", 64, 32, 16).unwrap();
     let ex = example_from_views(&scene, &v, NEAR, FAR).unwrap();
-    let (g, _) = noisy_gaussians(&ex, 0.0, 1);
+    let g = noisy_gaussians(&ex, 0.0, 1);
     let one = vec![mvsplat360_dataset::ImageF32 { width: 64, height: 32, data: vec![0.0; 3 * 64 * 32] }];
     let s = FitSettings { steps: 2, ..FitSettings::default() };
     let e = fit(&g, &ex.context_cameras, &one, NEAR, FAR, &s, &Silent).unwrap_err().to_string();

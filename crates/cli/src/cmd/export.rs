@@ -44,22 +44,12 @@ pub struct Args {
 }
 
 pub fn run(args: Args, quiet: bool) -> anyhow::Result<()> {
-    let model = match &args.ckpt {
-        Some(p) if p.is_file() => ModelArgs {
-            encoder: Some(p.clone()),
-            refiner: Some(RefinerArg::None),
-            experiment: args.experiment.clone(),
-            fit_steps: args.fit_steps,
-            ..Default::default()
-        },
-        other => ModelArgs {
-            ckpt: other.clone(),
-            refiner: Some(RefinerArg::None),
-            experiment: args.experiment.clone(),
-            fit_steps: args.fit_steps,
-            ..Default::default()
-        },
-    };
+    let mut model = ModelArgs { refiner: Some(RefinerArg::None), experiment: args.experiment.clone(), fit_steps: args.fit_steps, ..Default::default() };
+    // A file is encoder weights alone; a folder (or none: the shipped model) is a whole model.
+    match &args.ckpt {
+        Some(p) if p.is_file() => model.encoder = Some(p.clone()),
+        other => model.ckpt = other.clone(),
+    }
     let req = RenderRequest {
         scene: args.scene.clone(),
         scene_key: args.views.scene_key.clone(),
