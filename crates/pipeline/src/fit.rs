@@ -83,7 +83,7 @@ impl FitSettings {
 
 /// A fixed subset of the encoder's Gaussians (all of them, or all but one view's), with what stays constant
 /// during the fit gathered once: colours, ray origins, offsets from them, covariances. Latent features are left
-/// out on the CPU: the fit compares RGB only, so rendering them would only cost time.
+/// out: the fit compares RGB only, so rendering them would only cost time.
 struct Part {
     /// Indices into the full set (None = all, in order).
     idx: Option<Tensor>,
@@ -91,7 +91,7 @@ struct Part {
     offsets: Tensor,
     covariances: Tensor,
     harmonics: Tensor,
-    /// Zero channels on the CPU, the encoder's elsewhere.
+    /// Zero channels.
     features: Tensor,
 }
 
@@ -106,9 +106,8 @@ impl Part {
         let offsets = means.sub(&origins)?;
         // Stored (N,K,3) and viewed as (N,3,K): the rasterizer's packing transposes to (N,K·3), then a free reshape.
         let harmonics = take(&g.harmonics)?.transpose(1, 2)?.contiguous()?.transpose(1, 2)?;
-        // Zero feature channels are tested on the CPU kernels only; elsewhere the features are rendered as before.
-        let features =
-            if harmonics.device().is_cpu() { Tensor::zeros((harmonics.dim(0)?, 0, 1), DType::F32, harmonics.device())? } else { take(&g.feature_harmonics)? };
+        // Zero channels: tested on the CPU kernels (crates/train/tests/fit.rs) and the CUDA ones (splat tests/gpu_op.rs).
+        let features = Tensor::zeros((harmonics.dim(0)?, 0, 1), DType::F32, harmonics.device())?;
         Ok(Self { origins, offsets, covariances: take(&g.covariances)?, harmonics, features, idx })
     }
 }

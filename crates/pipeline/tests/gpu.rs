@@ -6,6 +6,14 @@
 //! levels in f32 (the stages agree to ~1e-4 relative, so only values next to a rounding boundary flip one
 //! level); in bf16 within 8 levels at the 99th percentile (the refiner's half-precision error, see
 //! crates/refiner/tests/half.rs, on a random model whose output is near-flat).
+//!
+//! The test-time fit of the shipped model (`fit_on_gpu_matches_cpu`): Adam steps every Gaussian at the full rate
+//! whatever its gradient's size, so float-order differences (and on the GPU the atomicAdd order, which differs from
+//! run to run) let barely visible Gaussians walk apart. The GPU fit must land where the CPU fit does by what the
+//! fit is for — its loss within 2 %, the targets' PSNR against their photos within 0.1 dB — and each frame must be
+//! closer to the CPU's fitted frame than the unfitted frame is, by 3 dB. Measured on an H200 (2026-11-27): loss
+//! 0.011160 vs 0.011230, PSNR 17.355 vs 17.350 (unfitted 16.493), frames 26.6–36.7 dB from the CPU's where the
+//! unfitted ones are 19.9–25.4 dB (a first bound of 30 dB, taken from 29 against 30 CPU steps, was too tight).
 #![cfg(feature = "cuda")]
 
 use std::path::{Path, PathBuf};
@@ -17,17 +25,21 @@ use mvsplat360_pipeline::render::{self, RefineSettings, RenderRequest, Silent};
 use mvsplat360_pipeline::views::{ContextSpec, TargetSpec};
 
 fn render_on(model_dir: &Path, out: &Path, compute: Compute) {
+    render_views(model_dir, out, compute, vec![0, 6, 12, 18], vec![1, 4, 7], None, false);
+}
+
+fn render_views(model_dir: &Path, out: &Path, compute: Compute, context: Vec<usize>, targets: Vec<usize>, fit_steps: Option<usize>, metrics: bool) {
     let req = RenderRequest {
         scene: PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../assets/woodbox"),
         scene_key: None,
-        context: ContextSpec::Views(vec![0, 6, 12, 18]),
-        targets: TargetSpec::Views(vec![1, 4, 7]),
-        model: ModelArgs { ckpt: Some(model_dir.to_path_buf()), compute, ..Default::default() },
+        context: ContextSpec::Views(context),
+        targets: TargetSpec::Views(targets),
+        model: ModelArgs { ckpt: Some(model_dir.to_path_buf()), compute, fit_steps, ..Default::default() },
         size: None,
         scene_scale: Default::default(),
         refine: RefineSettings { steps: 2, window: 3, ..RefineSettings::default() },
         splat: false,
-        metrics: false,
+        metrics,
         weights_dir: None,
         video: false,
         fps: 8,
@@ -79,5 +91,56 @@ fn render_on_gpu_matches_cpu() {
             let p99 = d[d.len() * 99 / 100];
             assert!(p99 <= 8, "{f}: bf16 GPU vs f32 CPU, 99th percentile {p99} levels");
         }
+    }
+}
+
+fn json(path: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+}
+
+/// PSNR (dB) between two 8-bit PNGs.
+fn psnr(a: &Path, b: &Path) -> f64 {
+    let (a, b) = (image::open(a).unwrap().to_rgb8(), image::open(b).unwrap().to_rgb8());
+    let mse = a.as_raw().iter().zip(b.as_raw()).map(|(x, y)| (*x as f64 - *y as f64).powi(2)).sum::<f64>() / a.as_raw().len() as f64;
+    10.0 * (255.0f64 * 255.0 / mse.max(1e-12)).log10()
+}
+
+#[test]
+#[ignore = "needs a CUDA GPU: cargo test --features cuda -- --include-ignored"]
+fn fit_on_gpu_matches_cpu() {
+    let tmp = tempfile::tempdir().unwrap();
+    let shipped = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../assets/models/default");
+    let (context, targets) = (vec![0, 5, 10, 15, 20], vec![2, 7, 12, 17, 22]);
+    let run = |name: &str, compute: Compute, steps: Option<usize>| {
+        let out = tmp.path().join(name);
+        render_views(&shipped, &out, compute, context.clone(), targets.clone(), steps, true);
+        out
+    };
+    let cpu = run("cpu", Compute::default(), None);
+    let gpu = run("gpu", Compute { device: DeviceSpec::Cuda(0), refiner_dtype: DType::F32 }, None);
+    let again = run("gpu-again", Compute { device: DeviceSpec::Cuda(0), refiner_dtype: DType::F32 }, None);
+    let unfitted = run("unfitted", Compute::default(), Some(0));
+    let loss = |d: &Path| {
+        let l = &json(&d.join("run.json"))["settings"]["fit_loss"];
+        [l[0].as_f64().expect("a fit ran"), l[1].as_f64().unwrap()]
+    };
+    let mean_psnr = |d: &Path| json(&d.join("metrics.json"))["psnr"].as_f64().unwrap();
+    let ([c0, c1], [g0, g1]) = (loss(&cpu), loss(&gpu));
+    let (pc, pg, pu) = (mean_psnr(&cpu), mean_psnr(&gpu), mean_psnr(&unfitted));
+    let frames: Vec<(f64, f64, f64)> = (0..targets.len())
+        .map(|i| {
+            let f = format!("frames/gsplat/{i:04}.png");
+            (psnr(&gpu.join(&f), &cpu.join(&f)), psnr(&unfitted.join(&f), &cpu.join(&f)), psnr(&again.join(&f), &gpu.join(&f)))
+        })
+        .collect();
+    let [_, a1] = loss(&again);
+    eprintln!("fit loss CPU {c0:.6} -> {c1:.6}, GPU {g0:.6} -> {g1:.6} (again: {a1:.6}); target PSNR CPU {pc:.3}, GPU {pg:.3}, unfitted {pu:.3}");
+    eprintln!("per frame PSNR (GPU vs CPU fitted, unfitted vs CPU fitted, GPU vs GPU again): {frames:.2?}");
+    assert!((g0 - c0).abs() <= 1e-3 * c0, "loss before fitting: GPU {g0} vs CPU {c0}");
+    assert!(g1 < 0.5 * g0 && c1 < 0.5 * c0, "the fit did not lower the loss: GPU {g0} -> {g1}, CPU {c0} -> {c1}");
+    assert!((g1 - c1).abs() <= 0.02 * c1, "loss after fitting: GPU {g1} vs CPU {c1}");
+    assert!((pg - pc).abs() <= 0.1, "target PSNR: GPU {pg:.3} vs CPU {pc:.3} dB");
+    for (i, (g, u, _)) in frames.iter().enumerate() {
+        assert!(*g >= u + 3.0, "frame {i}: GPU vs CPU fitted {g:.2} dB, unfitted vs fitted {u:.2} dB");
     }
 }

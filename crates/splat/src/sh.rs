@@ -236,6 +236,10 @@ pub fn graphdeco_to_fork_matrix(k: usize) -> [[f64; 16]; 16] {
 /// `sh`: (N,C,K) with K ∈ {1,4,9}; `dirs`: (N,3) unit view directions. Returns (N,C).
 pub fn eval_feature_sh(sh: &Tensor, dirs: &Tensor) -> Result<Tensor> {
     let k = sh.dim(D::Minus1)?;
+    if sh.dim(1)? == 0 {
+        // No channels: candle's CUDA sum divides by the output's size and panics on an empty one.
+        return Ok(Tensor::zeros((sh.dim(0)?, 0), sh.dtype(), sh.device())?);
+    }
     let x = dirs.narrow(1, 0, 1)?;
     let y = dirs.narrow(1, 1, 1)?;
     let z = dirs.narrow(1, 2, 1)?;

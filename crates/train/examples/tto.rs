@@ -2,7 +2,8 @@
 //! context views by farthest-point sampling, the other 27 views as targets): target PSNR after each listed
 //! step count. Modes:
 //! - `product`: `render`'s fitting (`mvsplat360_pipeline::fit`) with `--lr`, `--self`, `--mask`, `--size`,
-//!   `--eps` (Adam's ε); `--nearest 4,3` also scores each target rendered from its K nearest context views'
+//!   `--eps` (Adam's ε); `--flip 1|2` first averages the encoder's per-pixel distances (1: also its opacities)
+//!   with those of a run on the mirrored photos (test-time augmentation, as training's flips); `--nearest 4,3` also scores each target rendered from its K nearest context views'
 //!   Gaussians only; on procedural scenes the row ends with the fitted distances' mean |ln d − ln truth|;
 //! - `gauss`: the exploration variant it came from (own loop; `--pyramid` levels of 2× pooling in the loss,
 //!   `--colour S` also fits the SH DC at S × the rate);
@@ -10,7 +11,7 @@
 //!
 //!     cargo run --release -p mvsplat360-train --example tto -- CONFIG.toml MODEL_DIR \
 //!         [--mode product|gauss|net] [--steps 0,25,50,100] [--lr 0.01] [--mask 0.5] [--self 0] \
-//!         [--pyramid 3] [--colour 0] [--size 0] [--eps 1e-8] [--nearest K,…] SEED|DIR…
+//!         [--pyramid 3] [--colour 0] [--size 0] [--eps 1e-8] [--flip 0] [--nearest K,…] SEED|DIR…
 
 use candle_core::{DType, Device, IndexOp, Tensor, Var};
 use mvsplat360_pipeline::render::raster_camera;
@@ -51,6 +52,49 @@ fn targets_psnr_nearest(g: &Gaussians, ex: &Example, near: f32, far: f32, k: usi
         s += psnr(&r.rgb, &ex.target_images.i(t)?)?;
     }
     Ok(s / ex.target_cameras.len() as f64)
+}
+
+/// `ex` with its context photos mirrored left-right and the matching cameras (the world mirrored by x → −x).
+fn mirrored(ex: &Example) -> anyhow::Result<Example> {
+    let w = ex.context_images.dim(3)?;
+    let rev = Tensor::from_vec((0..w as u32).rev().collect::<Vec<_>>(), w, ex.context_images.device())?;
+    Ok(Example {
+        context_images: ex.context_images.index_select(&rev, 3)?,
+        context_cameras: ex.context_cameras.iter().map(mvsplat360_train::sampler::flip_camera).collect(),
+        target_images: ex.target_images.clone(),
+        target_cameras: ex.target_cameras.clone(),
+        context_depths: None,
+    })
+}
+
+/// The encoder's Gaussians of `ex` with each pixel's distance along its ray replaced by the geometric mean of its
+/// own and the mirrored run's (`gm`, Gaussians of `mirrored(ex)`) for the same pixel; covariances scale with it.
+/// `opacity`: also average the opacities. Colours stay the unmirrored run's.
+fn flip_average(g: &Gaussians, gm: &Gaussians, ex: &Example, opacity: bool) -> anyhow::Result<Gaussians> {
+    let (v, _, h, w) = ex.context_images.dims4()?;
+    let n = g.means.dim(0)?;
+    anyhow::ensure!(n == v * h * w, "one Gaussian per pixel expected");
+    // Pixel (y, x) of view k is the mirrored run's pixel (y, w − 1 − x).
+    let perm: Vec<u32> = (0..n).map(|i| {
+        let (k, y, x) = (i / (h * w), (i / w) % h, i % w);
+        ((k * h + y) * w + (w - 1 - x)) as u32
+    }).collect();
+    let perm = Tensor::from_vec(perm, n, &Device::Cpu)?;
+    let mut orig = Vec::with_capacity(3 * n);
+    for i in 0..n {
+        let c = ex.context_cameras[i / (h * w)].center();
+        orig.extend_from_slice(&[c.x as f32, c.y as f32, c.z as f32]);
+    }
+    let orig = Tensor::from_vec(orig, (n, 3), &Device::Cpu)?;
+    let sign = Tensor::new(&[-1f32, 1.0, 1.0], &Device::Cpu)?;
+    let means_m = gm.means.index_select(&perm, 0)?.broadcast_mul(&sign)?;
+    let dist = |m: &Tensor| -> anyhow::Result<Tensor> { Ok(m.sub(&orig)?.sqr()?.sum_keepdim(1)?.sqrt()?) };
+    let (d, dm) = (dist(&g.means)?, dist(&means_m)?);
+    let factor = (dm.log()? - d.log()?)?.affine(0.5, 0.0)?.exp()?; // sqrt(dm / d)
+    let means = (&orig + g.means.sub(&orig)?.broadcast_mul(&factor)?)?;
+    let covariances = g.covariances.broadcast_mul(&factor.sqr()?.unsqueeze(2)?)?;
+    let opacities = if opacity { ((&g.opacities + gm.opacities.index_select(&perm, 0)?)? * 0.5)? } else { g.opacities.clone() };
+    Ok(Gaussians { means, covariances, opacities, harmonics: g.harmonics.clone(), feature_harmonics: g.feature_harmonics.clone() })
 }
 
 struct Opts {
@@ -116,6 +160,7 @@ fn main() -> anyhow::Result<()> {
     let colour: f64 = take("--colour", "0").parse()?;
     let size: f64 = take("--size", "0").parse()?;
     let adam_eps: f64 = take("--eps", "1e-8").parse()?;
+    let flip: u32 = take("--flip", "0").parse()?;
     // Product mode: also score each target rendered from its K nearest context views' Gaussians, K in this list.
     let nearest: Vec<usize> = take("--nearest", "").split(',').filter(|s| !s.is_empty()).map(|s| s.parse()).collect::<Result<_, _>>()?;
     let o = Opts { mask: take("--mask", "0.5").parse()?, pyramid: take("--pyramid", "3").parse()?, self_weight: take("--self", "0").parse()? };
@@ -190,7 +235,11 @@ fn main() -> anyhow::Result<()> {
             }
             "product" => {
                 // `render`'s fitting with these settings, scored after each listed step count.
-                let g0 = render_example_full(&model, &ex)?.gaussians;
+                let mut g0 = render_example_full(&model, &ex)?.gaussians;
+                if flip > 0 {
+                    let gm = render_example_full(&model, &mirrored(&ex)?)?.gaussians;
+                    g0 = flip_average(&g0, &gm, &ex, flip == 1)?;
+                }
                 let photos: Vec<mvsplat360_dataset::ImageF32> = (0..ex.context_cameras.len())
                     .map(|i| Ok(mvsplat360_dataset::ImageF32 { width: w, height: h, data: ex.context_images.i(i)?.flatten_all()?.to_vec1()? }))
                     .collect::<anyhow::Result<_>>()?;
