@@ -53,10 +53,8 @@ fn run(file: &str, dev: &Device, mode: GradMode, features: bool) -> (Vec<Vec<f32
         assert!(t.device().same_device(dev), "{file}: an image left the device");
     }
     let w = |name: &str| get(&m, name).permute((2, 0, 1)).unwrap().to_device(dev).unwrap();
-    let mut loss = ((&out.rgb * &w("W1")).unwrap().sum_all().unwrap()
-        + out.alpha.sum_all().unwrap()
-        + (&out.depth * 0.01).unwrap().sum_all().unwrap())
-    .unwrap();
+    let mut loss =
+        ((&out.rgb * &w("W1")).unwrap().sum_all().unwrap() + out.alpha.sum_all().unwrap() + (&out.depth * 0.01).unwrap().sum_all().unwrap()).unwrap();
     if features {
         loss = (loss + (&out.features * &w("W2")).unwrap().sum_all().unwrap()).unwrap();
     } else {

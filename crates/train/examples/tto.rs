@@ -54,6 +54,18 @@ fn targets_psnr_nearest(g: &Gaussians, ex: &Example, near: f32, far: f32, k: usi
     Ok(s / ex.target_cameras.len() as f64)
 }
 
+/// (n,3): the ray origin of each of `n` view-major Gaussians, its view's camera centre.
+fn ray_origins(ex: &Example, n: usize) -> anyhow::Result<Tensor> {
+    let per = n / ex.context_cameras.len();
+    let orig: Vec<f32> = (0..n)
+        .flat_map(|i| {
+            let c = ex.context_cameras[i / per].center();
+            [c.x as f32, c.y as f32, c.z as f32]
+        })
+        .collect();
+    Ok(Tensor::from_vec(orig, (n, 3), &Device::Cpu)?)
+}
+
 /// `ex` with its context photos mirrored left-right and the matching cameras (the world mirrored by x → −x).
 fn mirrored(ex: &Example) -> anyhow::Result<Example> {
     let w = ex.context_images.dim(3)?;
@@ -75,17 +87,14 @@ fn flip_average(g: &Gaussians, gm: &Gaussians, ex: &Example, opacity: bool) -> a
     let n = g.means.dim(0)?;
     anyhow::ensure!(n == v * h * w, "one Gaussian per pixel expected");
     // Pixel (y, x) of view k is the mirrored run's pixel (y, w − 1 − x).
-    let perm: Vec<u32> = (0..n).map(|i| {
-        let (k, y, x) = (i / (h * w), (i / w) % h, i % w);
-        ((k * h + y) * w + (w - 1 - x)) as u32
-    }).collect();
+    let perm: Vec<u32> = (0..n)
+        .map(|i| {
+            let (k, y, x) = (i / (h * w), (i / w) % h, i % w);
+            ((k * h + y) * w + (w - 1 - x)) as u32
+        })
+        .collect();
     let perm = Tensor::from_vec(perm, n, &Device::Cpu)?;
-    let mut orig = Vec::with_capacity(3 * n);
-    for i in 0..n {
-        let c = ex.context_cameras[i / (h * w)].center();
-        orig.extend_from_slice(&[c.x as f32, c.y as f32, c.z as f32]);
-    }
-    let orig = Tensor::from_vec(orig, (n, 3), &Device::Cpu)?;
+    let orig = ray_origins(ex, n)?;
     let sign = Tensor::new(&[-1f32, 1.0, 1.0], &Device::Cpu)?;
     let means_m = gm.means.index_select(&perm, 0)?.broadcast_mul(&sign)?;
     let dist = |m: &Tensor| -> anyhow::Result<Tensor> { Ok(m.sub(&orig)?.sqr()?.sum_keepdim(1)?.sqrt()?) };
@@ -188,14 +197,7 @@ fn main() -> anyhow::Result<()> {
                 let g0 = render_example_full(&model, &ex)?.gaussians;
                 let g0 = g0.detach();
                 let n = g0.means.dim(0)?;
-                let per = n / ex.context_cameras.len();
-                // Ray origin of each Gaussian: its view's camera centre.
-                let mut orig = Vec::with_capacity(3 * n);
-                for i in 0..n {
-                    let c = ex.context_cameras[i / per].center();
-                    orig.extend_from_slice(&[c.x as f32, c.y as f32, c.z as f32]);
-                }
-                let orig = Tensor::from_vec(orig, (n, 3), &Device::Cpu)?;
+                let orig = ray_origins(&ex, n)?;
                 let log_s = Var::zeros((n, 1), DType::F32, &Device::Cpu)?;
                 let op0 = g0.opacities.clamp(1e-4f32, 1.0 - 1e-4)?;
                 let logit = Var::from_tensor(&(op0.log()? - (op0.neg()? + 1.0)?.log()?)?)?;
