@@ -20,6 +20,10 @@ pub struct Args {
     /// Context views picked from the bundled scene by farthest-point sampling.
     #[arg(long, default_value_t = 5)]
     pub num_context: usize,
+    /// Where the model runs: `cpu`, `cuda` (GPU 0) or `cuda:N`. CUDA needs a binary built with
+    /// `--features cuda` (see README, GPU).
+    #[arg(long, default_value = "cpu")]
+    pub device: mvsplat360_pipeline::compute::DeviceSpec,
 }
 
 /// The bundled scene (`assets/woodbox`): relative to the working directory, then to this binary's source tree.
@@ -38,7 +42,11 @@ pub fn run(a: Args, quiet: bool) -> anyhow::Result<()> {
         scene_key: None,
         context: ContextSpec::Count(a.num_context),
         targets: TargetSpec::Orbit(a.frames),
-        model: ModelArgs { ckpt: Some(model.clone()), ..ModelArgs::default() },
+        model: ModelArgs {
+            ckpt: Some(model.clone()),
+            compute: mvsplat360_pipeline::compute::Compute { device: a.device, ..Default::default() },
+            ..ModelArgs::default()
+        },
         size: None,
         scene_scale: SceneScale::Auto,
         refine: RefineSettings::default(),

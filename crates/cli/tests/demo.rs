@@ -1,0 +1,51 @@
+//! `mvsplat360 demo` (the README's first command) as a user runs it: the bundled scene with the shipped model,
+//! a short orbit. What it must write (video, frames, Gaussians, cameras, run.json), the shipped model's fit
+//! lowering its loss, and a clear refusal of a device this build cannot use.
+
+use std::path::PathBuf;
+use std::process::Command;
+
+fn bin() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_mvsplat360"))
+}
+
+fn root() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
+
+#[test]
+fn demo_renders_the_bundled_scene_with_the_shipped_model() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("demo");
+    let o = bin().current_dir(root()).args(["demo", "--frames", "3", "--quiet", "--out"]).arg(&out).output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "demo failed: {err}");
+    for f in ["video.mp4", "gaussians.ply", "gaussians.splat", "cameras.json", "run.json", "frames/gsplat/0002.png", "frames/final/0002.png"] {
+        assert!(out.join(f).is_file(), "demo did not write {f}: {err}");
+    }
+    let run: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("run.json")).unwrap()).unwrap();
+    assert_eq!(run["frames"], 3);
+    // 5 views of 128×64 pixel-aligned Gaussians (the shipped model's input size).
+    assert_eq!(run["gaussians"], 5 * 128 * 64);
+    let l = &run["settings"]["fit_loss"];
+    let (before, after) = (l[0].as_f64().expect("the shipped model fits"), l[1].as_f64().unwrap());
+    assert!(after < 0.5 * before, "fit loss {before} -> {after}");
+    // A frame is an image of the scene, not a blank: its pixels vary.
+    let img = image::open(out.join("frames/final/0000.png")).unwrap().to_rgb8();
+    let px: Vec<f64> = img.as_raw().iter().map(|&v| v as f64).collect();
+    let mean = px.iter().sum::<f64>() / px.len() as f64;
+    let sd = (px.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / px.len() as f64).sqrt();
+    assert!(sd > 10.0, "frame 0 is nearly flat (sd {sd:.1} levels)");
+}
+
+#[cfg(not(feature = "cuda"))]
+#[test]
+fn demo_on_cuda_without_the_feature_says_how_to_build_it() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("demo");
+    let o = bin().current_dir(root()).args(["demo", "--device", "cuda", "--quiet", "--out"]).arg(&out).output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(err.contains("--device") && err.contains("--features cuda"), "{err}");
+    assert!(!out.join("run.json").exists(), "a refused demo wrote its results");
+}
