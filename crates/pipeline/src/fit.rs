@@ -42,6 +42,10 @@ pub struct FitSettings {
     /// so that eval folders of earlier runs still resume.
     #[serde(skip_serializing_if = "is_default_eps")]
     pub adam_eps: f64,
+    /// Cosine decay of the rates to 0 over the steps (false: constant). Absent from a file: false, as before
+    /// it existed.
+    #[serde(default)]
+    pub cosine: bool,
 }
 
 const DEFAULT_ADAM_EPS: f64 = 1e-8;
@@ -50,10 +54,11 @@ fn is_default_eps(e: &f64) -> bool {
     *e == DEFAULT_ADAM_EPS
 }
 
-/// Off, with the shipped model's validated recipe for `--fit-steps N` on a model folder without `fit`.
+/// Off, with the shipped model's validated recipe for `--fit-steps N` on a model folder without `fit`
+/// (since the 15th session lr 0.03 with cosine decay; 0.02 constant before).
 impl Default for FitSettings {
     fn default() -> Self {
-        Self { steps: 0, lr: 0.02, opacity_lr_scale: 5.0, min_alpha: 0.5, self_weight: 1.0, size_lr_scale: 0.0, adam_eps: DEFAULT_ADAM_EPS }
+        Self { steps: 0, lr: 0.03, opacity_lr_scale: 5.0, min_alpha: 0.5, self_weight: 1.0, size_lr_scale: 0.0, adam_eps: DEFAULT_ADAM_EPS, cosine: true }
     }
 }
 
@@ -220,7 +225,13 @@ pub fn fit(
         let mut opt_z = AdamW::new(vec![log_size.clone()], params(s.lr * s.size_lr_scale))?;
         let x = Vars { log_scale, log_size, fit_size: s.size_lr_scale > 0.0, logit };
         let mut first = f64::NAN;
-        for _ in 0..s.steps {
+        for step in 0..s.steps {
+            if s.cosine {
+                let f = 0.5 * (1.0 + (std::f64::consts::PI * step as f64 / s.steps as f64).cos());
+                opt_s.set_learning_rate(s.lr * f);
+                opt_o.set_learning_rate(s.lr * s.opacity_lr_scale * f);
+                opt_z.set_learning_rate(s.lr * s.size_lr_scale * f);
+            }
             let loss = fit_loss(&x, &all, &others, cams, &photos, near, far, s)?;
             let lv = loss.to_scalar::<f32>()? as f64;
             if !lv.is_finite() {

@@ -3,7 +3,8 @@
 //! step count. Modes:
 //! - `product`: `render`'s fitting (`mvsplat360_pipeline::fit`) with `--lr`, `--self`, `--mask`, `--size`,
 //!   `--eps` (Adam's ε); `--flip 1|2` first averages the encoder's per-pixel distances (1: also its opacities)
-//!   with those of a run on the mirrored photos (test-time augmentation, as training's flips); `--nearest 4,3` also scores each target rendered from its K nearest context views'
+//!   with those of a run on the mirrored photos (test-time augmentation, as training's flips); `--cosine 1`
+//!   decays the rates to 0 over each run's steps; `--nearest 4,3` also scores each target rendered from its K nearest context views'
 //!   Gaussians only; on procedural scenes the row ends with the fitted distances' mean |ln d − ln truth|;
 //! - `gauss`: the exploration variant it came from (own loop; `--pyramid` levels of 2× pooling in the loss,
 //!   `--colour S` also fits the SH DC at S × the rate);
@@ -11,7 +12,7 @@
 //!
 //!     cargo run --release -p mvsplat360-train --example tto -- CONFIG.toml MODEL_DIR \
 //!         [--mode product|gauss|net] [--steps 0,25,50,100] [--lr 0.01] [--mask 0.5] [--self 0] \
-//!         [--pyramid 3] [--colour 0] [--size 0] [--eps 1e-8] [--flip 0] [--nearest K,…] SEED|DIR…
+//!         [--pyramid 3] [--colour 0] [--size 0] [--eps 1e-8] [--flip 0] [--cosine 0] [--nearest K,…] SEED|DIR…
 
 use candle_core::{DType, Device, IndexOp, Tensor, Var};
 use mvsplat360_pipeline::render::raster_camera;
@@ -170,6 +171,7 @@ fn main() -> anyhow::Result<()> {
     let size: f64 = take("--size", "0").parse()?;
     let adam_eps: f64 = take("--eps", "1e-8").parse()?;
     let flip: u32 = take("--flip", "0").parse()?;
+    let cosine = take("--cosine", "0") == "1";
     // Product mode: also score each target rendered from its K nearest context views' Gaussians, K in this list.
     let nearest: Vec<usize> = take("--nearest", "").split(',').filter(|s| !s.is_empty()).map(|s| s.parse()).collect::<Result<_, _>>()?;
     let o = Opts { mask: take("--mask", "0.5").parse()?, pyramid: take("--pyramid", "3").parse()?, self_weight: take("--self", "0").parse()? };
@@ -253,6 +255,7 @@ fn main() -> anyhow::Result<()> {
                         min_alpha: o.mask,
                         size_lr_scale: size,
                         adam_eps,
+                        cosine,
                         ..Default::default()
                     };
                     let (g, _) = mvsplat360_pipeline::fit::fit(&g0, &ex.context_cameras, &photos, near, far, &fs, &mvsplat360_pipeline::render::Silent)?;
