@@ -2,22 +2,21 @@
 //! a short orbit. What it must write (video, frames, Gaussians, cameras, run.json), the shipped model's fit
 //! lowering its loss, and a clear refusal of a device this build cannot use.
 
-use std::path::PathBuf;
-use std::process::Command;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
 
-fn bin() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_mvsplat360"))
-}
-
-fn root() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..")
+/// `mvsplat360 demo ARGS --quiet --out TMP/demo` from the repository root: its output and folder.
+fn demo(tmp: &Path, args: &[&str]) -> (Output, PathBuf) {
+    let out = tmp.join("demo");
+    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let o = Command::new(env!("CARGO_BIN_EXE_mvsplat360")).current_dir(root).arg("demo").args(args).args(["--quiet", "--out"]).arg(&out).output().unwrap();
+    (o, out)
 }
 
 #[test]
 fn demo_renders_the_bundled_scene_with_the_shipped_model() {
     let tmp = tempfile::tempdir().unwrap();
-    let out = tmp.path().join("demo");
-    let o = bin().current_dir(root()).args(["demo", "--frames", "3", "--quiet", "--out"]).arg(&out).output().unwrap();
+    let (o, out) = demo(tmp.path(), &["--frames", "3"]);
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "demo failed: {err}");
     for f in ["video.mp4", "gaussians.ply", "gaussians.splat", "cameras.json", "run.json", "frames/gsplat/0002.png", "frames/final/0002.png"] {
@@ -42,8 +41,7 @@ fn demo_renders_the_bundled_scene_with_the_shipped_model() {
 #[test]
 fn demo_on_cuda_without_the_feature_says_how_to_build_it() {
     let tmp = tempfile::tempdir().unwrap();
-    let out = tmp.path().join("demo");
-    let o = bin().current_dir(root()).args(["demo", "--device", "cuda", "--quiet", "--out"]).arg(&out).output().unwrap();
+    let (o, out) = demo(tmp.path(), &["--device", "cuda"]);
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(1), "{err}");
     assert!(err.contains("--device") && err.contains("--features cuda"), "{err}");

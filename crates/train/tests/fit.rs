@@ -59,6 +59,18 @@ fn noisy_gaussians(ex: &Example, noise: f64, seed: u64) -> Gaussians {
     g
 }
 
+/// The context photos as the fitter takes them.
+fn context_photos(ex: &Example) -> Vec<mvsplat360_dataset::ImageF32> {
+    let (_, _, h, w) = ex.context_images.dims4().unwrap();
+    (0..ex.context_cameras.len())
+        .map(|i| mvsplat360_dataset::ImageF32 {
+            width: w as u32,
+            height: h as u32,
+            data: ex.context_images.i(i).unwrap().flatten_all().unwrap().to_vec1().unwrap(),
+        })
+        .collect()
+}
+
 fn targets_mse(g: &Gaussians, ex: &Example) -> f64 {
     let mut s = 0.0;
     for (t, c) in ex.target_cameras.iter().enumerate() {
@@ -74,9 +86,7 @@ fn fitting_moves_noisy_depths_toward_the_truth_and_improves_novel_views() {
     v.target = v.target.into_iter().step_by(3).collect();
     let ex = example_from_views(&scene, &v, NEAR, FAR).unwrap();
     let g = noisy_gaussians(&ex, 0.3, 7);
-    let photos: Vec<mvsplat360_dataset::ImageF32> = (0..ex.context_cameras.len())
-        .map(|i| mvsplat360_dataset::ImageF32 { width: 64, height: 32, data: ex.context_images.i(i).unwrap().flatten_all().unwrap().to_vec1().unwrap() })
-        .collect();
+    let photos = context_photos(&ex);
     let s = FitSettings { steps: 40, ..FitSettings::default() };
     let (f, [l0, l1]) = fit(&g, &ex.context_cameras, &photos, NEAR, FAR, &s, &Silent).unwrap();
     let error = |g: &Gaussians| ex.context_distance_error(g, FAR).unwrap().expect("procedural scenes know their depth");
@@ -127,9 +137,7 @@ fn cosine_decay_halves_the_second_of_two_steps() {
     let (scene, v, _) = protocol_scene("9000003", 64, 32, 16).unwrap();
     let ex = example_from_views(&scene, &v, NEAR, FAR).unwrap();
     let g = noisy_gaussians(&ex, 0.3, 7);
-    let photos: Vec<mvsplat360_dataset::ImageF32> = (0..ex.context_cameras.len())
-        .map(|i| mvsplat360_dataset::ImageF32 { width: 64, height: 32, data: ex.context_images.i(i).unwrap().flatten_all().unwrap().to_vec1().unwrap() })
-        .collect();
+    let photos = context_photos(&ex);
     let per = g.means.dim(0).unwrap() / ex.context_cameras.len();
     let m0: Vec<Vec<f32>> = g.means.to_vec2().unwrap();
     let log_factor = |s: FitSettings| -> Vec<f64> {
