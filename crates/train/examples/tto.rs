@@ -4,7 +4,9 @@
 //! - `product`: `render`'s fitting (`mvsplat360_pipeline::fit`) with `--lr`, `--self`, `--mask`, `--size`,
 //!   `--eps` (Adam's ε); `--flip 1|2` first averages the encoder's per-pixel distances (1: also its opacities)
 //!   with those of a run on the mirrored photos (test-time augmentation, as training's flips); `--cosine 1`
-//!   decays the rates to 0 over each run's steps; `--nearest 4,3` also scores each target rendered from its K nearest context views'
+//!   decays the rates to 0 over each run's steps; `--pixel-colour 1|2` sets each Gaussian's SH DC to its
+//!   pixel's colour (1: keeps the higher orders, 2: zeroes them); `--hyp F,… --hyp-opacity O` adds copies of
+//!   every Gaussian at those distance factors with O × its opacity before fitting; `--nearest 4,3` also scores each target rendered from its K nearest context views'
 //!   Gaussians only; on procedural scenes the row ends with the fitted distances' mean |ln d − ln truth|;
 //! - `gauss`: the exploration variant it came from (own loop; `--pyramid` levels of 2× pooling in the loss,
 //!   `--colour S` also fits the SH DC at S × the rate);
@@ -107,6 +109,61 @@ fn flip_average(g: &Gaussians, gm: &Gaussians, ex: &Example, opacity: bool) -> a
     Ok(Gaussians { means, covariances, opacities, harmonics: g.harmonics.clone(), feature_harmonics: g.feature_harmonics.clone() })
 }
 
+/// `g` with each Gaussian's SH DC set to its source pixel's colour in the context photo (`rest`: keep the
+/// encoder's higher-order coefficients, else zero them).
+fn pixel_colours(g: &Gaussians, ex: &Example, rest: bool) -> anyhow::Result<Gaussians> {
+    let (v, _, h, w) = ex.context_images.dims4()?;
+    let n = g.means.dim(0)?;
+    anyhow::ensure!(n == v * h * w, "one Gaussian per pixel expected");
+    let rgb = ex.context_images.permute((0, 2, 3, 1))?.reshape((n, 3, 1))?;
+    let dc = rgb.affine(1.0 / mvsplat360_splat::sh::C0 as f64, -0.5 / mvsplat360_splat::sh::C0 as f64)?;
+    let k = g.harmonics.dim(2)?;
+    let higher = g.harmonics.narrow(2, 1, k - 1)?;
+    let higher = if rest { higher } else { higher.zeros_like()? };
+    Ok(Gaussians { harmonics: Tensor::cat(&[&dc, &higher], 2)?.contiguous()?, ..g.clone() })
+}
+
+/// Depth hypotheses: each view's Gaussians followed by copies at each factor of `factors` along their rays
+/// (covariances scaled with the distance, so the footprint in their own view stays), opacities × `op`.
+/// View-major with `1 + factors.len()` times as many Gaussians per view.
+fn hypotheses(g: &Gaussians, ex: &Example, factors: &[f64], op: f64) -> anyhow::Result<Gaussians> {
+    let v = ex.context_cameras.len();
+    let n = g.means.dim(0)?;
+    let per = n / v;
+    let orig = ray_origins(ex, n)?;
+    let off = g.means.sub(&orig)?;
+    let mut parts: Vec<Gaussians> = Vec::new();
+    for k in 0..v {
+        let sl = |t: &Tensor| t.narrow(0, k * per, per);
+        let base = Gaussians {
+            means: sl(&g.means)?,
+            covariances: sl(&g.covariances)?,
+            opacities: sl(&g.opacities)?,
+            harmonics: sl(&g.harmonics)?,
+            feature_harmonics: sl(&g.feature_harmonics)?,
+        };
+        parts.push(base.clone());
+        for &f in factors {
+            parts.push(Gaussians {
+                means: (sl(&orig)? + (sl(&off)? * f)?)?,
+                covariances: (sl(&g.covariances)? * (f * f))?,
+                opacities: (sl(&g.opacities)? * op)?,
+                ..base.clone()
+            });
+        }
+    }
+    let cat = |f: &dyn Fn(&Gaussians) -> Tensor| -> anyhow::Result<Tensor> {
+        Ok(Tensor::cat(&parts.iter().map(f).collect::<Vec<_>>(), 0)?)
+    };
+    Ok(Gaussians {
+        means: cat(&|p| p.means.clone())?,
+        covariances: cat(&|p| p.covariances.clone())?,
+        opacities: cat(&|p| p.opacities.clone())?,
+        harmonics: cat(&|p| p.harmonics.clone())?,
+        feature_harmonics: cat(&|p| p.feature_harmonics.clone())?,
+    })
+}
+
 struct Opts {
     mask: f32,
     pyramid: usize,
@@ -172,6 +229,9 @@ fn main() -> anyhow::Result<()> {
     let adam_eps: f64 = take("--eps", "1e-8").parse()?;
     let flip: u32 = take("--flip", "0").parse()?;
     let cosine = take("--cosine", "0") == "1";
+    let pixel: u32 = take("--pixel-colour", "0").parse()?;
+    let hyp: Vec<f64> = take("--hyp", "").split(',').filter(|s| !s.is_empty()).map(|s| s.parse()).collect::<Result<_, _>>()?;
+    let hyp_op: f64 = take("--hyp-opacity", "0.3").parse()?;
     // Product mode: also score each target rendered from its K nearest context views' Gaussians, K in this list.
     let nearest: Vec<usize> = take("--nearest", "").split(',').filter(|s| !s.is_empty()).map(|s| s.parse()).collect::<Result<_, _>>()?;
     let o = Opts { mask: take("--mask", "0.5").parse()?, pyramid: take("--pyramid", "3").parse()?, self_weight: take("--self", "0").parse()? };
@@ -244,6 +304,12 @@ fn main() -> anyhow::Result<()> {
                     let gm = render_example_full(&model, &mirrored(&ex)?)?.gaussians;
                     g0 = flip_average(&g0, &gm, &ex, flip == 1)?;
                 }
+                if pixel > 0 {
+                    g0 = pixel_colours(&g0, &ex, pixel == 1)?;
+                }
+                if !hyp.is_empty() {
+                    g0 = hypotheses(&g0, &ex, &hyp, hyp_op)?;
+                }
                 let photos: Vec<mvsplat360_dataset::ImageF32> = (0..ex.context_cameras.len())
                     .map(|i| Ok(mvsplat360_dataset::ImageF32 { width: w, height: h, data: ex.context_images.i(i)?.flatten_all()?.to_vec1()? }))
                     .collect::<anyhow::Result<_>>()?;
@@ -260,8 +326,11 @@ fn main() -> anyhow::Result<()> {
                     };
                     let (g, _) = mvsplat360_pipeline::fit::fit(&g0, &ex.context_cameras, &photos, near, far, &fs, &mvsplat360_pipeline::render::Silent)?;
                     row.push(targets_psnr(&g, &ex, near, far)?);
-                    if let Some(e) = ex.context_distance_error(&g, far)? {
-                        derr.push(format!("{e:.3}"));
+                    // One Gaussian per context pixel only (not with --hyp's copies).
+                    if hyp.is_empty() {
+                        if let Some(e) = ex.context_distance_error(&g, far)? {
+                            derr.push(format!("{e:.3}"));
+                        }
                     }
                     for &k in &nearest {
                         row.push(targets_psnr_nearest(&g, &ex, near, far, k)?);
