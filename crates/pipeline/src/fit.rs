@@ -7,6 +7,8 @@
 //! leave-one-out renders say whether the geometry agrees across views. Optimised, with Adam: each Gaussian's
 //! distance along its pixel ray (a log scale; its covariance is scaled with it, so its footprint in its own
 //! view is unchanged) and its opacity (a logit). Colours, shapes and features stay as the encoder made them.
+//! With `copies`, each Gaussian first gets faint copies nearer and farther along its ray (depth hypotheses: a
+//! gradient step moves a distance only locally, the copies let the other views' evidence pick another one).
 
 use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::{AdamW, Optimizer, ParamsAdamW};
@@ -46,6 +48,16 @@ pub struct FitSettings {
     /// it existed.
     #[serde(default)]
     pub cosine: bool,
+    /// Depth hypotheses: before fitting, every Gaussian gets this many copies on each side along its pixel ray,
+    /// at distances × `copy_ratio`^±1…±copies, with `copy_opacity` × its opacity (the fit then raises the copies
+    /// that the other views confirm). 0 = none. Written out only when set, so that eval folders of earlier runs
+    /// still resume.
+    #[serde(skip_serializing_if = "is_zero")]
+    pub copies: usize,
+    #[serde(skip_serializing_if = "is_default_ratio")]
+    pub copy_ratio: f64,
+    #[serde(skip_serializing_if = "is_default_copy_opacity")]
+    pub copy_opacity: f64,
 }
 
 const DEFAULT_ADAM_EPS: f64 = 1e-8;
@@ -54,11 +66,38 @@ fn is_default_eps(e: &f64) -> bool {
     *e == DEFAULT_ADAM_EPS
 }
 
+const DEFAULT_COPY_RATIO: f64 = 1.33;
+const DEFAULT_COPY_OPACITY: f64 = 0.1;
+
+fn is_zero(n: &usize) -> bool {
+    *n == 0
+}
+
+fn is_default_ratio(r: &f64) -> bool {
+    *r == DEFAULT_COPY_RATIO
+}
+
+fn is_default_copy_opacity(o: &f64) -> bool {
+    *o == DEFAULT_COPY_OPACITY
+}
+
 /// Off, with the shipped model's validated recipe for `--fit-steps N` on a model folder without `fit`
 /// (since the 15th session lr 0.03 with cosine decay; 0.02 constant before).
 impl Default for FitSettings {
     fn default() -> Self {
-        Self { steps: 0, lr: 0.03, opacity_lr_scale: 5.0, min_alpha: 0.5, self_weight: 1.0, size_lr_scale: 0.0, adam_eps: DEFAULT_ADAM_EPS, cosine: true }
+        Self {
+            steps: 0,
+            lr: 0.03,
+            opacity_lr_scale: 5.0,
+            min_alpha: 0.5,
+            self_weight: 1.0,
+            size_lr_scale: 0.0,
+            adam_eps: DEFAULT_ADAM_EPS,
+            cosine: true,
+            copies: 0,
+            copy_ratio: DEFAULT_COPY_RATIO,
+            copy_opacity: DEFAULT_COPY_OPACITY,
+        }
     }
 }
 
@@ -78,6 +117,15 @@ impl FitSettings {
         }
         if !(self.adam_eps.is_finite() && self.adam_eps > 0.0) {
             return Err(flag("fit.adam_eps", format!("must be a positive number, got {}", self.adam_eps)));
+        }
+        if self.copies > 0 && !(self.copy_ratio.is_finite() && self.copy_ratio > 1.0) {
+            return Err(flag("fit.copy_ratio", format!("must be > 1, got {}", self.copy_ratio)));
+        }
+        if self.copies > 0 && !(self.copy_opacity > 0.0 && self.copy_opacity <= 1.0) {
+            return Err(flag("fit.copy_opacity", format!("must be in (0, 1], got {}", self.copy_opacity)));
+        }
+        if self.copies > 8 {
+            return Err(flag("fit.copies", format!("at most 8 on each side, got {}", self.copies)));
         }
         if !(0.0..1.0).contains(&self.min_alpha) {
             return Err(flag("fit.min_alpha", format!("must be in [0, 1), got {}", self.min_alpha)));
@@ -170,6 +218,36 @@ fn fit_loss(x: &Vars, all: &Part, others: &[Part], cams: &[Camera], photos: &[Te
     total / cams.len() as f64
 }
 
+/// `g` (view-major, `views` views) with `s.copies` copies of each Gaussian on each side along its ray from
+/// `origins` (the expanded set's: (N·slots,3), view-major): per view, its Gaussians, then the copies at factor
+/// ratio^−1, ratio^1, ratio^−2, … on their distance (covariance × factor², so their footprint in their own view
+/// stays) with `copy_opacity` × their opacity.
+fn depth_copies(g: &Gaussians, origins: &Tensor, views: usize, s: &FitSettings) -> candle_core::Result<Gaussians> {
+    let per = g.means.dim(0)? / views;
+    let mut factors = vec![1.0f64];
+    for j in 1..=s.copies as i32 {
+        factors.extend([s.copy_ratio.powi(-j), s.copy_ratio.powi(j)]);
+    }
+    let (mut idx, mut f, mut op) = (Vec::new(), Vec::new(), Vec::new());
+    for k in 0..views {
+        for (m, &fm) in factors.iter().enumerate() {
+            for i in 0..per {
+                idx.push((k * per + i) as u32);
+                f.push(fm as f32);
+                op.push(if m == 0 { 1.0 } else { s.copy_opacity as f32 });
+            }
+        }
+    }
+    let dev = g.means.device();
+    let count = idx.len();
+    let e = g.select(&Tensor::from_vec(idx, count, dev)?)?;
+    let f = Tensor::from_vec(f, (count, 1), dev)?;
+    let means = (origins + e.means.sub(origins)?.broadcast_mul(&f)?)?;
+    let covariances = e.covariances.broadcast_mul(&f.sqr()?.unsqueeze(2)?)?;
+    let opacities = (e.opacities * Tensor::from_vec(op, count, dev)?)?;
+    Ok(Gaussians { means, covariances, opacities, ..e })
+}
+
 /// Fit `g` (the encoder's Gaussians of `cams.len()` views, view-major, the same number per view) to the
 /// context photos; returns the fitted Gaussians and the loss before and after.
 pub fn fit(
@@ -196,6 +274,8 @@ pub fn fit(
         });
     }
     let per = n / v;
+    let slots = 1 + 2 * s.copies;
+    let (n, per) = (n * slots, per * slots);
     let mut origins = Vec::with_capacity(3 * n);
     for c in cams {
         let o = c.center();
@@ -205,7 +285,7 @@ pub fn fit(
     }
     let run = || -> candle_core::Result<(Gaussians, [f64; 2])> {
         let origins = Tensor::from_vec(origins.clone(), (n, 3), &dev)?;
-        let detached = g.detach();
+        let detached = if s.copies > 0 { depth_copies(&g.detach(), &origins, v, s)? } else { g.detach() };
         let all = Part::new(&detached, &origins, None)?;
         let others: Vec<Part> = (0..v)
             .map(|j| {
@@ -215,7 +295,7 @@ pub fn fit(
             .collect::<candle_core::Result<_>>()?;
         let photos: Vec<Tensor> =
             photos.iter().map(|p| Tensor::from_slice(&p.data, (3, p.height as usize, p.width as usize), &dev)).collect::<candle_core::Result<_>>()?;
-        let op = g.opacities.detach().clamp(1e-4f32, 1.0 - 1e-4)?;
+        let op = detached.opacities.clamp(1e-4f32, 1.0 - 1e-4)?;
         let logit = Var::from_tensor(&(op.log()? - (op.neg()? + 1.0)?.log()?)?)?;
         let log_scale = Var::zeros((n, 1), DType::F32, &dev)?;
         let log_size = Var::zeros((n, 1), DType::F32, &dev)?;

@@ -6,7 +6,8 @@
 //!   with those of a run on the mirrored photos (test-time augmentation, as training's flips); `--cosine 1`
 //!   decays the rates to 0 over each run's steps; `--pixel-colour 1|2` sets each Gaussian's SH DC to its
 //!   pixel's colour (1: keeps the higher orders, 2: zeroes them); `--hyp F,… --hyp-opacity O` adds copies of
-//!   every Gaussian at those distance factors with O × its opacity before fitting; `--nearest 4,3` also scores each target rendered from its K nearest context views'
+//!   every Gaussian at those distance factors with O × its opacity before fitting (`--copies N --copy-ratio R
+//!   --copy-opacity O`: the same by `render`'s fit settings, factors R^±1…±N); `--nearest 4,3` also scores each target rendered from its K nearest context views'
 //!   Gaussians only; on procedural scenes the row ends with the fitted distances' mean |ln d − ln truth|;
 //! - `gauss`: the exploration variant it came from (own loop; `--pyramid` levels of 2× pooling in the loss,
 //!   `--colour S` also fits the SH DC at S × the rate);
@@ -152,9 +153,7 @@ fn hypotheses(g: &Gaussians, ex: &Example, factors: &[f64], op: f64) -> anyhow::
             });
         }
     }
-    let cat = |f: &dyn Fn(&Gaussians) -> Tensor| -> anyhow::Result<Tensor> {
-        Ok(Tensor::cat(&parts.iter().map(f).collect::<Vec<_>>(), 0)?)
-    };
+    let cat = |f: &dyn Fn(&Gaussians) -> Tensor| -> anyhow::Result<Tensor> { Ok(Tensor::cat(&parts.iter().map(f).collect::<Vec<_>>(), 0)?) };
     Ok(Gaussians {
         means: cat(&|p| p.means.clone())?,
         covariances: cat(&|p| p.covariances.clone())?,
@@ -232,6 +231,9 @@ fn main() -> anyhow::Result<()> {
     let pixel: u32 = take("--pixel-colour", "0").parse()?;
     let hyp: Vec<f64> = take("--hyp", "").split(',').filter(|s| !s.is_empty()).map(|s| s.parse()).collect::<Result<_, _>>()?;
     let hyp_op: f64 = take("--hyp-opacity", "0.3").parse()?;
+    let copies: usize = take("--copies", "0").parse()?;
+    let copy_ratio: f64 = take("--copy-ratio", "1.33").parse()?;
+    let copy_opacity: f64 = take("--copy-opacity", "0.1").parse()?;
     // Product mode: also score each target rendered from its K nearest context views' Gaussians, K in this list.
     let nearest: Vec<usize> = take("--nearest", "").split(',').filter(|s| !s.is_empty()).map(|s| s.parse()).collect::<Result<_, _>>()?;
     let o = Opts { mask: take("--mask", "0.5").parse()?, pyramid: take("--pyramid", "3").parse()?, self_weight: take("--self", "0").parse()? };
@@ -322,12 +324,15 @@ fn main() -> anyhow::Result<()> {
                         size_lr_scale: size,
                         adam_eps,
                         cosine,
+                        copies,
+                        copy_ratio,
+                        copy_opacity,
                         ..Default::default()
                     };
                     let (g, _) = mvsplat360_pipeline::fit::fit(&g0, &ex.context_cameras, &photos, near, far, &fs, &mvsplat360_pipeline::render::Silent)?;
                     row.push(targets_psnr(&g, &ex, near, far)?);
                     // One Gaussian per context pixel only (not with --hyp's copies).
-                    if hyp.is_empty() {
+                    if hyp.is_empty() && copies == 0 {
                         if let Some(e) = ex.context_distance_error(&g, far)? {
                             derr.push(format!("{e:.3}"));
                         }

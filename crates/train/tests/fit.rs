@@ -17,15 +17,21 @@ const FAR: f32 = 40.0;
 /// Pixel-aligned opaque Gaussians with the pixels' colours at the true ray distances × exp(e), e drawn per view
 /// in ±`noise` (a view-wide error, like a misjudged scale).
 fn noisy_gaussians(ex: &Example, noise: f64, seed: u64) -> Gaussians {
+    let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+    let errs: Vec<f64> = ex.context_cameras.iter().map(|_| if noise > 0.0 { rng.gen_range(-noise..noise) } else { 0.0 }).collect();
+    gaussians_at(ex, &errs)
+}
+
+/// Pixel-aligned opaque Gaussians with the pixels' colours at the true ray distances × exp(errs[view]).
+fn gaussians_at(ex: &Example, errs: &[f64]) -> Gaussians {
     let depths = ex.context_depths.as_ref().expect("procedural scenes know their depth");
     let (v, _, h, w) = ex.context_images.dims4().unwrap();
     let imgs: Vec<f32> = ex.context_images.flatten_all().unwrap().to_vec1().unwrap();
     let ds: Vec<f32> = depths.flatten_all().unwrap().to_vec1().unwrap();
-    let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
     let (mut means, mut covs, mut sh) = (Vec::new(), Vec::new(), Vec::new());
     let c0 = mvsplat360_splat::sh::C0;
     for (k, cam) in ex.context_cameras.iter().enumerate() {
-        let e = if noise > 0.0 { rng.gen_range(-noise..noise) } else { 0.0 };
+        let e = errs[k];
         for y in 0..h {
             for x in 0..w {
                 let i = (k * h + y) * w + x;
@@ -162,4 +168,66 @@ fn cosine_decay_halves_the_second_of_two_steps() {
     // f32 means ≈ 10 units from their camera: their log distance is resolved to ≈ 1e-7.
     let worst = constant.iter().zip(&cosine).zip(&second).map(|((c, k), s)| ((c - k) - 0.5 * s).abs()).fold(0.0, f64::max);
     assert!(worst < 1e-5, "second step not halved: worst |(Δconstant − Δcosine) − ½ Δsecond| = {worst:.2e}");
+}
+
+/// Depth copies (`fit.copies`): with every view's distances off by exactly ×1.3 or ÷1.3, one copy of each
+/// Gaussian sits at the ray caster's true distance. Before fitting the copies are where the setting says (closed
+/// form: distance × 1.3^∓1 from their camera, opacity × 0.1); after fitting, the copies at the truth must have
+/// gained more opacity than the copies on the wrong side, and the held-out views must be closer to their photos
+/// than before fitting and than after the same fit without copies.
+#[test]
+fn depth_copies_let_the_fit_raise_the_true_distance() {
+    let (scene, mut v, _) = protocol_scene("9000003", 64, 32, 16).unwrap();
+    v.target = v.target.into_iter().step_by(3).collect();
+    let ex = example_from_views(&scene, &v, NEAR, FAR).unwrap();
+    let r = 1.3f64;
+    let nv = ex.context_cameras.len();
+    let errs: Vec<f64> = (0..nv).map(|k| if k % 2 == 0 { r.ln() } else { -r.ln() }).collect();
+    let g = gaussians_at(&ex, &errs);
+    let photos = context_photos(&ex);
+    let n = g.means.dim(0).unwrap();
+    let per = n / nv;
+    let with = FitSettings { steps: 40, copies: 1, copy_ratio: r, copy_opacity: 0.1, ..FitSettings::default() };
+    // Slot layout per view: the Gaussians, then the copies at ÷r, then at ×r.
+    let slot = |f: &Gaussians, k: usize, m: usize| -> (Vec<Vec<f32>>, Vec<f32>) {
+        let s =
+            f.select(&Tensor::from_vec(((k * 3 + m) * per..(k * 3 + m + 1) * per).map(|i| i as u32).collect::<Vec<_>>(), per, &Device::Cpu).unwrap()).unwrap();
+        (s.means.to_vec2().unwrap(), s.opacities.to_vec1().unwrap())
+    };
+    let (f0, _) = fit(&g, &ex.context_cameras, &photos, NEAR, FAR, &FitSettings { steps: 0, ..with }, &Silent).unwrap();
+    assert_eq!(f0.means.dim(0).unwrap(), 3 * n, "two copies of each Gaussian");
+    let m0: Vec<Vec<f32>> = g.means.to_vec2().unwrap();
+    let op0: Vec<f32> = g.opacities.to_vec1().unwrap();
+    for k in 0..nv {
+        let o = ex.context_cameras[k].center();
+        let d = |p: &[f32]| ((p[0] as f64 - o.x).powi(2) + (p[1] as f64 - o.y).powi(2) + (p[2] as f64 - o.z).powi(2)).sqrt();
+        for (m, want) in [(0, 1.0), (1, 1.0 / r), (2, r)] {
+            let (means, ops) = slot(&f0, k, m);
+            for i in (0..per).step_by(97) {
+                let ratio = d(&means[i]) / d(&m0[k * per + i]);
+                assert!((ratio - want).abs() < 1e-4, "view {k} slot {m} Gaussian {i}: distance × {ratio}, want × {want}");
+                let want_op = op0[k * per + i] * if m == 0 { 1.0 } else { 0.1 };
+                assert!((ops[i] - want_op).abs() < 1e-4, "view {k} slot {m} Gaussian {i}: opacity {}, want {want_op}", ops[i]);
+            }
+        }
+    }
+    let (f, [l0, l1]) = fit(&g, &ex.context_cameras, &photos, NEAR, FAR, &with, &Silent).unwrap();
+    // Views with distances × r have their truth in the ÷r copies (slot 1), the others in slot 2.
+    let (mut right, mut wrong) = (0.0, 0.0);
+    for k in 0..nv {
+        let (t, w) = if k % 2 == 0 { (1, 2) } else { (2, 1) };
+        right += slot(&f, k, t).1.iter().map(|&x| x as f64).sum::<f64>();
+        wrong += slot(&f, k, w).1.iter().map(|&x| x as f64).sum::<f64>();
+    }
+    let (right, wrong) = (right / n as f64, wrong / n as f64);
+    let (m_unfitted, m_fitted) = (targets_mse(&f0, &ex), targets_mse(&f, &ex));
+    let (plain, _) = fit(&g, &ex.context_cameras, &photos, NEAR, FAR, &FitSettings { copies: 0, ..with }, &Silent).unwrap();
+    let (m_plain0, m_plain) = (targets_mse(&g, &ex), targets_mse(&plain, &ex));
+    eprintln!(
+        "loss {l0:.5} → {l1:.5}; copies' mean opacity at the truth {right:.4}, on the wrong side {wrong:.4}; target MSE {m_unfitted:.5} → {m_fitted:.5} (without copies {m_plain0:.5} → {m_plain:.5})"
+    );
+    assert!(right > wrong, "the copies at the true distance must gain more opacity: {right} vs {wrong}");
+    assert!(m_fitted < 0.9 * m_unfitted, "the held-out views must get closer to their photos: MSE {m_unfitted} → {m_fitted}");
+    // Measured: 0.00161 with copies, 0.00199 without (the same 40 steps from the same Gaussians).
+    assert!(m_fitted < m_plain, "with the truth among the copies the fit must end closer to the photos than without: {m_fitted} vs {m_plain}");
 }
