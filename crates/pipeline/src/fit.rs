@@ -249,7 +249,8 @@ fn depth_copies(g: &Gaussians, origins: &Tensor, views: usize, s: &FitSettings) 
 }
 
 /// Fit `g` (the encoder's Gaussians of `cams.len()` views, view-major, the same number per view) to the
-/// context photos; returns the fitted Gaussians and the loss before and after.
+/// context photos; returns the fitted Gaussians (with `copies`, 1 + 2·copies times as many, view-major, each
+/// view's own Gaussians first) and the loss before and after.
 pub fn fit(
     g: &Gaussians,
     cams: &[Camera],
