@@ -22,6 +22,8 @@ use mvsplat360_train::scenes::protocol_scene;
 use mvsplat360_train::trainer::{example_from_views, render_example_full, Model};
 use rand::{Rng, SeedableRng};
 
+mod common;
+
 fn cache(args: &[String]) -> anyhow::Result<()> {
     anyhow::ensure!(args.len() >= 4, "usage: post cache CONFIG.toml MODEL_DIR OUT_DIR SEED|DIR…");
     let out = PathBuf::from(&args[2]);
@@ -128,9 +130,7 @@ fn mean_psnr(pred: &Tensor, target: &Tensor) -> anyhow::Result<f64> {
     let n = pred.dim(0)?;
     let mut s = 0.0;
     for i in 0..n {
-        let a: Vec<f32> = pred.i(i)?.clamp(0f32, 1f32)?.flatten_all()?.to_vec1()?;
-        let b: Vec<f32> = target.i(i)?.flatten_all()?.to_vec1()?;
-        s += mvsplat360_metrics::psnr::psnr(&a, &b);
+        s += common::psnr(&pred.i(i)?, &target.i(i)?)?;
     }
     Ok(s / n as f64)
 }
@@ -146,16 +146,7 @@ fn evaluate(net: &Net, r: &Tensor, a: &Tensor, t: &Tensor) -> anyhow::Result<f64
 }
 
 fn train(args: &mut Vec<String>) -> anyhow::Result<()> {
-    let mut take = |flag: &str, default: &str| -> String {
-        match args.iter().position(|a| a == flag) {
-            Some(i) => {
-                let v = args.remove(i + 1);
-                args.remove(i);
-                v
-            }
-            None => default.to_string(),
-        }
-    };
+    let mut take = |flag: &str, default: &str| common::take_flag(args, flag, default);
     let steps: usize = take("--steps", "2000").parse()?;
     let lr: f64 = take("--lr", "1e-3").parse()?;
     let batch: usize = take("--batch", "8").parse()?;

@@ -24,11 +24,7 @@ use mvsplat360_train::optim::{Adam, Param};
 use mvsplat360_train::scenes::protocol_scene;
 use mvsplat360_train::trainer::{example_from_views, render_example_full, Example, Model};
 
-fn psnr(a: &Tensor, b: &Tensor) -> anyhow::Result<f64> {
-    let a: Vec<f32> = a.clamp(0f32, 1f32)?.flatten_all()?.to_vec1()?;
-    let b: Vec<f32> = b.flatten_all()?.to_vec1()?;
-    Ok(mvsplat360_metrics::psnr::psnr(&a, &b))
-}
+mod common;
 
 fn targets_psnr(g: &Gaussians, ex: &Example, near: f32, far: f32) -> anyhow::Result<f64> {
     targets_psnr_nearest(g, ex, near, far, usize::MAX)
@@ -53,7 +49,7 @@ fn targets_psnr_nearest(g: &Gaussians, ex: &Example, near: f32, far: f32, k: usi
             g
         };
         let r = mvsplat360_splat::render(g, &raster_camera(c, near, far), &RenderOptions::default())?;
-        s += psnr(&r.rgb, &ex.target_images.i(t)?)?;
+        s += common::psnr(&r.rgb, &ex.target_images.i(t)?)?;
     }
     Ok(s / ex.target_cameras.len() as f64)
 }
@@ -210,16 +206,7 @@ fn loo_loss(g: &Gaussians, ex: &Example, near: f32, far: f32, o: &Opts) -> anyho
 fn main() -> anyhow::Result<()> {
     mvsplat360_pipeline::setup::init_process();
     let mut args: Vec<String> = std::env::args().skip(1).collect();
-    let mut take = |flag: &str, default: &str| -> String {
-        match args.iter().position(|a| a == flag) {
-            Some(i) => {
-                let v = args.remove(i + 1);
-                args.remove(i);
-                v
-            }
-            None => default.to_string(),
-        }
-    };
+    let mut take = |flag: &str, default: &str| common::take_flag(&mut args, flag, default);
     let mode = take("--mode", "gauss");
     let steps: Vec<usize> = take("--steps", "0,25,50,100").split(',').map(|s| s.parse()).collect::<Result<_, _>>()?;
     let lr: f64 = take("--lr", if mode == "net" { "2e-5" } else { "0.01" }).parse()?;
