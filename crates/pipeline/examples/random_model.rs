@@ -19,6 +19,7 @@ fn main() {
             ModelConfig {
                 format: MODEL_FORMAT.into(),
                 fit: None,
+                blend: None,
                 encoder: model::experiment_encoder(&data),
                 data,
                 refiner: refiner.then(RefinerModelConfig::default),

@@ -179,7 +179,14 @@ fn bench_model_config(o: &SceneBenchOpts) -> ModelConfig {
         model::tiny_config(true)
     } else {
         let data = DataConfig::dl3dv();
-        ModelConfig { format: MODEL_FORMAT.into(), encoder: model::experiment_encoder(&data), data, refiner: Some(RefinerModelConfig::default()), fit: None }
+        ModelConfig {
+            format: MODEL_FORMAT.into(),
+            encoder: model::experiment_encoder(&data),
+            data,
+            refiner: Some(RefinerModelConfig::default()),
+            fit: None,
+            blend: None,
+        }
     };
     // The scene's photos are written at the model's input size, so no resize happens.
     cfg.data.image_width = o.width;

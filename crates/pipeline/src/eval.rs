@@ -388,6 +388,10 @@ fn settings_json(req: &EvalRequest, spec: &crate::model::ModelSpec, size: InputS
     if spec.fit.steps > 0 {
         v["fit"] = json!(spec.fit);
     }
+    // Blending changes every frame, as fitting does.
+    if let Some((b, _)) = &spec.blend {
+        v["blend"] = json!(b);
+    }
     // Half precision changes the refined frames; f32 adds nothing, so folders of earlier runs still resume.
     let dtype = req.model.compute.refiner_dtype;
     if spec.refiner.is_some() && dtype != candle_core::DType::F32 {
@@ -648,7 +652,7 @@ fn render_scene(cx: &Ctx, scene: Scene, plan: &ScenePlan, warnings: &mut Vec<Str
     let g = render::encode(&p, cx.progress)?;
     let (g, _) = render::fit_to_context(&p, g, cx.progress)?;
     record.gaussians = g.means.dim(0).map_err(compute("encoder"))?;
-    let renders = render::rasterize_targets(&g, &p.target_cameras, spec.encoder.near, spec.encoder.far, cx.progress)?;
+    let renders = render::frames_3dgs(&p, &g, cx.progress)?;
     drop(g);
     let mut gsplat = Vec::with_capacity(renders.len());
     let mut feats = Vec::with_capacity(renders.len());

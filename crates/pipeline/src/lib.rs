@@ -6,6 +6,7 @@
 //! temporary name and renamed, so an interrupted run leaves only complete files.
 
 pub mod bench;
+pub mod blend;
 pub mod compute;
 pub mod error;
 pub mod eval;

@@ -67,6 +67,10 @@ pub struct ModelConfig {
     /// (see [`crate::fit`]); absent: none.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub fit: Option<crate::fit::FitSettings>,
+    /// Learned blending of the 3DGS renders with the context photos (see [`crate::blend`]; weights `blend.*`);
+    /// absent: none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub blend: Option<crate::blend::BlendSettings>,
 }
 
 pub const MODEL_FORMAT: &str = "mvsplat360-model/1";
@@ -88,6 +92,8 @@ pub struct ModelArgs {
     pub compute: crate::compute::Compute,
     /// `--fit-steps`: overrides the model's default test-time fitting step count (0 = off).
     pub fit_steps: Option<usize>,
+    /// `--no-blend`: skip the model's learned blending (frames are the plain 3DGS renders).
+    pub no_blend: bool,
 }
 
 #[derive(Debug, Clone, PartialEq)]
@@ -114,6 +120,8 @@ pub struct ModelSpec {
     pub description: String,
     /// The model's default test-time fitting (steps 0 = none; only model folders set it).
     pub fit: crate::fit::FitSettings,
+    /// The model's learned blending and the file holding its weights (only model folders set it).
+    pub blend: Option<(crate::blend::BlendSettings, PathBuf)>,
 }
 
 /// Where the refiner's weights are.
@@ -158,6 +166,9 @@ pub fn resolve(args: &ModelArgs) -> Result<ModelSpec> {
     let mut spec = resolve_weights(args)?;
     if let Some(n) = args.fit_steps {
         spec.fit.steps = n;
+    }
+    if args.no_blend {
+        spec.blend = None;
     }
     Ok(spec)
 }
@@ -206,7 +217,15 @@ fn resolve_weights(args: &ModelArgs) -> Result<ModelSpec> {
             }
         };
         let desc = format!("encoder {}{}", enc.display(), if refiner.is_some() { " + refiner" } else { " (3DGS only)" });
-        return Ok(ModelSpec { encoder: experiment_encoder(&data), data, encoder_file: enc.clone(), refiner, description: desc, fit: Default::default() });
+        return Ok(ModelSpec {
+            encoder: experiment_encoder(&data),
+            data,
+            encoder_file: enc.clone(),
+            refiner,
+            description: desc,
+            fit: Default::default(),
+            blend: None,
+        });
     }
     if let Some(RefinerArg::File(_)) = &args.refiner {
         return Err(PipelineError::Flag { flag: "--refiner", msg: "a refiner file needs an encoder: pass --encoder FILE or --ckpt".into() });
@@ -241,6 +260,7 @@ fn official_ckpt(path: &Path, experiment: Option<&str>) -> Result<ModelSpec> {
         refiner: Some((RefinerModelConfig::default(), refiner_weights(path))),
         description: format!("official checkpoint {}", path.display()),
         fit: Default::default(),
+        blend: None,
     })
 }
 
@@ -260,6 +280,9 @@ pub fn read_model_dir(dir: &Path) -> Result<ModelSpec> {
     }
     let fit = cfg.fit.unwrap_or_default();
     fit.validate().map_err(|e| PipelineError::Model { path: cfg_path.clone(), msg: format!("invalid `fit` settings: {e}") })?;
+    if let Some(b) = &cfg.blend {
+        b.validate().map_err(|e| PipelineError::Model { path: cfg_path.clone(), msg: format!("invalid `blend` settings: {e}") })?;
+    }
     let mut encoder = cfg.encoder.clone();
     encoder.near = cfg.data.near;
     encoder.far = cfg.data.far;
@@ -270,6 +293,7 @@ pub fn read_model_dir(dir: &Path) -> Result<ModelSpec> {
         refiner: cfg.refiner.map(|r| (r, RefinerWeights::File(weights.clone()))),
         description: format!("model folder {}", dir.display()),
         fit,
+        blend: cfg.blend.map(|b| (b, weights.clone())),
     })
 }
 
@@ -330,7 +354,7 @@ pub fn tiny_config(with_refiner: bool) -> ModelConfig {
         vae: AutoencoderConfig { ch: 32, ch_mult: vec![1, 1, 2, 2], num_res_blocks: 1, ..AutoencoderConfig::default() },
         clip: ClipVisionConfig { width: 32, layers: 2, heads: 2, mlp_width: 64, patch_size: 8, image_size: 32, output_dim: 32, ..ClipVisionConfig::default() },
     });
-    ModelConfig { format: MODEL_FORMAT.into(), data, encoder, refiner, fit: None }
+    ModelConfig { format: MODEL_FORMAT.into(), data, encoder, refiner, fit: None, blend: None }
 }
 
 /// Seeded random weights for `cfg` under the official key names (what a model folder's safetensors holds).

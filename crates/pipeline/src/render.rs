@@ -271,6 +271,33 @@ pub fn rasterize_targets(g: &Gaussians, cams: &[Camera], near: f32, far: f32, pr
     Ok(out)
 }
 
+/// The 3DGS stage's frames at every target, (rgb (3,H,W), features (C,H,W)): the rasterized Gaussians, then, when
+/// the model has a learned blender (see [`crate::blend`]), its blend of them with the context photos.
+pub fn frames_3dgs(p: &Prepared, g: &Gaussians, progress: &dyn Progress) -> Result<Vec<(Tensor, Tensor)>> {
+    let (near, far) = (p.spec.encoder.near, p.spec.encoder.far);
+    let Some((s, weights)) = &p.spec.blend else {
+        return rasterize_targets(g, &p.target_cameras, near, far, progress);
+    };
+    let net = crate::blend::BlendNet::load(weights, s, &p.device)?;
+    let photos: Vec<&[f32]> = p.context_images.iter().map(|im| im.data.as_slice()).collect();
+    let vec = |t: &Tensor| -> Result<Vec<f32>> { t.flatten_all().and_then(|t| t.to_vec1()).map_err(compute("rasterizer")) };
+    progress.begin("rasterizing and blending", p.target_cameras.len() as u64);
+    let mut out = Vec::with_capacity(p.target_cameras.len());
+    for c in &p.target_cameras {
+        let r = rasterize(g, &raster_camera(c, near, far), &RenderOptions::default()).map_err(compute("rasterizer"))?;
+        check_finite("rasterizer", &r.rgb)?;
+        let rgb = vec(&r.rgb.clamp(0f32, 1f32).map_err(compute("rasterizer"))?)?;
+        let x = crate::blend::candidates(s, c, &rgb, &vec(&r.alpha)?, &vec(&r.depth)?, &p.context_cameras, &photos, near as f64, far as f64);
+        let (h, w) = (c.height as usize, c.width as usize);
+        let y = net.blend_all(&[x], s, h, w, &p.device, 1)?.remove(0);
+        check_finite("blend", &y)?;
+        out.push((y, r.features));
+        progress.advance(1);
+    }
+    progress.end();
+    Ok(out)
+}
+
 /// Refiner modules loaded from one weights file.
 struct RefinerModules {
     refiner: Refiner,
@@ -485,7 +512,7 @@ pub fn run(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSummary
 
     let t = Instant::now();
     let (near, far) = (p.spec.encoder.near, p.spec.encoder.far);
-    let renders = rasterize_targets(&g, &p.target_cameras, near, far, progress)?;
+    let renders = frames_3dgs(&p, &g, progress)?;
     drop(g);
     let gs_dir = out.join("frames/gsplat");
     mkdir(&gs_dir)?;
@@ -602,6 +629,7 @@ pub fn run(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSummary
             "refine": req.refine,
             "fit": p.spec.fit,
             "fit_loss": fit_losses,
+            "blend": p.spec.blend.as_ref().map(|(b, _)| b),
             "device": req.model.compute.device.to_string(),
             "refiner_dtype": p.refiner_dtype.as_str(),
             "fps": req.fps,

@@ -6,7 +6,8 @@
 //! (`--model name=DIR:norefine`).
 //!
 //! The 3DGS renders are `render`'s: after the model's default test-time fitting (`--fit-steps N` overrides it
-//! for every model, 0 = none; the row says "fitted N" when it ran).
+//! for every model, 0 = none; the row says "fitted N" when it ran) and, for a model with a learned blender, after
+//! it (`--no-blend` skips it; the row says "blended").
 //!
 //!     cargo run --release -p mvsplat360-train --example heldout -- \
 //!         --model step0=out/train/shipped/model-step0 --model final=assets/models/default data/heldout/*
@@ -64,6 +65,7 @@ fn main() -> anyhow::Result<()> {
     let mut json_out: Option<PathBuf> = None;
     let mut dump: Option<PathBuf> = None;
     let mut fit_steps: Option<usize> = None;
+    let mut no_blend = false;
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         match a.as_str() {
@@ -79,10 +81,14 @@ fn main() -> anyhow::Result<()> {
             "--json" => json_out = args.next().map(Into::into),
             "--dump" => dump = args.next().map(Into::into),
             "--fit-steps" => fit_steps = Some(args.next().ok_or_else(|| anyhow::anyhow!("--fit-steps N"))?.parse()?),
+            "--no-blend" => no_blend = true,
             _ => scenes.push(a.into()),
         }
     }
-    anyhow::ensure!(!models.is_empty() && !scenes.is_empty(), "usage: heldout --model name=DIR [--model …] [--fit-steps N] [--json FILE] [--dump DIR] SCENE…");
+    anyhow::ensure!(
+        !models.is_empty() && !scenes.is_empty(),
+        "usage: heldout --model name=DIR [--model …] [--fit-steps N] [--no-blend] [--json FILE] [--dump DIR] SCENE…"
+    );
     let lp = mvsplat360_metrics::lpips::Lpips::load(None, mvsplat360_metrics::lpips::Net::Vgg, &Device::Cpu)?;
     let mut rows = Vec::new();
     println!("| scene | method | PSNR ↑ | SSIM ↑ | LPIPS ↓ |\n|---|---|---|---|---|");
@@ -100,6 +106,7 @@ fn main() -> anyhow::Result<()> {
                     ckpt: Some(dir.clone()),
                     refiner: (!refine).then_some(mvsplat360_pipeline::model::RefinerArg::None),
                     fit_steps,
+                    no_blend,
                     ..Default::default()
                 },
                 size: None,
@@ -138,10 +145,11 @@ fn main() -> anyhow::Result<()> {
             }
             let g = render::encode(&p, &Silent)?;
             let (g, fitted) = render::fit_to_context(&p, g, &Silent)?;
-            let kind = if fitted.is_some() { format!("3DGS, fitted {}", p.spec.fit.steps) } else { "3DGS".to_string() };
-            let near = p.spec.data.near;
-            let far = p.spec.data.far;
-            let out = render::rasterize_targets(&g, &p.target_cameras, near, far, &Silent)?;
+            let mut kind = if fitted.is_some() { format!("3DGS, fitted {}", p.spec.fit.steps) } else { "3DGS".to_string() };
+            if p.spec.blend.is_some() {
+                kind.push_str(", blended");
+            }
+            let out = render::frames_3dgs(&p, &g, &Silent)?;
             let preds: Vec<ImageF32> = out
                 .iter()
                 .map(|(rgb, _)| {

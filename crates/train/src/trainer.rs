@@ -217,6 +217,8 @@ impl Model {
             encoder: self.cfg.encoder(),
             refiner: self.cfg.model.refiner.clone(),
             fit: self.cfg.model.fit,
+            // The blender is trained apart from the encoder (the `blend` example) and added to a folder by hand.
+            blend: None,
         }
     }
 }

@@ -86,6 +86,10 @@ pub struct ModelFlags {
     /// Default: the model's own setting (the shipped model: see its MODEL.md; official weights: 0 = off).
     #[arg(long)]
     pub fit_steps: Option<usize>,
+    /// Skip the model's learned blending of the 3DGS renders with the context photos (a model folder's `blend`
+    /// key; not in the official pipeline): the frames are then the plain 3DGS renders.
+    #[arg(long)]
+    pub no_blend: bool,
 }
 
 impl ModelFlags {
@@ -97,6 +101,7 @@ impl ModelFlags {
             experiment: self.experiment.clone(),
             compute: Compute { device: self.device, refiner_dtype: self.dtype },
             fit_steps: self.fit_steps,
+            no_blend: self.no_blend,
         }
     }
 }

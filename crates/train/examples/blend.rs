@@ -1,0 +1,184 @@
+//! Exploration (not part of the pipeline): a learned image-based blender on the held-out protocol (32-view
+//! loop, 5 context views by farthest-point sampling, the other 27 as targets).
+//!
+//! `cache` renders each target with the model and its shipped test-time fitting and stores, per target, the
+//! blender's input (`mvsplat360_pipeline::blend::candidates` with the default settings: the render, its alpha and
+//! the colours that the two nearest context photos give each pixel lifted to 7 depths around the rendered one)
+//! with the target photo. `train` fits the blender (`BlendNet`) with MSE and Adam, and reports the mean target
+//! PSNR of another cache folder every `--every` steps; `--save` writes its weights (keys `blend.*`).
+//!
+//!     cargo run --release -p mvsplat360-train --example blend -- cache CONFIG.toml MODEL_DIR OUT_DIR SEED|DIR…
+//!     cargo run --release -p mvsplat360-train --example blend -- train TRAIN_DIR VAL_DIR [--steps 1000]
+//!         [--lr 1e-3] [--batch 8] [--width 16] [--every 100] [--seed 1] [--save NET.safetensors]
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+use candle_core::{DType, Device, IndexOp, Tensor};
+use candle_nn::{Optimizer, VarBuilder, VarMap};
+use mvsplat360_pipeline::blend::{candidates, BlendNet, BlendSettings, PREFIX};
+use mvsplat360_pipeline::render::raster_camera;
+use mvsplat360_splat::RenderOptions;
+use mvsplat360_train::scenes::protocol_scene;
+use mvsplat360_train::trainer::{example_from_views, render_example_full, Model};
+use rand::{Rng, SeedableRng};
+
+mod common;
+
+fn cache(args: &mut Vec<String>) -> anyhow::Result<()> {
+    anyhow::ensure!(args.len() >= 4, "usage: blend cache CONFIG.toml MODEL_DIR OUT_DIR SEED|DIR…");
+    let out = PathBuf::from(&args[2]);
+    std::fs::create_dir_all(&out)?;
+    let model = Model::encoder_with_weights(args[0].as_ref(), args[1].as_ref())?;
+    let cfg = model.cfg.clone();
+    let (w, h) = (cfg.model.width, cfg.model.height);
+    let (near, far) = (cfg.model.near as f64, cfg.model.far as f64);
+    for arg in &args[3..] {
+        let name = match arg.parse::<u64>() {
+            Ok(seed) => format!("proc-{seed}"),
+            Err(_) => Path::new(arg).file_name().map_or(arg.clone(), |n| n.to_string_lossy().to_string()),
+        };
+        let file = out.join(format!("{name}.safetensors"));
+        if file.exists() {
+            continue;
+        }
+        let t0 = std::time::Instant::now();
+        let (scene, v, _label) = protocol_scene(arg, w, h, cfg.model.encoder.image_multiple() as u32)?;
+        let ex = example_from_views(&scene, &v, near as f32, far as f32)?;
+        let g0 = render_example_full(&model, &ex)?.gaussians;
+        let photos: Vec<mvsplat360_dataset::ImageF32> = (0..ex.context_cameras.len())
+            .map(|i| Ok(mvsplat360_dataset::ImageF32 { width: w, height: h, data: ex.context_images.i(i)?.flatten_all()?.to_vec1()? }))
+            .collect::<anyhow::Result<_>>()?;
+        let fs = mvsplat360_pipeline::fit::FitSettings { steps: 30, ..Default::default() };
+        let (g, _) = mvsplat360_pipeline::fit::fit(&g0, &ex.context_cameras, &photos, near as f32, far as f32, &fs, &mvsplat360_pipeline::render::Silent)?;
+        let bs = BlendSettings::default();
+        let refs: Vec<&[f32]> = photos.iter().map(|p| p.data.as_slice()).collect();
+        let mut xs = Vec::new();
+        for t in &ex.target_cameras {
+            let r = mvsplat360_splat::render(&g, &raster_camera(t, near as f32, far as f32), &RenderOptions::default())?;
+            let rgb: Vec<f32> = r.rgb.clamp(0f32, 1f32)?.flatten_all()?.to_vec1()?;
+            let a: Vec<f32> = r.alpha.flatten_all()?.to_vec1()?;
+            let d: Vec<f32> = r.depth.flatten_all()?.to_vec1()?;
+            let x = candidates(&bs, t, &rgb, &a, &d, &ex.context_cameras, &refs, near, far);
+            xs.push(Tensor::from_vec(x, (bs.channels(), h as usize, w as usize), &Device::Cpu)?);
+        }
+        let tensors: HashMap<String, Tensor> = [("x".to_string(), Tensor::stack(&xs, 0)?), ("target".to_string(), ex.target_images.clone())].into();
+        let tmp = out.join(format!("{name}.tmp"));
+        candle_core::safetensors::save(&tensors, &tmp)?;
+        std::fs::rename(&tmp, &file)?;
+        println!("{name}: {} targets, {:.0} s", ex.target_cameras.len(), t0.elapsed().as_secs_f64());
+    }
+    println!("done");
+    Ok(())
+}
+
+/// (x, target) of every scene in a cache folder, concatenated: (N,C,H,W), (N,3,H,W).
+fn load(dir: &Path) -> anyhow::Result<(Tensor, Tensor, usize)> {
+    let mut files: Vec<PathBuf> =
+        std::fs::read_dir(dir)?.filter_map(|e| e.ok().map(|e| e.path())).filter(|p| p.extension().is_some_and(|e| e == "safetensors")).collect();
+    files.sort();
+    anyhow::ensure!(!files.is_empty(), "{}: no cached scenes", dir.display());
+    let (mut x, mut t) = (Vec::new(), Vec::new());
+    for f in &files {
+        let m = candle_core::safetensors::load(f, &Device::Cpu)?;
+        x.push(m["x"].clone());
+        t.push(m["target"].clone());
+    }
+    Ok((Tensor::cat(&x, 0)?, Tensor::cat(&t, 0)?, files.len()))
+}
+
+fn mean_psnr(pred: &Tensor, target: &Tensor) -> anyhow::Result<f64> {
+    let n = pred.dim(0)?;
+    let mut s = 0.0;
+    for i in 0..n {
+        s += common::psnr(&pred.i(i)?, &target.i(i)?)?;
+    }
+    Ok(s / n as f64)
+}
+
+fn evaluate(net: &BlendNet, x: &Tensor, t: &Tensor) -> anyhow::Result<f64> {
+    let n = x.dim(0)?;
+    let mut outs = Vec::new();
+    for s in (0..n).step_by(27) {
+        outs.push(net.forward(&x.narrow(0, s, 27.min(n - s))?)?.detach());
+    }
+    mean_psnr(&Tensor::cat(&outs, 0)?, t)
+}
+
+/// A horizontal flip of cached inputs is a flip of every channel (the candidates come from the same pixels).
+fn flip(x: &Tensor) -> candle_core::Result<Tensor> {
+    x.flip(&[3])
+}
+
+fn train(args: &mut Vec<String>) -> anyhow::Result<()> {
+    let mut take = |flag: &str, default: &str| common::take_flag(args, flag, default);
+    let steps: usize = take("--steps", "1000").parse()?;
+    let lr: f64 = take("--lr", "1e-3").parse()?;
+    let batch: usize = take("--batch", "8").parse()?;
+    let width: usize = take("--width", "16").parse()?;
+    let every: usize = take("--every", "100").parse()?;
+    let seed: u64 = take("--seed", "1").parse()?;
+    let save = take("--save", "");
+    anyhow::ensure!(args.len() == 2, "usage: blend train TRAIN_DIR VAL_DIR [flags]");
+    let (tx, tt, ns) = load(Path::new(&args[0]))?;
+    let (vx, vt, nv) = load(Path::new(&args[1]))?;
+    println!("train: {} images of {ns} scenes; validation: {} images of {nv} scenes; {} channels", tx.dim(0)?, vx.dim(0)?, tx.dim(1)?);
+    let vm = VarMap::new();
+    let vb = VarBuilder::from_varmap(&vm, DType::F32, &Device::Cpu);
+    let bs = BlendSettings { width, ..Default::default() };
+    anyhow::ensure!(tx.dim(1)? == bs.channels(), "cached inputs have {} channels, the blender takes {}", tx.dim(1)?, bs.channels());
+    let net = BlendNet::new(vb.pp(PREFIX), &bs)?;
+    for (k, v) in vm.data().lock().unwrap().iter() {
+        if k.starts_with("blend.out.") {
+            v.set(&v.zeros_like()?)?;
+        }
+    }
+    let mut opt = candle_nn::AdamW::new(vm.all_vars(), candle_nn::ParamsAdamW { lr, weight_decay: 0.0, ..Default::default() })?;
+    println!(
+        "step 0: validation PSNR {:.3} (renders as they are {:.3}, nearest view at the rendered depth {:.3})",
+        evaluate(&net, &vx, &vt)?,
+        mean_psnr(&vx.narrow(1, 0, 3)?, &vt)?,
+        mean_psnr(&vx.narrow(1, 4 + 3 * ((tx.dim(1)? - 4) / 6 / 2), 3)?, &vt)?
+    );
+    let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+    let n = tx.dim(0)?;
+    let t0 = std::time::Instant::now();
+    let mut run = 0.0;
+    for step in 1..=steps {
+        let f = 0.5 * (1.0 + (std::f64::consts::PI * step as f64 / steps as f64).cos());
+        opt.set_learning_rate(lr * f);
+        let idx: Vec<u32> = (0..batch).map(|_| rng.gen_range(0..n as u32)).collect();
+        let idx = Tensor::from_vec(idx, batch, &Device::Cpu)?;
+        let (x, t) = (tx.index_select(&idx, 0)?, tt.index_select(&idx, 0)?);
+        let (x, t) = if rng.gen_bool(0.5) { (flip(&x)?, flip(&t)?) } else { (x, t) };
+        let loss = (net.forward(&x)? - &t)?.sqr()?.mean_all()?;
+        opt.backward_step(&loss)?;
+        run += loss.to_scalar::<f32>()? as f64;
+        if step % every == 0 || step == steps {
+            println!(
+                "step {step}: train MSE {:.5} (mean of the last {every}), validation PSNR {:.3}, {:.2} s/step",
+                run / every as f64,
+                evaluate(&net, &vx, &vt)?,
+                t0.elapsed().as_secs_f64() / step as f64
+            );
+            run = 0.0;
+            if !save.is_empty() {
+                vm.save(&save)?;
+            }
+        }
+    }
+    println!("done");
+    Ok(())
+}
+
+fn main() -> anyhow::Result<()> {
+    mvsplat360_pipeline::setup::init_process();
+    let mut args: Vec<String> = std::env::args().skip(1).collect();
+    anyhow::ensure!(!args.is_empty(), "usage: blend cache|train …");
+    let cmd = args.remove(0);
+    match cmd.as_str() {
+        "cache" => cache(&mut args),
+        "train" => train(&mut args),
+        c => anyhow::bail!("blend cache|train, got {c}"),
+    }
+}
