@@ -10,6 +10,10 @@
 //!     cargo run --release -p mvsplat360-train --example blend -- cache CONFIG.toml MODEL_DIR OUT_DIR SEED|DIR…
 //!     cargo run --release -p mvsplat360-train --example blend -- train TRAIN_DIR VAL_DIR [--steps 1000]
 //!         [--lr 1e-3] [--batch 8] [--width 16] [--every 100] [--seed 1] [--save NET.safetensors]
+//!         [--init NET.safetensors]
+//!     cargo run --release -p mvsplat360-train --example blend -- add MODEL_DIR NET.safetensors OUT_DIR [--width 16]
+//!
+//! `add` writes a copy of a model folder with the blender's weights and its `blend` settings added.
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -119,11 +123,12 @@ fn train(args: &mut Vec<String>) -> anyhow::Result<()> {
     let every: usize = take("--every", "100").parse()?;
     let seed: u64 = take("--seed", "1").parse()?;
     let save = take("--save", "");
+    let init = take("--init", "");
     anyhow::ensure!(args.len() == 2, "usage: blend train TRAIN_DIR VAL_DIR [flags]");
     let (tx, tt, ns) = load(Path::new(&args[0]))?;
     let (vx, vt, nv) = load(Path::new(&args[1]))?;
     println!("train: {} images of {ns} scenes; validation: {} images of {nv} scenes; {} channels", tx.dim(0)?, vx.dim(0)?, tx.dim(1)?);
-    let vm = VarMap::new();
+    let mut vm = VarMap::new();
     let vb = VarBuilder::from_varmap(&vm, DType::F32, &Device::Cpu);
     let bs = BlendSettings { width, ..Default::default() };
     anyhow::ensure!(tx.dim(1)? == bs.channels(), "cached inputs have {} channels, the blender takes {}", tx.dim(1)?, bs.channels());
@@ -132,6 +137,9 @@ fn train(args: &mut Vec<String>) -> anyhow::Result<()> {
         if k.starts_with("blend.out.") {
             v.set(&v.zeros_like()?)?;
         }
+    }
+    if !init.is_empty() {
+        vm.load(&init)?;
     }
     let mut opt = candle_nn::AdamW::new(vm.all_vars(), candle_nn::ParamsAdamW { lr, weight_decay: 0.0, ..Default::default() })?;
     println!(
@@ -171,14 +179,39 @@ fn train(args: &mut Vec<String>) -> anyhow::Result<()> {
     Ok(())
 }
 
+fn add(args: &mut Vec<String>) -> anyhow::Result<()> {
+    let width: usize = common::take_flag(args, "--width", "16").parse()?;
+    anyhow::ensure!(args.len() == 3, "usage: blend add MODEL_DIR NET.safetensors OUT_DIR [--width 16]");
+    let (src, net, out) = (Path::new(&args[0]), Path::new(&args[1]), Path::new(&args[2]));
+    let mut cfg: mvsplat360_pipeline::model::ModelConfig = serde_json::from_str(&std::fs::read_to_string(src.join(mvsplat360_pipeline::model::MODEL_CONFIG))?)?;
+    let bs = BlendSettings { width, ..Default::default() };
+    cfg.blend = Some(bs);
+    let mut tensors: Vec<(String, Tensor)> = candle_core::safetensors::load(src.join(mvsplat360_pipeline::model::MODEL_WEIGHTS), &Device::Cpu)?
+        .into_iter()
+        .filter(|(k, _)| !k.starts_with("blend."))
+        .collect();
+    let blend = candle_core::safetensors::load(net, &Device::Cpu)?;
+    anyhow::ensure!(!blend.is_empty() && blend.keys().all(|k| k.starts_with("blend.")), "{}: expected only `blend.*` weights", net.display());
+    tensors.extend(blend);
+    tensors.sort_by(|a, b| a.0.cmp(&b.0));
+    mvsplat360_pipeline::model::write_model_dir(out, &cfg, &tensors)?;
+    // The folder must load as the pipeline loads it.
+    let spec = mvsplat360_pipeline::model::read_model_dir(out)?;
+    let (s, f) = spec.blend.ok_or_else(|| anyhow::anyhow!("written folder has no blend"))?;
+    BlendNet::load(&f, &s, &Device::Cpu)?;
+    println!("{}: {} tensors, blend {:?}", out.display(), tensors.len(), s);
+    Ok(())
+}
+
 fn main() -> anyhow::Result<()> {
     mvsplat360_pipeline::setup::init_process();
     let mut args: Vec<String> = std::env::args().skip(1).collect();
-    anyhow::ensure!(!args.is_empty(), "usage: blend cache|train …");
+    anyhow::ensure!(!args.is_empty(), "usage: blend cache|train|add …");
     let cmd = args.remove(0);
     match cmd.as_str() {
         "cache" => cache(&mut args),
         "train" => train(&mut args),
-        c => anyhow::bail!("blend cache|train, got {c}"),
+        "add" => add(&mut args),
+        c => anyhow::bail!("blend cache|train|add, got {c}"),
     }
 }
