@@ -656,9 +656,10 @@ fn render_scene(cx: &Ctx, scene: Scene, plan: &ScenePlan, warnings: &mut Vec<Str
     drop(g);
     let mut gsplat = Vec::with_capacity(renders.len());
     let mut feats = Vec::with_capacity(renders.len());
-    for (rgb, f) in renders {
-        gsplat.push(output::tensor_image(&rgb)?);
-        feats.push(f);
+    // The 3DGS stage's output (the blender's frames when the model has one; the settings record it).
+    for r in renders {
+        gsplat.push(output::tensor_image(r.output())?);
+        feats.push(r.features);
     }
     let refined: Option<Vec<ImageF32>> = match &cx.refine_file {
         Some(wf) => {

@@ -1,7 +1,7 @@
 //! The product's path from posed photos to novel views: preprocessing, context/target choice, model loading,
 //! encoder → test-time fit → rasterizer (→ learned blender) → refiner → histogram matching, and the output writers.
 //!
-//! Output folder of a render: `gaussians.ply` (+ `gaussians.splat`), `frames/{gsplat,refined,final,gt}/NNNN.png`,
+//! Output folder of a render: `gaussians.ply` (+ `gaussians.splat`), `frames/{gsplat,blended,refined,final,gt}/NNNN.png`,
 //! `video.mp4`, `compare.mp4` (gsplat | final | GT), `cameras.json`, `run.json`. Every file is written under a
 //! temporary name and renamed, so an interrupted run leaves only complete files.
 

@@ -271,12 +271,29 @@ pub fn rasterize_targets(g: &Gaussians, cams: &[Camera], near: f32, far: f32, pr
     Ok(out)
 }
 
-/// The 3DGS stage's frames at every target, (rgb (3,H,W), features (C,H,W)): the rasterized Gaussians, then, when
-/// the model has a learned blender (see [`crate::blend`]), its blend of them with the context photos.
-pub fn frames_3dgs(p: &Prepared, g: &Gaussians, progress: &dyn Progress) -> Result<Vec<(Tensor, Tensor)>> {
+/// One target's 3DGS stage output.
+pub struct StageFrame {
+    /// The rasterized Gaussians' RGB (3,H,W) and latent features (C,H,W).
+    pub rgb: Tensor,
+    pub features: Tensor,
+    /// The learned blender's frame (3,H,W), when the model has one (see [`crate::blend`]).
+    pub blended: Option<Tensor>,
+}
+
+impl StageFrame {
+    /// What the stage hands on: the blended frame if there is one, else the render.
+    pub fn output(&self) -> &Tensor {
+        self.blended.as_ref().unwrap_or(&self.rgb)
+    }
+}
+
+/// The 3DGS stage at every target: the rasterized Gaussians and, when the model has a learned blender, its blend
+/// of them with the context photos.
+pub fn frames_3dgs(p: &Prepared, g: &Gaussians, progress: &dyn Progress) -> Result<Vec<StageFrame>> {
     let (near, far) = (p.spec.encoder.near, p.spec.encoder.far);
     let Some((s, weights)) = &p.spec.blend else {
-        return rasterize_targets(g, &p.target_cameras, near, far, progress);
+        let r = rasterize_targets(g, &p.target_cameras, near, far, progress)?;
+        return Ok(r.into_iter().map(|(rgb, features)| StageFrame { rgb, features, blended: None }).collect());
     };
     let net = crate::blend::BlendNet::load(weights, s, &p.device)?;
     let photos: Vec<&[f32]> = p.context_images.iter().map(|im| im.data.as_slice()).collect();
@@ -291,7 +308,7 @@ pub fn frames_3dgs(p: &Prepared, g: &Gaussians, progress: &dyn Progress) -> Resu
         let (h, w) = (c.height as usize, c.width as usize);
         let y = net.blend_all(&[x], s, h, w, &p.device, 1)?.remove(0);
         check_finite("blend", &y)?;
-        out.push((y, r.features));
+        out.push(StageFrame { rgb: r.rgb, features: r.features, blended: Some(y) });
         progress.advance(1);
     }
     progress.end();
@@ -462,7 +479,7 @@ pub fn run(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSummary
         Some((_, w)) => Some(crate::model::refiner_safetensors(w, &|m| progress.note(m))?),
         None => None,
     };
-    let dirs = ["gsplat", "refined", "final", "gt"];
+    let dirs = ["gsplat", "blended", "refined", "final", "gt"];
     for d in dirs {
         // A re-run replaces the previous frames instead of mixing with them.
         let _ = std::fs::remove_dir_all(out.join("frames").join(d));
@@ -518,11 +535,22 @@ pub fn run(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSummary
     mkdir(&gs_dir)?;
     let mut gsplat = Vec::with_capacity(renders.len());
     let mut feats = Vec::with_capacity(renders.len());
-    for (i, (rgb, f)) in renders.into_iter().enumerate() {
-        let img = output::tensor_image(&rgb)?;
+    // The stage's output: the blender's frames when it ran (also in frames/blended), else the renders.
+    let mut stage = Vec::with_capacity(renders.len());
+    for (i, r) in renders.into_iter().enumerate() {
+        let img = output::tensor_image(&r.rgb)?;
         write_png(&gs_dir.join(frame_name(i)), &img)?;
+        if let Some(b) = &r.blended {
+            let bd = out.join("frames/blended");
+            mkdir(&bd)?;
+            let bimg = output::tensor_image(b)?;
+            write_png(&bd.join(frame_name(i)), &bimg)?;
+            stage.push(bimg);
+        } else {
+            stage.push(img.clone());
+        }
         gsplat.push(img);
-        feats.push(f);
+        feats.push(r.features);
     }
     let have_gt = p.target_photos.iter().any(|x| x.is_some());
     if have_gt {
@@ -551,7 +579,7 @@ pub fn run(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSummary
             for (i, r) in refined.iter().enumerate() {
                 let img = output::tensor_image(r)?;
                 write_png(&rd.join(frame_name(i)), &img)?;
-                let fin = histogram_match(&img, &gsplat[i])?;
+                let fin = histogram_match(&img, &stage[i])?;
                 write_png(&fd.join(frame_name(i)), &fin)?;
                 finals.push(fin);
             }
@@ -561,10 +589,10 @@ pub fn run(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSummary
         None => {
             let fd = out.join("frames/final");
             mkdir(&fd)?;
-            for (i, img) in gsplat.iter().enumerate() {
+            for (i, img) in stage.iter().enumerate() {
                 write_png(&fd.join(frame_name(i)), img)?;
             }
-            gsplat.clone()
+            stage
         }
     };
     drop(feats);

@@ -122,7 +122,7 @@ fn root() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..")
 }
 
-fn render_one(m: &Path, out: &Path, no_blend: bool) -> (Vec<u8>, serde_json::Value) {
+fn render_one(m: &Path, out: &Path, no_blend: bool) -> (Vec<u8>, serde_json::Value, Vec<u8>) {
     let req = RenderRequest {
         scene: root().join("assets/woodbox"),
         scene_key: None,
@@ -141,7 +141,17 @@ fn render_one(m: &Path, out: &Path, no_blend: bool) -> (Vec<u8>, serde_json::Val
     };
     render::run(&req, &Silent).unwrap();
     let j: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("run.json")).unwrap()).unwrap();
-    (image::open(out.join("frames/final/0000.png")).unwrap().to_rgb8().into_raw(), j)
+    let f = image::open(out.join("frames/final/0000.png")).unwrap().to_rgb8().into_raw();
+    // frames/gsplat always holds the rasterized Gaussians; frames/blended exists exactly when the blender ran.
+    let gs = image::open(out.join("frames/gsplat/0000.png")).unwrap().to_rgb8().into_raw();
+    let blended = out.join("frames/blended/0000.png");
+    if j["settings"]["blend"].is_null() {
+        assert!(!blended.exists());
+        assert_eq!(f, gs);
+    } else {
+        assert_eq!(f, image::open(blended).unwrap().to_rgb8().into_raw());
+    }
+    (f, j, gs)
 }
 
 #[test]
@@ -159,12 +169,13 @@ fn model_folder_blend_on_by_default_off_with_no_blend() {
     let blended = tmp.path().join("blended");
     model::write_model_dir(&blended, &model::ModelConfig { blend: Some(s), ..cfg.clone() }, &sd).unwrap();
 
-    let (base, j0) = render_one(&plain, &tmp.path().join("o-plain"), false);
+    let (base, j0, _) = render_one(&plain, &tmp.path().join("o-plain"), false);
     assert!(j0["settings"]["blend"].is_null());
-    let (on, j1) = render_one(&blended, &tmp.path().join("o-on"), false);
+    let (on, j1, on_gs) = render_one(&blended, &tmp.path().join("o-on"), false);
     assert_eq!(j1["settings"]["blend"]["planes"], 3, "{}", j1["settings"]);
     assert_ne!(base, on, "the blender changes the frame");
-    let (off, _) = render_one(&blended, &tmp.path().join("o-off"), true);
+    assert_eq!(base, on_gs, "the rasterized frame is the same with and without the blender");
+    let (off, _, _) = render_one(&blended, &tmp.path().join("o-off"), true);
     assert_eq!(base, off, "--no-blend gives the plain 3DGS frame");
 
     // Bad settings and missing weights name the file and the part.

@@ -152,7 +152,8 @@ fn main() -> anyhow::Result<()> {
             let out = render::frames_3dgs(&p, &g, &Silent)?;
             let preds: Vec<ImageF32> = out
                 .iter()
-                .map(|(rgb, _)| {
+                .map(|r| {
+                    let rgb = r.output();
                     let (_, h, w) = rgb.dims3().unwrap();
                     ImageF32 { width: w as u32, height: h as u32, data: rgb.clamp(0f32, 1f32).unwrap().flatten_all().unwrap().to_vec1().unwrap() }
                 })
@@ -178,7 +179,7 @@ fn main() -> anyhow::Result<()> {
                 let [ps, ss, ls] = scores(&lp, &rec, &gts)?;
                 println!("| {name} | {mname} (its VAE on the photos: encode, decode) | {ps:.2} | {ss:.3} | {ls:.3} |");
                 rows.push(serde_json::json!({"scene": name, "method": format!("{mname} VAE reconstruction"), "psnr": ps, "ssim": ss, "lpips": ls, "targets": gts.len()}));
-                let feats: Vec<Tensor> = out.iter().map(|(_, f)| f.clone()).collect();
+                let feats: Vec<Tensor> = out.iter().map(|r| r.features.clone()).collect();
                 let refined = render::refine_frames(&p, &feats, &file, &Default::default(), &Silent)?;
                 let refined: Vec<ImageF32> = refined
                     .iter()
