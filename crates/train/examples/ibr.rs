@@ -2,8 +2,13 @@
 //! lifted to 3D with a depth (the fitted Gaussians' rendered depth, or the true depth where the scene knows it)
 //! and coloured from the context photos that see that point (visibility by the context views' depths), weighted
 //! by the angle between the target's ray and each context ray. Compared with the 3DGS render it would replace.
+//! Also a target-view plane sweep (photo-consistency of the context views over depths around the rendered one)
+//! as a third depth source. Columns: render, IBR with the rendered depth, IBR with the swept depth (without and
+//! with visibility), the swept IBR averaged with the render, IBR with the true depth, and the mean |ln z − ln z_true|
+//! of the rendered and the swept depths (the last three only where the scene knows its depths).
 //!
-//!     cargo run --release -p mvsplat360-train --example ibr -- CONFIG.toml MODEL_DIR [--sigma 10] SEED|DIR…
+//!     cargo run --release -p mvsplat360-train --example ibr -- CONFIG.toml MODEL_DIR [--sigma 5] [--tol 0.05]
+//!         [--span 2] [--planes 33] [--win 2] [--lambda 0.002] [--cost-sigma 30] SEED|DIR…
 
 use candle_core::IndexOp;
 use mvsplat360_camera::Camera;
