@@ -58,7 +58,7 @@ impl BlendSettings {
 }
 
 /// Bilinear sample of a (3,H,W) image at pixel coordinates (centres at +0.5), clamped at the border.
-fn bilinear(img: &[f32], w: usize, h: usize, x: f64, y: f64) -> [f32; 3] {
+pub fn bilinear(img: &[f32], w: usize, h: usize, x: f64, y: f64) -> [f32; 3] {
     let (x, y) = ((x - 0.5).clamp(0.0, w as f64 - 1.0), (y - 0.5).clamp(0.0, h as f64 - 1.0));
     let (x0, y0) = (x.floor() as usize, y.floor() as usize);
     let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));

@@ -23,8 +23,7 @@ use candle_nn::{Optimizer, VarBuilder, VarMap};
 use mvsplat360_pipeline::blend::{candidates, BlendNet, BlendSettings, PREFIX};
 use mvsplat360_pipeline::render::raster_camera;
 use mvsplat360_splat::RenderOptions;
-use mvsplat360_train::scenes::protocol_scene;
-use mvsplat360_train::trainer::{example_from_views, render_example_full, Model};
+use mvsplat360_train::trainer::Model;
 use rand::{Rng, SeedableRng};
 
 mod common;
@@ -47,14 +46,7 @@ fn cache(args: &mut Vec<String>) -> anyhow::Result<()> {
             continue;
         }
         let t0 = std::time::Instant::now();
-        let (scene, v, _label) = protocol_scene(arg, w, h, cfg.model.encoder.image_multiple() as u32)?;
-        let ex = example_from_views(&scene, &v, near as f32, far as f32)?;
-        let g0 = render_example_full(&model, &ex)?.gaussians;
-        let photos: Vec<mvsplat360_dataset::ImageF32> = (0..ex.context_cameras.len())
-            .map(|i| Ok(mvsplat360_dataset::ImageF32 { width: w, height: h, data: ex.context_images.i(i)?.flatten_all()?.to_vec1()? }))
-            .collect::<anyhow::Result<_>>()?;
-        let fs = mvsplat360_pipeline::fit::FitSettings { steps: 30, ..Default::default() };
-        let (g, _) = mvsplat360_pipeline::fit::fit(&g0, &ex.context_cameras, &photos, near as f32, far as f32, &fs, &mvsplat360_pipeline::render::Silent)?;
+        let common::Fitted { ex, photos, gaussians: g, .. } = common::fitted(&model, arg)?;
         let bs = BlendSettings::default();
         let refs: Vec<&[f32]> = photos.iter().map(|p| p.data.as_slice()).collect();
         let mut xs = Vec::new();

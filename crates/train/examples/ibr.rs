@@ -14,13 +14,19 @@ use candle_core::IndexOp;
 use mvsplat360_camera::Camera;
 use mvsplat360_pipeline::render::raster_camera;
 use mvsplat360_splat::RenderOptions;
-use mvsplat360_train::scenes::protocol_scene;
-use mvsplat360_train::trainer::{example_from_views, render_example_full, Model};
+use mvsplat360_train::trainer::Model;
 use nalgebra::Vector3;
 
 mod common;
 
-use common::{bilinear, View};
+use mvsplat360_pipeline::blend::bilinear;
+
+/// A context view: camera, photo (3,H,W) and z-depth per pixel (infinite where unknown).
+struct View {
+    cam: Camera,
+    img: Vec<f32>,
+    z: Vec<f32>,
+}
 
 /// Colours a target from the views where `z` (the target's z-depth per pixel) is known and some view sees the
 /// point; elsewhere keeps `fallback`. Returns the image and the fraction of pixels it coloured.
@@ -55,8 +61,7 @@ fn warp(t: &Camera, z: &[f32], views: &[View], sigma_deg: f64, tol: f32, fallbac
                 }
                 let a = (x - c).normalize().dot(&(x - v.cam.center()).normalize()).clamp(-1.0, 1.0).acos().to_degrees();
                 let wt = (-(a / sigma_deg).powi(2) / 2.0).exp().max(1e-12);
-                let mut col = [0f32; 3];
-                bilinear(&v.img, w, h, u, vv, &mut col);
+                let col = bilinear(&v.img, w, h, u, vv);
                 for k in 0..3 {
                     acc[k] += wt * col[k] as f64;
                 }
@@ -109,8 +114,7 @@ fn sweep(t: &Camera, prior: &[f32], views: &[View], factors: &[f64], range: (f64
                     }
                     let a = (x - c).normalize().dot(&(x - v.cam.center()).normalize()).clamp(-1.0, 1.0).acos().to_degrees();
                     let wt = (-(a / sigma_deg).powi(2) / 2.0).exp().max(1e-9);
-                    let mut col = [0f32; 3];
-                    bilinear(&v.img, w, h, u, vv, &mut col);
+                    let col = bilinear(&v.img, w, h, u, vv);
                     for j in 0..3 {
                         s1[j] += wt * col[j] as f64;
                         s2 += wt * (col[j] as f64).powi(2);
@@ -189,7 +193,6 @@ fn main() -> anyhow::Result<()> {
     anyhow::ensure!(args.len() >= 3, "usage: ibr CONFIG.toml MODEL_DIR [flags] SEED|DIR…");
     let model = Model::encoder_with_weights(args[0].as_ref(), args[1].as_ref())?;
     let cfg = model.cfg.clone();
-    let (w, h) = (cfg.model.width, cfg.model.height);
     let (near, far) = (cfg.model.near, cfg.model.far);
     let factors: Vec<f64> = (0..planes).map(|k| span.powf(2.0 * k as f64 / (planes - 1) as f64 - 1.0)).collect();
     let names = ["render", "ibr-render-z", "ibr-sweep", "ibr-sweep-vis", "blend", "oracle-ibr", "zerr-render", "zerr-sweep"];
@@ -197,14 +200,7 @@ fn main() -> anyhow::Result<()> {
     let mut nscenes = vec![0usize; names.len()];
     println!("columns: {names:?}");
     for arg in &args[2..] {
-        let (scene, v, label) = protocol_scene(arg, w, h, cfg.model.encoder.image_multiple() as u32)?;
-        let ex = example_from_views(&scene, &v, near, far)?;
-        let g0 = render_example_full(&model, &ex)?.gaussians;
-        let photos: Vec<mvsplat360_dataset::ImageF32> = (0..ex.context_cameras.len())
-            .map(|i| Ok(mvsplat360_dataset::ImageF32 { width: w, height: h, data: ex.context_images.i(i)?.flatten_all()?.to_vec1()? }))
-            .collect::<anyhow::Result<_>>()?;
-        let fs = mvsplat360_pipeline::fit::FitSettings { steps: 30, ..Default::default() };
-        let (g, _) = mvsplat360_pipeline::fit::fit(&g0, &ex.context_cameras, &photos, near, far, &fs, &mvsplat360_pipeline::render::Silent)?;
+        let common::Fitted { scene, views: v, label, ex, photos, gaussians: g } = common::fitted(&model, arg)?;
         let zmap = |c: &Camera, min_alpha: f32| -> anyhow::Result<(Vec<f32>, Vec<f32>)> {
             let r = mvsplat360_splat::render(&g, &raster_camera(c, near, far), &RenderOptions::default())?;
             let a: Vec<f32> = r.alpha.flatten_all()?.to_vec1()?;

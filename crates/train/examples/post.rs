@@ -18,8 +18,7 @@ use candle_core::{DType, Device, IndexOp, Module, Tensor};
 use candle_nn::{conv2d, Conv2d, Conv2dConfig, Optimizer, VarBuilder, VarMap};
 use mvsplat360_pipeline::render::raster_camera;
 use mvsplat360_splat::RenderOptions;
-use mvsplat360_train::scenes::protocol_scene;
-use mvsplat360_train::trainer::{example_from_views, render_example_full, Model};
+use mvsplat360_train::trainer::Model;
 use rand::{Rng, SeedableRng};
 
 mod common;
@@ -42,14 +41,7 @@ fn cache(args: &[String]) -> anyhow::Result<()> {
         let cfg = model.cfg.clone();
         let (w, h) = (cfg.model.width, cfg.model.height);
         let (near, far) = (cfg.model.near, cfg.model.far);
-        let (scene, v, _label) = protocol_scene(arg, w, h, cfg.model.encoder.image_multiple() as u32)?;
-        let ex = example_from_views(&scene, &v, near, far)?;
-        let g0 = render_example_full(&model, &ex)?.gaussians;
-        let photos: Vec<mvsplat360_dataset::ImageF32> = (0..ex.context_cameras.len())
-            .map(|i| Ok(mvsplat360_dataset::ImageF32 { width: w, height: h, data: ex.context_images.i(i)?.flatten_all()?.to_vec1()? }))
-            .collect::<anyhow::Result<_>>()?;
-        let fs = mvsplat360_pipeline::fit::FitSettings { steps: 30, ..Default::default() };
-        let (g, _) = mvsplat360_pipeline::fit::fit(&g0, &ex.context_cameras, &photos, near, far, &fs, &mvsplat360_pipeline::render::Silent)?;
+        let common::Fitted { ex, gaussians: g, .. } = common::fitted(&model, arg)?;
         let (mut rgb, mut alpha) = (Vec::new(), Vec::new());
         for c in &ex.target_cameras {
             let r = mvsplat360_splat::render(&g, &raster_camera(c, near, far), &RenderOptions::default())?;

@@ -22,23 +22,29 @@ pub fn psnr(a: &Tensor, b: &Tensor) -> anyhow::Result<f64> {
     Ok(mvsplat360_metrics::psnr::psnr(&a, &b))
 }
 
-/// A context view for image-based rendering: camera, photo (3,H,W) and z-depth per pixel (infinite where unknown).
-pub struct View {
-    pub cam: mvsplat360_camera::Camera,
-    pub img: Vec<f32>,
-    pub z: Vec<f32>,
+/// One protocol scene (32-view loop, 5 context views by farthest-point sampling, the other views as targets) run
+/// through the model's encoder and the shipped test-time fitting (30 steps, the default settings).
+pub struct Fitted {
+    pub scene: mvsplat360_train::scenes::TrainScene,
+    pub views: mvsplat360_train::sampler::ViewSample,
+    pub label: String,
+    pub ex: mvsplat360_train::trainer::Example,
+    /// The context photos (3,H,W) at model size.
+    pub photos: Vec<mvsplat360_dataset::ImageF32>,
+    pub gaussians: mvsplat360_splat::Gaussians,
 }
 
-/// Bilinear sample of a (3,H,W) image at pixel coordinates (centres at +0.5), clamped at the border.
-pub fn bilinear(img: &[f32], w: usize, h: usize, x: f64, y: f64, out: &mut [f32; 3]) {
-    let (x, y) = ((x - 0.5).clamp(0.0, w as f64 - 1.0), (y - 0.5).clamp(0.0, h as f64 - 1.0));
-    let (x0, y0) = (x.floor() as usize, y.floor() as usize);
-    let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
-    let (fx, fy) = ((x - x0 as f64) as f32, (y - y0 as f64) as f32);
-    for c in 0..3 {
-        let p = &img[c * w * h..];
-        let a = p[y0 * w + x0] * (1.0 - fx) + p[y0 * w + x1] * fx;
-        let b = p[y1 * w + x0] * (1.0 - fx) + p[y1 * w + x1] * fx;
-        out[c] = a * (1.0 - fy) + b * fy;
-    }
+pub fn fitted(model: &mvsplat360_train::trainer::Model, arg: &str) -> anyhow::Result<Fitted> {
+    use candle_core::IndexOp;
+    let cfg = &model.cfg.model;
+    let (w, h) = (cfg.width, cfg.height);
+    let (scene, views, label) = mvsplat360_train::scenes::protocol_scene(arg, w, h, cfg.encoder.image_multiple() as u32)?;
+    let ex = mvsplat360_train::trainer::example_from_views(&scene, &views, cfg.near, cfg.far)?;
+    let g0 = mvsplat360_train::trainer::render_example_full(model, &ex)?.gaussians;
+    let photos: Vec<mvsplat360_dataset::ImageF32> = (0..ex.context_cameras.len())
+        .map(|i| Ok(mvsplat360_dataset::ImageF32 { width: w, height: h, data: ex.context_images.i(i)?.flatten_all()?.to_vec1()? }))
+        .collect::<anyhow::Result<_>>()?;
+    let fs = mvsplat360_pipeline::fit::FitSettings { steps: 30, ..Default::default() };
+    let (gaussians, _) = mvsplat360_pipeline::fit::fit(&g0, &ex.context_cameras, &photos, cfg.near, cfg.far, &fs, &mvsplat360_pipeline::render::Silent)?;
+    Ok(Fitted { scene, views, label, ex, photos, gaussians })
 }
