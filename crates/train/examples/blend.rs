@@ -2,18 +2,23 @@
 //! loop, 5 context views by farthest-point sampling, the other 27 as targets).
 //!
 //! `cache` renders each target with the model and its shipped test-time fitting and stores, per target, the
-//! blender's input (`mvsplat360_pipeline::blend::candidates` with the default settings: the render, its alpha and
-//! the colours that the two nearest context photos give each pixel lifted to 7 depths around the rendered one)
-//! with the target photo. `train` fits the blender (`BlendNet`) with MSE and Adam, and reports the mean target
-//! PSNR of another cache folder every `--every` steps; `--save` writes its weights (keys `blend.*`).
+//! blender's input (`mvsplat360_pipeline::blend::candidates`: the render, its alpha and the colours that the
+//! nearest context photos give each pixel lifted to depths around the rendered one) with the target photo.
+//! `train` fits the blender (`BlendNet`) with MSE and Adam, and reports the mean target PSNR of another cache
+//! folder every `--every` steps; `--save` writes its weights (keys `blend.*`).
 //!
 //!     cargo run --release -p mvsplat360-train --example blend -- cache CONFIG.toml MODEL_DIR OUT_DIR SEED|DIR…
+//!         [--device cpu|cuda] [--sets 7x2x1.6,9x3x1.6]
 //!     cargo run --release -p mvsplat360-train --example blend -- train TRAIN_DIR VAL_DIR [--steps 1000]
-//!         [--lr 1e-3] [--batch 8] [--width 16] [--every 100] [--seed 1] [--save NET.safetensors]
-//!         [--init NET.safetensors]
-//!     cargo run --release -p mvsplat360-train --example blend -- add MODEL_DIR NET.safetensors OUT_DIR [--width 16]
+//!         [--lr 1e-3] [--batch 8] [--width 16] [--set 7x2x1.6] [--every 100] [--seed 1] [--device cpu|cuda]
+//!         [--save NET.safetensors] [--init NET.safetensors]
+//!     cargo run --release -p mvsplat360-train --example blend -- add MODEL_DIR NET.safetensors OUT_DIR
+//!         [--width 16] [--set 7x2x1.6]
 //!
-//! `add` writes a copy of a model folder with the blender's weights and its `blend` settings added.
+//! A set `PxVxS` is the candidates' layout: P depth planes for each of the V nearest context views, spread over
+//! a factor S either side of the rendered depth (the default, `BlendSettings::default()`, is 7x2x1.6). Without
+//! `--sets`, `cache` writes the default layout into OUT_DIR; with it, one folder OUT_DIR/PxVxS per set, all from
+//! the same fit. `add` writes a copy of a model folder with the blender's weights and its `blend` settings added.
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -28,42 +33,84 @@ use rand::{Rng, SeedableRng};
 
 mod common;
 
+/// A `PxVxS` set (planes, views, span) with `width`; the empty string is the default.
+fn settings(spec: &str, width: usize) -> anyhow::Result<BlendSettings> {
+    let d = BlendSettings { width, ..Default::default() };
+    if spec.is_empty() {
+        return Ok(d);
+    }
+    let p: Vec<&str> = spec.split('x').collect();
+    anyhow::ensure!(p.len() == 3, "`{spec}` is not a set: use PLANESxVIEWSxSPAN, e.g. 7x2x1.6");
+    let s = BlendSettings { planes: p[0].parse()?, views: p[1].parse()?, span: p[2].parse()?, ..d };
+    s.validate().map_err(|e| anyhow::anyhow!("set `{spec}`: {e}"))?;
+    Ok(s)
+}
+
+fn device(spec: &str) -> anyhow::Result<Device> {
+    Ok(spec.parse::<mvsplat360_pipeline::compute::DeviceSpec>().map_err(anyhow::Error::msg)?.open()?)
+}
+
 fn cache(args: &mut Vec<String>) -> anyhow::Result<()> {
-    anyhow::ensure!(args.len() >= 4, "usage: blend cache CONFIG.toml MODEL_DIR OUT_DIR SEED|DIR…");
+    let dev = device(&common::take_flag(args, "--device", "cpu"))?;
+    let specs = common::take_flag(args, "--sets", "");
+    anyhow::ensure!(args.len() >= 4, "usage: blend cache CONFIG.toml MODEL_DIR OUT_DIR SEED|DIR… [--device D] [--sets LIST]");
     let out = PathBuf::from(&args[2]);
-    std::fs::create_dir_all(&out)?;
-    let model = Model::encoder_with_weights(args[0].as_ref(), args[1].as_ref())?;
+    let sets: Vec<(PathBuf, BlendSettings)> = if specs.is_empty() {
+        vec![(out.clone(), BlendSettings::default())]
+    } else {
+        specs.split(',').map(|sp| Ok((out.join(sp), settings(sp, 16)?))).collect::<anyhow::Result<_>>()?
+    };
+    for (d, _) in &sets {
+        std::fs::create_dir_all(d)?;
+    }
+    let model = Model::encoder_with_weights_on(args[0].as_ref(), args[1].as_ref(), &dev)?;
     let cfg = model.cfg.clone();
     let (w, h) = (cfg.model.width, cfg.model.height);
     let (near, far) = (cfg.model.near as f64, cfg.model.far as f64);
+    let mut failed = 0;
     for arg in &args[3..] {
         let name = match arg.parse::<u64>() {
             Ok(seed) => format!("proc-{seed}"),
             Err(_) => Path::new(arg).file_name().map_or(arg.clone(), |n| n.to_string_lossy().to_string()),
         };
-        let file = out.join(format!("{name}.safetensors"));
-        if file.exists() {
+        let file = format!("{name}.safetensors");
+        if sets.iter().all(|(d, _)| d.join(&file).exists()) {
             continue;
         }
         let t0 = std::time::Instant::now();
-        let common::Fitted { ex, photos, gaussians: g, .. } = common::fitted(&model, arg)?;
-        let bs = BlendSettings::default();
-        let refs: Vec<&[f32]> = photos.iter().map(|p| p.data.as_slice()).collect();
-        let mut xs = Vec::new();
-        for t in &ex.target_cameras {
-            let r = mvsplat360_splat::render(&g, &raster_camera(t, near as f32, far as f32), &RenderOptions::default())?;
-            let rgb: Vec<f32> = r.rgb.clamp(0f32, 1f32)?.flatten_all()?.to_vec1()?;
-            let a: Vec<f32> = r.alpha.flatten_all()?.to_vec1()?;
-            let d: Vec<f32> = r.depth.flatten_all()?.to_vec1()?;
-            let x = candidates(&bs, t, &rgb, &a, &d, &ex.context_cameras, &refs, near, far);
-            xs.push(Tensor::from_vec(x, (bs.channels(), h as usize, w as usize), &Device::Cpu)?);
+        let one = || -> anyhow::Result<usize> {
+            let common::Fitted { ex, photos, gaussians: g, .. } = common::fitted_on(&model, arg, &dev)?;
+            let refs: Vec<&[f32]> = photos.iter().map(|p| p.data.as_slice()).collect();
+            let mut xs: Vec<Vec<Tensor>> = vec![Vec::new(); sets.len()];
+            for t in &ex.target_cameras {
+                let r = mvsplat360_splat::render(&g, &raster_camera(t, near as f32, far as f32), &RenderOptions::default())?;
+                let rgb: Vec<f32> = r.rgb.clamp(0f32, 1f32)?.flatten_all()?.to_vec1()?;
+                let a: Vec<f32> = r.alpha.flatten_all()?.to_vec1()?;
+                let d: Vec<f32> = r.depth.flatten_all()?.to_vec1()?;
+                for ((_, bs), xs) in sets.iter().zip(xs.iter_mut()) {
+                    let x = candidates(bs, t, &rgb, &a, &d, &ex.context_cameras, &refs, near, far);
+                    xs.push(Tensor::from_vec(x, (bs.channels(), h as usize, w as usize), &Device::Cpu)?);
+                }
+            }
+            let target = ex.target_images.to_device(&Device::Cpu)?;
+            for ((d, _), xs) in sets.iter().zip(xs) {
+                let tensors: HashMap<String, Tensor> = [("x".to_string(), Tensor::stack(&xs, 0)?), ("target".to_string(), target.clone())].into();
+                let tmp = d.join(format!("{name}.tmp"));
+                candle_core::safetensors::save(&tensors, &tmp)?;
+                std::fs::rename(&tmp, d.join(&file))?;
+            }
+            Ok(ex.target_cameras.len())
+        };
+        match one() {
+            Ok(n) => println!("{name}: {n} targets, {:.0} s", t0.elapsed().as_secs_f64()),
+            // One unreadable scene must not cost the others (the GPU run caches many at once).
+            Err(e) => {
+                eprintln!("{name}: skipped: {e:#}");
+                failed += 1;
+            }
         }
-        let tensors: HashMap<String, Tensor> = [("x".to_string(), Tensor::stack(&xs, 0)?), ("target".to_string(), ex.target_images.clone())].into();
-        let tmp = out.join(format!("{name}.tmp"));
-        candle_core::safetensors::save(&tensors, &tmp)?;
-        std::fs::rename(&tmp, &file)?;
-        println!("{name}: {} targets, {:.0} s", ex.target_cameras.len(), t0.elapsed().as_secs_f64());
     }
+    anyhow::ensure!(failed == 0, "{failed} scene(s) skipped");
     println!("done");
     Ok(())
 }
@@ -114,15 +161,18 @@ fn train(args: &mut Vec<String>) -> anyhow::Result<()> {
     let width: usize = take("--width", "16").parse()?;
     let every: usize = take("--every", "100").parse()?;
     let seed: u64 = take("--seed", "1").parse()?;
+    let set = take("--set", "");
+    let dev = device(&take("--device", "cpu"))?;
     let save = take("--save", "");
     let init = take("--init", "");
     anyhow::ensure!(args.len() == 2, "usage: blend train TRAIN_DIR VAL_DIR [flags]");
     let (tx, tt, ns) = load(Path::new(&args[0]))?;
     let (vx, vt, nv) = load(Path::new(&args[1]))?;
     println!("train: {} images of {ns} scenes; validation: {} images of {nv} scenes; {} channels", tx.dim(0)?, vx.dim(0)?, tx.dim(1)?);
+    let (tx, tt, vx, vt) = (tx.to_device(&dev)?, tt.to_device(&dev)?, vx.to_device(&dev)?, vt.to_device(&dev)?);
     let mut vm = VarMap::new();
-    let vb = VarBuilder::from_varmap(&vm, DType::F32, &Device::Cpu);
-    let bs = BlendSettings { width, ..Default::default() };
+    let vb = VarBuilder::from_varmap(&vm, DType::F32, &dev);
+    let bs = settings(&set, width)?;
     anyhow::ensure!(tx.dim(1)? == bs.channels(), "cached inputs have {} channels, the blender takes {}", tx.dim(1)?, bs.channels());
     let net = BlendNet::new(vb.pp(PREFIX), &bs)?;
     for (k, v) in vm.data().lock().unwrap().iter() {
@@ -138,7 +188,7 @@ fn train(args: &mut Vec<String>) -> anyhow::Result<()> {
         "step 0: validation PSNR {:.3} (renders as they are {:.3}, nearest view at the rendered depth {:.3})",
         evaluate(&net, &vx, &vt)?,
         mean_psnr(&vx.narrow(1, 0, 3)?, &vt)?,
-        mean_psnr(&vx.narrow(1, 4 + 3 * ((tx.dim(1)? - 4) / 6 / 2), 3)?, &vt)?
+        mean_psnr(&vx.narrow(1, 4 + 3 * (bs.planes / 2), 3)?, &vt)?
     );
     let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
     let n = tx.dim(0)?;
@@ -148,7 +198,7 @@ fn train(args: &mut Vec<String>) -> anyhow::Result<()> {
         let f = 0.5 * (1.0 + (std::f64::consts::PI * step as f64 / steps as f64).cos());
         opt.set_learning_rate(lr * f);
         let idx: Vec<u32> = (0..batch).map(|_| rng.gen_range(0..n as u32)).collect();
-        let idx = Tensor::from_vec(idx, batch, &Device::Cpu)?;
+        let idx = Tensor::from_vec(idx, batch, &dev)?;
         let (x, t) = (tx.index_select(&idx, 0)?, tt.index_select(&idx, 0)?);
         let (x, t) = if rng.gen_bool(0.5) { (flip(&x)?, flip(&t)?) } else { (x, t) };
         let loss = (net.forward(&x)? - &t)?.sqr()?.mean_all()?;
@@ -173,10 +223,10 @@ fn train(args: &mut Vec<String>) -> anyhow::Result<()> {
 
 fn add(args: &mut Vec<String>) -> anyhow::Result<()> {
     let width: usize = common::take_flag(args, "--width", "16").parse()?;
-    anyhow::ensure!(args.len() == 3, "usage: blend add MODEL_DIR NET.safetensors OUT_DIR [--width 16]");
+    let bs = settings(&common::take_flag(args, "--set", ""), width)?;
+    anyhow::ensure!(args.len() == 3, "usage: blend add MODEL_DIR NET.safetensors OUT_DIR [--width 16] [--set PxVxS]");
     let (src, net, out) = (Path::new(&args[0]), Path::new(&args[1]), Path::new(&args[2]));
     let mut cfg: mvsplat360_pipeline::model::ModelConfig = serde_json::from_str(&std::fs::read_to_string(src.join(mvsplat360_pipeline::model::MODEL_CONFIG))?)?;
-    let bs = BlendSettings { width, ..Default::default() };
     cfg.blend = Some(bs);
     let mut tensors: Vec<(String, Tensor)> = candle_core::safetensors::load(src.join(mvsplat360_pipeline::model::MODEL_WEIGHTS), &Device::Cpu)?
         .into_iter()

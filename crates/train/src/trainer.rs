@@ -112,10 +112,15 @@ impl Model {
     /// The encoder of a training config with trained weights (a model folder or safetensors file) and no
     /// refiner, on the CPU: what the analysis examples evaluate.
     pub fn encoder_with_weights(config: &std::path::Path, weights: &std::path::Path) -> Result<Self> {
+        Self::encoder_with_weights_on(config, weights, &Device::Cpu)
+    }
+
+    /// As [`Model::encoder_with_weights`], on `dev`.
+    pub fn encoder_with_weights_on(config: &std::path::Path, weights: &std::path::Path, dev: &Device) -> Result<Self> {
         let mut cfg = TrainConfig::from_file(config)?;
         cfg.train.init = Some(weights.to_path_buf());
         cfg.model.refiner = None;
-        Self::new(&cfg)
+        Self::new_on(&cfg, dev)
     }
 
     /// As [`Model::new`], with the encoder's weights on `dev`. The initial weights are drawn on the host, so a

@@ -35,11 +35,16 @@ pub struct Fitted {
 }
 
 pub fn fitted(model: &mvsplat360_train::trainer::Model, arg: &str) -> anyhow::Result<Fitted> {
+    fitted_on(model, arg, &candle_core::Device::Cpu)
+}
+
+/// As [`fitted`], with the photos on `dev` (the model's device): the encoder and the fit run there.
+pub fn fitted_on(model: &mvsplat360_train::trainer::Model, arg: &str, dev: &candle_core::Device) -> anyhow::Result<Fitted> {
     use candle_core::IndexOp;
     let cfg = &model.cfg.model;
     let (w, h) = (cfg.width, cfg.height);
     let (scene, views, label) = mvsplat360_train::scenes::protocol_scene(arg, w, h, cfg.encoder.image_multiple() as u32)?;
-    let ex = mvsplat360_train::trainer::example_from_views(&scene, &views, cfg.near, cfg.far)?;
+    let ex = mvsplat360_train::trainer::example_from_views(&scene, &views, cfg.near, cfg.far)?.to_device(dev)?;
     let g0 = mvsplat360_train::trainer::render_example_full(model, &ex)?.gaussians;
     let photos: Vec<mvsplat360_dataset::ImageF32> = (0..ex.context_cameras.len())
         .map(|i| Ok(mvsplat360_dataset::ImageF32 { width: w, height: h, data: ex.context_images.i(i)?.flatten_all()?.to_vec1()? }))
