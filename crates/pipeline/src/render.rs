@@ -537,12 +537,14 @@ pub fn run(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSummary
     let mut feats = Vec::with_capacity(renders.len());
     // The stage's output: the blender's frames when it ran (also in frames/blended), else the renders.
     let mut stage = Vec::with_capacity(renders.len());
+    let bd = out.join("frames/blended");
+    if renders.iter().any(|r| r.blended.is_some()) {
+        mkdir(&bd)?;
+    }
     for (i, r) in renders.into_iter().enumerate() {
         let img = output::tensor_image(&r.rgb)?;
         write_png(&gs_dir.join(frame_name(i)), &img)?;
         if let Some(b) = &r.blended {
-            let bd = out.join("frames/blended");
-            mkdir(&bd)?;
             let bimg = output::tensor_image(b)?;
             write_png(&bd.join(frame_name(i)), &bimg)?;
             stage.push(bimg);
