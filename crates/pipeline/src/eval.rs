@@ -9,7 +9,7 @@
 //!
 //! ```text
 //! OUT/ImagesGT/{scene}_{view:06}.png                 preprocessed target photo
-//! OUT/ImagesGSplat/{scene}_{view:06}.png             3DGS render
+//! OUT/ImagesGSplat/{scene}_{view:06}.png             3DGS render (after the learned blending, when the model has it)
 //! OUT/ImagesRefined0/{scene}_{view:06}.png           refiner output (version 0: one refiner loop)
 //! OUT/ImagesPostprocessed0V2/{scene}_{view:06}.png   refined, histogram-matched to the 3DGS render (post_process.py)
 //! ```
@@ -115,10 +115,12 @@ impl Method {
         }
     }
 
-    pub fn label(self) -> &'static str {
+    /// Row label of the tables; `blended`: the model has a learned blender, whose frames `ImagesGSplat` holds.
+    pub fn label(self, blended: bool) -> &'static str {
         match self {
             Method::Refined => "MVSplat360 (refined)",
             Method::Postprocessed => "refined + histogram matching",
+            Method::GSplat if blended => "3DGS render + learned blending",
             Method::GSplat => "3DGS render",
         }
     }
@@ -754,14 +756,14 @@ fn fmt_opt(v: Option<f64>, digits: usize) -> String {
 }
 
 /// The markdown tables: overall per method (the paper's columns), then per scene for the primary method.
-pub fn markdown(summary_line: &str, methods: &[(Method, MethodScores)], per_scene: &[(String, MethodScores)], primary: Method) -> String {
+pub fn markdown(summary_line: &str, methods: &[(Method, MethodScores)], per_scene: &[(String, MethodScores)], primary: Method, blended: bool) -> String {
     let mut s = String::from("# Evaluation\n\n");
     s.push_str(summary_line);
     s.push_str("\n\n| Method | Folder | Images | PSNR↑ | SSIM↑ | LPIPS↓ | DISTS↓ | FID↓ |\n|---|---|---:|---:|---:|---:|---:|---:|\n");
     for (m, sc) in methods {
         s.push_str(&format!(
             "| {} | `{}` | {} | {} | {} | {} | {} | {} |\n",
-            m.label(),
+            m.label(blended),
             sc.folder,
             sc.images,
             fmt_opt(sc.psnr, 2),
@@ -851,6 +853,7 @@ pub fn run(req: &EvalRequest, progress: &dyn Progress) -> Result<EvalSummary> {
     };
     let methods: Vec<Method> = if refine_file.is_some() { Method::ALL.to_vec() } else { vec![Method::GSplat] };
     let primary = methods[0];
+    let blended = spec.blend.is_some();
     let nets = load_nets(req, &mut warnings)?;
     for w in &warnings {
         progress.note(&format!("warning: {w}"));
@@ -992,7 +995,7 @@ pub fn run(req: &EvalRequest, progress: &dyn Progress) -> Result<EvalSummary> {
         skipped_fov.len(),
         images
     );
-    output::write_bytes(&out.join(METRICS_MD), markdown(&line, &table, &per_scene_primary, primary).as_bytes())?;
+    output::write_bytes(&out.join(METRICS_MD), markdown(&line, &table, &per_scene_primary, primary, blended).as_bytes())?;
     Ok(EvalSummary { out: out.clone(), selected, null_entries, rendered, rescored, resumed, missing, skipped_fov, images, methods: table, warnings, seconds })
 }
 

@@ -319,3 +319,15 @@ fn eval_rescores_saved_images_with_metric_networks() {
     assert_eq!(s.resumed.len(), 2);
     assert!(s.rescored.is_empty() && s.rendered.is_empty());
 }
+
+/// With a learned blender, `ImagesGSplat` holds the blended frames, and the table's row says so.
+#[test]
+fn table_names_blended_frames() {
+    let sc = eval::MethodScores { folder: "ImagesGSplat".into(), images: 2, psnr: Some(20.0), ssim: None, lpips: None, dists: None, fid: None };
+    let rows = [(Method::GSplat, sc.clone())];
+    let scenes = [("a".to_string(), sc)];
+    let plain = eval::markdown("x", &rows, &scenes, Method::GSplat, false);
+    let blended = eval::markdown("x", &rows, &scenes, Method::GSplat, true);
+    assert!(plain.contains("| 3DGS render | `ImagesGSplat` | 2 | 20.00 |"), "{plain}");
+    assert!(blended.contains("| 3DGS render + learned blending | `ImagesGSplat` | 2 | 20.00 |"), "{blended}");
+}
