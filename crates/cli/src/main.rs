@@ -37,6 +37,8 @@ enum Command {
     Weights(cmd::weights::Args),
     /// Train the model (encoder: MSE + LPIPS on 3DGS renders) from a TOML config, with checkpoints and --resume.
     Train(cmd::train::Args),
+    /// Train a model folder's learned blender on rendered scenes; writes the folder with it (OUT/model).
+    TrainBlend(cmd::train_blend::Args),
     /// Benchmarks printing one JSON line each (median of repeated runs after a warm-up).
     Bench(cmd::bench::Args),
     /// Look at a render's results in the browser: 3D Gaussians, the video, frames side by side, settings.
@@ -54,6 +56,7 @@ fn main() {
     let result = match cli.command {
         Command::Demo(a) => cmd::demo::run(a, cli.quiet),
         Command::Train(a) => cmd::train::run(a, cli.quiet),
+        Command::TrainBlend(a) => cmd::train_blend::run(a, cli.quiet),
         Command::Inspect(a) => cmd::inspect::run(a),
         Command::Render(a) => cmd::render::run(a, cli.quiet),
         Command::Export(a) => cmd::export::run(a, cli.quiet),

@@ -296,15 +296,10 @@ pub fn frames_3dgs(p: &Prepared, g: &Gaussians, progress: &dyn Progress) -> Resu
         return Ok(r.into_iter().map(|(rgb, features)| StageFrame { rgb, features, blended: None }).collect());
     };
     let net = crate::blend::BlendNet::load(weights, s, &p.device)?;
-    let photos: Vec<&[f32]> = p.context_images.iter().map(|im| im.data.as_slice()).collect();
-    let vec = |t: &Tensor| -> Result<Vec<f32>> { t.flatten_all().and_then(|t| t.to_vec1()).map_err(compute("rasterizer")) };
     progress.begin("rasterizing and blending", p.target_cameras.len() as u64);
     let mut out = Vec::with_capacity(p.target_cameras.len());
     for c in &p.target_cameras {
-        let r = rasterize(g, &raster_camera(c, near, far), &RenderOptions::default()).map_err(compute("rasterizer"))?;
-        check_finite("rasterizer", &r.rgb)?;
-        let rgb = vec(&r.rgb.clamp(0f32, 1f32).map_err(compute("rasterizer"))?)?;
-        let x = crate::blend::candidates(s, c, &rgb, &vec(&r.alpha)?, &vec(&r.depth)?, &p.context_cameras, &photos, near as f64, far as f64);
+        let (r, x) = blend_input(p, g, s, c)?;
         let (h, w) = (c.height as usize, c.width as usize);
         let y = net.blend_all(&[x], s, h, w, &p.device, 1)?.remove(0);
         check_finite("blend", &y)?;
@@ -313,6 +308,19 @@ pub fn frames_3dgs(p: &Prepared, g: &Gaussians, progress: &dyn Progress) -> Resu
     }
     progress.end();
     Ok(out)
+}
+
+/// The rasterized Gaussians at `c` and the learned blender's input for them (`crate::blend::candidates`, layout
+/// `s`): what `frames_3dgs` blends, and what `mvsplat360 train-blend` stores to train a blender on.
+pub fn blend_input(p: &Prepared, g: &Gaussians, s: &crate::blend::BlendSettings, c: &Camera) -> Result<(mvsplat360_splat::RenderOutput, Vec<f32>)> {
+    let (near, far) = (p.spec.encoder.near, p.spec.encoder.far);
+    let vec = |t: &Tensor| -> Result<Vec<f32>> { t.flatten_all().and_then(|t| t.to_vec1()).map_err(compute("rasterizer")) };
+    let r = rasterize(g, &raster_camera(c, near, far), &RenderOptions::default()).map_err(compute("rasterizer"))?;
+    check_finite("rasterizer", &r.rgb)?;
+    let rgb = vec(&r.rgb.clamp(0f32, 1f32).map_err(compute("rasterizer"))?)?;
+    let photos: Vec<&[f32]> = p.context_images.iter().map(|im| im.data.as_slice()).collect();
+    let x = crate::blend::candidates(s, c, &rgb, &vec(&r.alpha)?, &vec(&r.depth)?, &p.context_cameras, &photos, near as f64, far as f64);
+    Ok((r, x))
 }
 
 /// Refiner modules loaded from one weights file.

@@ -1,5 +1,7 @@
-//! Exploration (not part of the pipeline): a learned image-based blender on the held-out protocol (32-view
-//! loop, 5 context views by farthest-point sampling, the other 27 as targets).
+//! Exploration: a learned image-based blender on the held-out protocol (32-view loop, 5 context views by
+//! farthest-point sampling, the other 27 as targets). The product command is `mvsplat360 train-blend`
+//! (`mvsplat360_train::blend`: `render`'s path, checkpoints, resume); this example keeps what exploration needs
+//! (several layouts from one fit, nets compared on the same caches, the GPU runs of `scripts/gpu-blend`).
 //!
 //! `cache` renders each target with the model and its shipped test-time fitting and stores, per target, the
 //! blender's input (`mvsplat360_pipeline::blend::candidates`: the render, its alpha and the colours that the

@@ -2,6 +2,7 @@
 //! POV-Ray scenes), checkpoints and the loop behind `mvsplat360 train`.
 
 pub mod bench;
+pub mod blend;
 pub mod checkpoint;
 pub mod config;
 pub mod data;

@@ -8,6 +8,7 @@ pub mod metrics;
 pub mod progress;
 pub mod render;
 pub mod train;
+pub mod train_blend;
 pub mod view;
 pub mod views;
 pub mod weights;

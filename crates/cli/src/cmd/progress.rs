@@ -62,8 +62,9 @@ impl Progress for Bars {
             return;
         }
         match self.bar.lock().ok().and_then(|b| b.clone()) {
-            Some(pb) => pb.println(msg),
-            None => eprintln!("{msg}"),
+            // A hidden bar (stderr not a terminal: logs, pipes) would drop the line.
+            Some(pb) if !pb.is_hidden() => pb.println(msg),
+            _ => eprintln!("{msg}"),
         }
     }
 }

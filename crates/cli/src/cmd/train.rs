@@ -95,6 +95,7 @@ pub fn run(a: Args, quiet: bool) -> anyhow::Result<()> {
         let (step, dir) = mvsplat360_train::export_checkpoint(&cfg, step, a.export_to.as_deref())
             .with_context(|| format!("exporting a checkpoint of {}", cfg.train.out.display()))?;
         eprintln!("checkpoint of step {step} written as the model folder {} (render it with --ckpt {})", dir.display(), dir.display());
+        blender_note(&cfg, &dir);
         return Ok(());
     }
     let rank = mvsplat360_train::dist::Rank::from_env()?;
@@ -149,6 +150,7 @@ pub fn run(a: Args, quiet: bool) -> anyhow::Result<()> {
                 s.model_dir.display(),
                 s.model_dir.display()
             );
+            blender_note(&cfg, &s.model_dir);
             Ok(())
         }
         Err(TrainError::Interrupted) => {
@@ -159,5 +161,18 @@ pub fn run(a: Args, quiet: bool) -> anyhow::Result<()> {
         }
         Err(e) if rank_no > 0 => Err(e).with_context(|| format!("rank {rank_no}: training with {}", a.config.display())),
         Err(e) => Err(e).with_context(|| format!("training with {}", a.config.display())),
+    }
+}
+
+/// A trained encoder changes what a learned blender sees, so the written folder has none; say so when the
+/// run started from a folder that had one.
+fn blender_note(cfg: &TrainConfig, dir: &std::path::Path) {
+    let had = cfg.train.init.as_ref().and_then(|i| mvsplat360_pipeline::model::read_model_dir(i).ok()).is_some_and(|m| m.blend.is_some());
+    if had {
+        eprintln!(
+            "note: {} has no learned blender (its init had one, trained on the old encoder's renders); train one with `mvsplat360 train-blend --model {} --train … --out …`",
+            dir.display(),
+            dir.display()
+        );
     }
 }
