@@ -287,16 +287,22 @@ fn cache(req: &BlendRequest, sources: &[SceneSource], dir: &Path, progress: &dyn
     let todo = scenes.iter().filter(|(n, _)| !dir.join(format!("{n}.safetensors")).is_file()).count();
     if todo > 0 {
         progress.note(&format!("computing the blender's inputs of {todo} scene(s) into {}", dir.display()));
+        progress.begin("blender inputs", todo as u64);
     }
     for (name, scene) in &scenes {
         let file = dir.join(format!("{name}.safetensors"));
         if !file.is_file() {
-            progress.begin(&format!("inputs of {name}"), 0);
+            let t0 = std::time::Instant::now();
             let (x, t) = scene_inputs(req, scene, &render::Silent)?;
+            let n = x.dim(0)?;
             save_tensors(&file, [("x".to_string(), x), ("target".to_string(), t)].into())?;
-            progress.end();
+            progress.note(&format!("{name}: {n} targets, {:.0} s", t0.elapsed().as_secs_f64()));
+            progress.advance(1);
         }
         files.push(file);
+    }
+    if todo > 0 {
+        progress.end();
     }
     Ok(files)
 }
@@ -395,7 +401,17 @@ pub fn run(req: &BlendRequest, progress: &dyn Progress) -> Result<BlendSummary> 
     if req.train.is_empty() {
         return Err(data_err("no training scenes (--train)"));
     }
+    let (w, h) = {
+        let spec = model::read_model_dir(&req.model)?;
+        (spec.data.image_width, spec.data.image_height)
+    };
     std::fs::create_dir_all(&req.out).map_err(|e| write_err(&req.out, e))?;
+    // Scenes are resolved (and procedural ones written) before any work, and validation must stay unseen.
+    let proc_dir = req.out.join("procedural");
+    let train_names: std::collections::BTreeSet<String> = scene_folders(&req.train, &proc_dir, w, h)?.into_iter().map(|(n, _)| n).collect();
+    if let Some(n) = scene_folders(&req.val, &proc_dir, w, h)?.iter().map(|(n, _)| n).find(|n| train_names.contains(*n)) {
+        return Err(data_err(format!("scene `{n}` is both a training and a validation scene; validation scenes must not be trained on")));
+    }
     check_or_write_settings(&req.out.join("cache/settings.json"), &cache_settings(req)?, "model weights, fitting or layout")?;
     let train_files = cache(req, &req.train, &req.out.join("cache/train"), progress)?;
     let val_files = if req.val.is_empty() { vec![] } else { cache(req, &req.val, &req.out.join("cache/val"), progress)? };

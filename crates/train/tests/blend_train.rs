@@ -110,6 +110,10 @@ fn cached_inputs_are_what_render_blends() {
     other.layout.planes = 5;
     let e = blend::run(&other, &Silent).unwrap_err().to_string();
     assert!(e.contains("settings.json") && e.contains("another --out"), "{e}");
+    // A validation scene that is also trained on is refused.
+    let both = BlendRequest { val: vec![SceneSource::Procedural { first: 4, last: 5 }], ..request(&m, &tmp.path().join("both"), 2) };
+    let e = blend::run(&both, &Silent).unwrap_err().to_string();
+    assert!(e.contains("`proc-5` is both a training and a validation scene"), "{e}");
     // A finished run is not silently restarted.
     let e = blend::run(&request(&m, &out, 2), &Silent).unwrap_err().to_string();
     assert!(e.contains("--resume"), "{e}");
