@@ -263,7 +263,7 @@ fn view_page_in_headless_chromium() {
 
     // Frames: refined is missing, so only gsplat / final / GT are shown; the slider changes what is shown.
     let kinds: Vec<String> = serde_json::from_value(eval(&tab, "[...document.querySelectorAll('#frames-grid figcaption')].map(e => e.textContent)")).unwrap();
-    assert_eq!(kinds, ["3DGS (gsplat)", "learned blending", "final", "ground truth"]);
+    assert_eq!(kinds, ["3DGS (gsplat)", "final", "ground truth"]);
     let wait_images = "Promise.all([...document.querySelectorAll('#frames-grid img')].map(i => i.decode())).then(() => true)";
     eval(&tab, wait_images);
     let before = screenshot(&tab, "#frames-grid");

@@ -1,5 +1,5 @@
 //! `mvsplat360 view`: a browser page for a render's output folder — the Gaussians in an interactive 3D viewer
-//! (Spark on three.js), the video, a frame slider comparing gsplat / blended / refined / final / GT, and `run.json`'s
+//! (Spark on three.js), the video, a frame slider comparing gsplat / refined / final / GT, and `run.json`'s
 //! settings, stage times and metrics.
 //!
 //! - [`OutDir::open`] checks a folder (`gaussians.ply`, `cameras.json`, `run.json` are required) and lists what

@@ -12,7 +12,7 @@ pub const REQUIRED_FILES: [&str; 3] = ["gaussians.ply", "cameras.json", "run.jso
 /// Optional files: the page's key for each.
 const OPTIONAL_FILES: [(&str, &str); 3] = [("metrics", "metrics.json"), ("video", "video.mp4"), ("compare", "compare.mp4")];
 /// `frames/<kind>/NNNN.png` folders, in the page's order.
-pub const FRAME_KINDS: [&str; 5] = ["gsplat", "blended", "refined", "final", "gt"];
+pub const FRAME_KINDS: [&str; 4] = ["gsplat", "refined", "final", "gt"];
 
 /// What the page may read, relative to the data prefix. Also the server's allow-list: no other file is served.
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -173,17 +173,15 @@ mod tests {
         let m = OutDir::open(t.path()).unwrap().manifest();
         assert_eq!(m.files.len(), 3);
         assert!(m.frames.is_empty());
-        for k in ["gsplat", "blended", "gt"] {
+        for k in ["gsplat", "gt"] {
             std::fs::create_dir_all(t.path().join("frames").join(k)).unwrap();
         }
-        std::fs::write(t.path().join("frames/blended/0000.png"), b"x").unwrap();
         std::fs::write(t.path().join("frames/gsplat/0001.png"), b"x").unwrap();
         std::fs::write(t.path().join("frames/gsplat/0000.png"), b"x").unwrap();
         std::fs::write(t.path().join("frames/gsplat/.0002.png.tmp"), b"x").unwrap();
         std::fs::write(t.path().join("video.mp4"), b"x").unwrap();
         let m = OutDir::open(t.path()).unwrap().manifest();
         assert_eq!(m.frames["gsplat"], vec!["0000.png", "0001.png"]);
-        assert_eq!(m.frames["blended"], vec!["0000.png"]);
         assert!(!m.frames.contains_key("gt") && !m.frames.contains_key("refined"));
         assert_eq!(m.files.get("video").map(String::as_str), Some("video.mp4"));
         assert!(m.contains("frames/gsplat/0001.png") && m.contains("run.json"));

@@ -14,8 +14,8 @@ import {
 } from "./cameras.js";
 
 const $ = (id) => document.getElementById(id);
-const KINDS = ["gsplat", "blended", "refined", "final", "gt"];
-const KIND_LABEL = { gsplat: "3DGS (gsplat)", blended: "learned blending", refined: "refined", final: "final", gt: "ground truth" };
+const KINDS = ["gsplat", "refined", "final", "gt"];
+const KIND_LABEL = { gsplat: "3DGS (gsplat)", refined: "refined", final: "final", gt: "ground truth" };
 
 function el(tag, attrs = {}, ...children) {
   const e = document.createElement(tag);
