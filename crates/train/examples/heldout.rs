@@ -17,8 +17,7 @@ use std::path::PathBuf;
 use candle_core::{Device, Tensor};
 use mvsplat360_dataset::ImageF32;
 use mvsplat360_pipeline::model::ModelArgs;
-use mvsplat360_pipeline::render::{self, RenderRequest, Silent};
-use mvsplat360_pipeline::views::{ContextSpec, TargetSpec};
+use mvsplat360_pipeline::render::{self, Silent};
 
 fn scores(lp: &mvsplat360_metrics::lpips::Lpips, preds: &[ImageF32], gts: &[ImageF32]) -> anyhow::Result<[f64; 3]> {
     let (mut p, mut s, mut l) = (0.0, 0.0, 0.0);
@@ -94,36 +93,17 @@ fn main() -> anyhow::Result<()> {
     println!("| scene | method | PSNR ↑ | SSIM ↑ | LPIPS ↓ |\n|---|---|---|---|---|");
     for scene in &scenes {
         let name = scene.file_name().map(|s| s.to_string_lossy().to_string()).unwrap_or_default();
-        let n = mvsplat360_dataset::read_scene(scene)?.len();
         let mut baseline_done = false;
         for (mname, dir, refine) in &models {
-            let req = RenderRequest {
-                scene: scene.clone(),
-                scene_key: None,
-                context: ContextSpec::Count(5),
-                targets: TargetSpec::Views((0..n).collect()),
-                model: ModelArgs {
-                    ckpt: Some(dir.clone()),
-                    refiner: (!refine).then_some(mvsplat360_pipeline::model::RefinerArg::None),
-                    fit_steps,
-                    no_blend,
-                    ..Default::default()
-                },
-                size: None,
-                scene_scale: mvsplat360_pipeline::scale::SceneScale::Auto,
-                refine: Default::default(),
-                splat: false,
-                metrics: false,
-                weights_dir: None,
-                video: false,
-                fps: 8,
-                out: std::env::temp_dir(),
+            let model = ModelArgs {
+                ckpt: Some(dir.clone()),
+                refiner: (!refine).then_some(mvsplat360_pipeline::model::RefinerArg::None),
+                fit_steps,
+                no_blend,
+                ..Default::default()
             };
-            let mut p = render::prepare(&req, &Silent)?;
             // Targets = every view that is not a context view.
-            let keep: Vec<usize> = (0..n).filter(|i| !p.choice.context.contains(i)).collect();
-            p.target_cameras = keep.iter().map(|&i| p.target_cameras[i].clone()).collect();
-            p.target_photos = keep.iter().map(|&i| p.target_photos[i].clone()).collect();
+            let p = mvsplat360_train::scenes::protocol_prepared(scene, model)?;
             let gts: Vec<ImageF32> = p.target_photos.iter().map(|x| x.clone().expect("view targets have photos")).collect();
             if !baseline_done {
                 let preds: Vec<ImageF32> = p

@@ -24,8 +24,7 @@ use candle_core::{DType, Device, IndexOp, Tensor, Var};
 use candle_nn::{VarBuilder, VarMap};
 use mvsplat360_pipeline::blend::{BlendNet, BlendSettings, PREFIX};
 use mvsplat360_pipeline::model::{self, ModelArgs, RefinerArg};
-use mvsplat360_pipeline::render::{self, Progress, RenderRequest};
-use mvsplat360_pipeline::views::{ContextSpec, TargetSpec};
+use mvsplat360_pipeline::render::{self, Progress};
 use rand::Rng;
 
 use crate::error::{Result, TrainError};
@@ -186,37 +185,15 @@ pub fn write_procedural(seed: u64, dir: &Path, width: u32, height: u32) -> Resul
 
 /// The product path on one scene: (inputs (N,C,H,W), target photos (N,3,H,W)) of the protocol's targets.
 pub fn scene_inputs(req: &BlendRequest, scene: &Path, progress: &dyn Progress) -> Result<(Tensor, Tensor)> {
-    let n = mvsplat360_dataset::read_scene(scene).map_err(|e| data_err(format!("{}: {e}", scene.display())))?.len();
-    let rr = RenderRequest {
-        scene: scene.to_path_buf(),
-        scene_key: None,
-        context: ContextSpec::Count(5),
-        targets: TargetSpec::Views((0..n).collect()),
-        model: ModelArgs {
-            ckpt: Some(req.model.clone()),
-            refiner: Some(RefinerArg::None),
-            fit_steps: req.fit_steps,
-            no_blend: true,
-            compute: req.compute.clone(),
-            ..Default::default()
-        },
-        size: None,
-        scene_scale: mvsplat360_pipeline::scale::SceneScale::Auto,
-        refine: Default::default(),
-        splat: false,
-        metrics: false,
-        weights_dir: None,
-        video: false,
-        fps: 8,
-        out: std::env::temp_dir(),
+    let model = ModelArgs {
+        ckpt: Some(req.model.clone()),
+        refiner: Some(RefinerArg::None),
+        fit_steps: req.fit_steps,
+        no_blend: true,
+        compute: req.compute.clone(),
+        ..Default::default()
     };
-    let mut p = render::prepare(&rr, progress)?;
-    let keep: Vec<usize> = (0..n).filter(|i| !p.choice.context.contains(i)).collect();
-    if keep.is_empty() {
-        return Err(data_err(format!("{}: {n} views leave no target after 5 context views", scene.display())));
-    }
-    p.target_cameras = keep.iter().map(|&i| p.target_cameras[i].clone()).collect();
-    p.target_photos = keep.iter().map(|&i| p.target_photos[i].clone()).collect();
+    let p = crate::scenes::protocol_prepared(scene, model)?;
     let g = render::encode(&p, progress)?;
     let (g, _) = render::fit_to_context(&p, g, progress)?;
     let (mut xs, mut ts) = (Vec::new(), Vec::new());
@@ -275,13 +252,8 @@ fn save_tensors(path: &Path, tensors: HashMap<String, Tensor>) -> Result<()> {
     Ok(mvsplat360_pipeline::output::atomic_write(path, |p| candle_core::safetensors::save(&tensors, p).map_err(|e| e.to_string()))?)
 }
 
-/// Caches every scene of `sources` in `dir`; returns the cache files in scene order.
-fn cache(req: &BlendRequest, sources: &[SceneSource], dir: &Path, progress: &dyn Progress) -> Result<Vec<PathBuf>> {
-    let (w, h) = {
-        let spec = model::read_model_dir(&req.model)?;
-        (spec.data.image_width, spec.data.image_height)
-    };
-    let scenes = scene_folders(sources, &req.out.join("procedural"), w, h)?;
+/// Caches every scene (name, folder) in `dir`; returns the cache files in scene order.
+fn cache(req: &BlendRequest, scenes: &[(String, PathBuf)], dir: &Path, progress: &dyn Progress) -> Result<Vec<PathBuf>> {
     std::fs::create_dir_all(dir).map_err(|e| write_err(dir, e))?;
     let mut files = Vec::new();
     let todo = scenes.iter().filter(|(n, _)| !dir.join(format!("{n}.safetensors")).is_file()).count();
@@ -289,7 +261,7 @@ fn cache(req: &BlendRequest, sources: &[SceneSource], dir: &Path, progress: &dyn
         progress.note(&format!("computing the blender's inputs of {todo} scene(s) into {}", dir.display()));
         progress.begin("blender inputs", todo as u64);
     }
-    for (name, scene) in &scenes {
+    for (name, scene) in scenes {
         let file = dir.join(format!("{name}.safetensors"));
         if !file.is_file() {
             let t0 = std::time::Instant::now();
@@ -408,13 +380,14 @@ pub fn run(req: &BlendRequest, progress: &dyn Progress) -> Result<BlendSummary> 
     std::fs::create_dir_all(&req.out).map_err(|e| write_err(&req.out, e))?;
     // Scenes are resolved (and procedural ones written) before any work, and validation must stay unseen.
     let proc_dir = req.out.join("procedural");
-    let train_names: std::collections::BTreeSet<String> = scene_folders(&req.train, &proc_dir, w, h)?.into_iter().map(|(n, _)| n).collect();
-    if let Some(n) = scene_folders(&req.val, &proc_dir, w, h)?.iter().map(|(n, _)| n).find(|n| train_names.contains(*n)) {
+    let train_scenes = scene_folders(&req.train, &proc_dir, w, h)?;
+    let val_scenes = scene_folders(&req.val, &proc_dir, w, h)?;
+    if let Some((n, _)) = val_scenes.iter().find(|(n, _)| train_scenes.iter().any(|(t, _)| t == n)) {
         return Err(data_err(format!("scene `{n}` is both a training and a validation scene; validation scenes must not be trained on")));
     }
     check_or_write_settings(&req.out.join("cache/settings.json"), &cache_settings(req)?, "model weights, fitting or layout")?;
-    let train_files = cache(req, &req.train, &req.out.join("cache/train"), progress)?;
-    let val_files = if req.val.is_empty() { vec![] } else { cache(req, &req.val, &req.out.join("cache/val"), progress)? };
+    let train_files = cache(req, &train_scenes, &req.out.join("cache/train"), progress)?;
+    let val_files = if val_scenes.is_empty() { vec![] } else { cache(req, &val_scenes, &req.out.join("cache/val"), progress)? };
 
     let dev = req.compute.open()?;
     let ch = req.layout.channels();

@@ -7,8 +7,7 @@ use std::path::{Path, PathBuf};
 use candle_core::{Device, Tensor};
 use mvsplat360_pipeline::blend::{BlendNet, BlendSettings};
 use mvsplat360_pipeline::model::{self, ModelArgs, RefinerArg};
-use mvsplat360_pipeline::render::{self, RenderRequest, Silent};
-use mvsplat360_pipeline::views::{ContextSpec, TargetSpec};
+use mvsplat360_pipeline::render::{self, Silent};
 use mvsplat360_train::blend::{self, BlendLogRecord, BlendRequest, SceneSource};
 
 /// A random tiny model folder (128×64, no refiner, no fitting).
@@ -61,26 +60,8 @@ fn cached_inputs_are_what_render_blends() {
 
     // `render`'s path on the written scene with the written folder, at the protocol's targets.
     let scene = out.join("procedural/proc-5");
-    let rr = RenderRequest {
-        scene: scene.clone(),
-        scene_key: None,
-        context: ContextSpec::Count(5),
-        targets: TargetSpec::Views((0..32).collect()),
-        model: ModelArgs { ckpt: Some(folder.clone()), refiner: Some(RefinerArg::None), fit_steps: Some(1), ..Default::default() },
-        size: None,
-        scene_scale: mvsplat360_pipeline::scale::SceneScale::Auto,
-        refine: Default::default(),
-        splat: false,
-        metrics: false,
-        weights_dir: None,
-        video: false,
-        fps: 8,
-        out: tmp.path().join("unused"),
-    };
-    let mut p = render::prepare(&rr, &Silent).unwrap();
-    let keep: Vec<usize> = (0..32).filter(|i| !p.choice.context.contains(i)).collect();
-    p.target_cameras = keep.iter().map(|&i| p.target_cameras[i].clone()).collect();
-    p.target_photos = keep.iter().map(|&i| p.target_photos[i].clone()).collect();
+    let model = ModelArgs { ckpt: Some(folder.clone()), refiner: Some(RefinerArg::None), fit_steps: Some(1), ..Default::default() };
+    let p = mvsplat360_train::scenes::protocol_prepared(&scene, model).unwrap();
     let g = render::encode(&p, &Silent).unwrap();
     let (g, _) = render::fit_to_context(&p, g, &Silent).unwrap();
     let frames = render::frames_3dgs(&p, &g, &Silent).unwrap();
