@@ -58,6 +58,9 @@ pub struct FitSettings {
     pub copy_ratio: f64,
     #[serde(skip_serializing_if = "is_default_copy_opacity")]
     pub copy_opacity: f64,
+    /// Plane-sweep stereo on the context photos before the fit (see [`crate::sweep`]); absent: none.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sweep: Option<crate::sweep::SweepSettings>,
 }
 
 const DEFAULT_ADAM_EPS: f64 = 1e-8;
@@ -97,6 +100,7 @@ impl Default for FitSettings {
             copies: 0,
             copy_ratio: DEFAULT_COPY_RATIO,
             copy_opacity: DEFAULT_COPY_OPACITY,
+            sweep: None,
         }
     }
 }
@@ -129,6 +133,9 @@ impl FitSettings {
         }
         if !(0.0..1.0).contains(&self.min_alpha) {
             return Err(flag("fit.min_alpha", format!("must be in [0, 1), got {}", self.min_alpha)));
+        }
+        if let Some(sw) = &self.sweep {
+            sw.validate()?;
         }
         Ok(())
     }
@@ -248,6 +255,57 @@ fn depth_copies(g: &Gaussians, origins: &Tensor, views: usize, s: &FitSettings) 
     Ok(Gaussians { means, covariances, opacities, ..e })
 }
 
+/// `g` with each pixel's distance along its ray replaced by the plane sweep's where other views confirm it
+/// (covariance scaled with it, so its footprint in its own view stays).
+fn sweep_distances(
+    g: &Gaussians,
+    cams: &[Camera],
+    photos: &[ImageF32],
+    near: f32,
+    far: f32,
+    sw: &crate::sweep::SweepSettings,
+    progress: &dyn Progress,
+) -> Result<Gaussians> {
+    let stage = "plane sweep";
+    let (v, n) = (cams.len(), g.means.dim(0).map_err(compute(stage))?);
+    let (w, h) = (photos[0].width as usize, photos[0].height as usize);
+    if n != v * w * h || photos.iter().any(|p| p.width as usize != w || p.height as usize != h) {
+        return Err(PipelineError::Compute {
+            stage,
+            msg: format!("`fit.sweep` needs one Gaussian per context pixel (gaussians_per_pixel 1): {n} Gaussians for {v} views of {w}×{h}"),
+        });
+    }
+    let means: Vec<f32> = g.means.flatten_all().and_then(|t| t.to_vec1()).map_err(compute(stage))?;
+    let mut prior = Vec::with_capacity(n);
+    let mut dirs = Vec::with_capacity(n);
+    for (i, m) in means.chunks_exact(3).enumerate() {
+        let o = cams[i / (w * h)].center();
+        let off = [m[0] as f64 - o.x, m[1] as f64 - o.y, m[2] as f64 - o.z];
+        let len = (off[0] * off[0] + off[1] * off[1] + off[2] * off[2]).sqrt().max(1e-12);
+        prior.push(len as f32);
+        dirs.push(off.map(|x| x / len));
+    }
+    let r = crate::sweep::sweep(photos, cams, &prior, &dirs, near as f64, far as f64, sw);
+    let factor: Vec<f32> = (0..n).map(|i| if r.accepted(i, sw) { r.distance[i] / prior[i] } else { 1.0 }).collect();
+    let taken = (0..n).filter(|&i| r.accepted(i, sw)).count();
+    progress.note(&format!("plane sweep: {taken} of {n} context pixels ({:.0} %) take its distance", 100.0 * taken as f64 / n as f64));
+    let origins: Vec<f32> = (0..n)
+        .flat_map(|i| {
+            let o = cams[i / (w * h)].center();
+            [o.x as f32, o.y as f32, o.z as f32]
+        })
+        .collect();
+    let run = || -> candle_core::Result<Gaussians> {
+        let dev = g.means.device();
+        let f = Tensor::from_vec(factor, (n, 1), dev)?;
+        let origins = Tensor::from_vec(origins, (n, 3), dev)?;
+        let means = (&origins + g.means.sub(&origins)?.broadcast_mul(&f)?)?;
+        let covariances = g.covariances.broadcast_mul(&f.sqr()?.unsqueeze(2)?)?;
+        Ok(Gaussians { means, covariances, ..g.clone() })
+    };
+    run().map_err(compute(stage))
+}
+
 /// Fit `g` (the encoder's Gaussians of `cams.len()` views, view-major, the same number per view) to the
 /// context photos; returns the fitted Gaussians (with `copies`, 1 + 2·copies times as many, view-major, each
 /// view's own Gaussians first) and the loss before and after.
@@ -274,6 +332,14 @@ pub fn fit(
             ),
         });
     }
+    let swept;
+    let g = match &s.sweep {
+        Some(sw) => {
+            swept = sweep_distances(g, cams, photos, near, far, sw, progress)?;
+            &swept
+        }
+        None => g,
+    };
     let per = n / v;
     let slots = 1 + 2 * s.copies;
     let (n, per) = (n * slots, per * slots);

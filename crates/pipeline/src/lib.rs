@@ -17,6 +17,7 @@ pub mod preprocess;
 pub mod render;
 pub mod scale;
 pub mod setup;
+pub mod sweep;
 pub mod video;
 pub mod views;
 
