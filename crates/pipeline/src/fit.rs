@@ -9,6 +9,7 @@
 //! view is unchanged) and its opacity (a logit). Colours, shapes and features stay as the encoder made them.
 //! With `copies`, each Gaussian first gets faint copies nearer and farther along its ray (depth hypotheses: a
 //! gradient step moves a distance only locally, the copies let the other views' evidence pick another one).
+//! With `sweep`, the distances first come from plane-sweep stereo where other views confirm it ([`crate::sweep`]).
 
 use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::{AdamW, Optimizer, ParamsAdamW};

@@ -8,8 +8,9 @@
 //!   pixel's colour (1: keeps the higher orders, 2: zeroes them); `--hyp F,… --hyp-opacity O` adds copies of
 //!   every Gaussian at those distance factors with O × its opacity before fitting (`--copies N --copy-ratio R
 //!   --copy-opacity O`: the same by `render`'s fit settings, factors R^±1…±N); `--nearest 4,3` also scores each target rendered from its K nearest context views'
-//!   Gaussians only; `--sweep 1 [--sweep-range R]` runs `render`'s plane sweep (`fit.sweep`) first and `--mvs all|ratio:X|cons:N[:X]`
-//!   the exploration sweep it came from (`common::mvs`); on procedural scenes the row ends with the fitted distances' mean |ln d − ln truth|;
+//!   Gaussians only; `--sweep 1 [--sweep-range R]` runs `render`'s plane sweep (`fit.sweep`) in the fit;
+//!   `--mvs all|cons:N [--mvs-d 64 --mvs-r 2 --mvs-k 2 --mvs-range 0 --mvs-trunc 0.2]` applies it before the fit
+//!   and prints its context distance errors; on procedural scenes the row ends with the fitted distances' mean |ln d − ln truth|;
 //! - `gauss`: the exploration variant it came from (own loop; `--pyramid` levels of 2× pooling in the loss,
 //!   `--colour S` also fits the SH DC at S × the rate);
 //! - `net`: fine-tunes the encoder's weights on the same leave-one-out loss instead.
@@ -160,31 +161,29 @@ fn hypotheses(g: &Gaussians, ex: &Example, factors: &[f64], op: f64) -> anyhow::
     })
 }
 
-/// The encoder's Gaussians with each pixel's distance along its ray replaced by the plane sweep's (all, or where
-/// its ratio is below X for `ratio:X`); prints the context distance errors against the truth when known.
-fn mvs_distances(g: &Gaussians, ex: &Example, near: f32, far: f32, sw: &common::mvs::SweepSettings, mode: &str) -> anyhow::Result<Gaussians> {
+/// The plane sweep's diagnostics (`--mvs`): the encoder's Gaussians with each pixel's distance replaced by
+/// `render`'s plane sweep's (`sw`; everywhere for `all`, where ≥ N other views confirm it for `cons:N`), and, when
+/// the truth is known, the context distance errors of the encoder and the sweep by confirmation count.
+fn mvs_distances(g: &Gaussians, ex: &Example, near: f32, far: f32, sw: &mvsplat360_pipeline::sweep::SweepSettings, mode: &str) -> anyhow::Result<Gaussians> {
     let (v, _, h, w) = ex.context_images.dims4()?;
     let n = g.means.dim(0)?;
     anyhow::ensure!(n == v * h * w, "one Gaussian per pixel expected");
+    let need: u32 = match mode.split(':').collect::<Vec<_>>().as_slice() {
+        ["all"] => 0,
+        ["cons", k] => k.parse()?,
+        _ => anyhow::bail!("--mvs all|cons:N, got {mode}"),
+    };
     let orig = ray_origins(ex, n)?;
     let off: Vec<f32> = g.means.sub(&orig)?.flatten_all()?.to_vec1()?;
     let prior: Vec<f32> = (0..n).map(|i| (off[3 * i].powi(2) + off[3 * i + 1].powi(2) + off[3 * i + 2].powi(2)).sqrt()).collect();
     let dirs: Vec<[f64; 3]> = (0..n).map(|i| [0, 1, 2].map(|c| off[3 * i + c] as f64 / prior[i] as f64)).collect();
-    let images: Vec<Vec<f32>> = (0..v).map(|k| ex.context_images.i(k)?.flatten_all()?.to_vec1()).collect::<candle_core::Result<_>>()?;
+    let photos: Vec<mvsplat360_dataset::ImageF32> = (0..v)
+        .map(|k| Ok(mvsplat360_dataset::ImageF32 { width: w as u32, height: h as u32, data: ex.context_images.i(k)?.flatten_all()?.to_vec1()? }))
+        .collect::<anyhow::Result<_>>()?;
     let t0 = std::time::Instant::now();
-    let s = common::mvs::sweep(&images, &ex.context_cameras, w, h, &prior, &dirs, near as f64, far as f64, sw);
-    // MODE: `all`, `ratio:X`, or `cons:N[:X]` (confirmed by ≥ N other views' sweeps, and ratio < X).
-    let parts: Vec<&str> = mode.split(':').collect();
-    let (thr, need): (f32, u32) = match parts.as_slice() {
-        ["all"] => (f32::INFINITY, 0),
-        ["ratio", x] => (x.parse()?, 0),
-        ["cons", k] => (f32::INFINITY, k.parse()?),
-        ["cons", k, x] => (x.parse()?, k.parse()?),
-        _ => anyhow::bail!("--mvs all|ratio:X|cons:N[:X], got {mode}"),
-    };
-    let cons = common::mvs::consistency(&s.dist, &dirs, &ex.context_cameras, w, h, 1.0, 1.03);
-    let take: Vec<bool> = (0..n).map(|i| s.cost[i].is_finite() && s.ratio[i] < thr && cons[i] >= need).collect();
-    let new: Vec<f32> = (0..n).map(|i| if take[i] { s.dist[i] } else { prior[i] }).collect();
+    let s = mvsplat360_pipeline::sweep::sweep(&photos, &ex.context_cameras, &prior, &dirs, near as f64, far as f64, sw);
+    let take: Vec<bool> = (0..n).map(|i| s.confirmations[i] >= need).collect();
+    let new: Vec<f32> = (0..n).map(|i| if take[i] { s.distance[i] } else { prior[i] }).collect();
     if let Some(depths) = ex.context_depths.as_ref() {
         let truth: Vec<f32> = depths.flatten_all()?.to_vec1()?;
         let err = |d: &[f32], sel: &dyn Fn(usize) -> bool| {
@@ -200,17 +199,15 @@ fn mvs_distances(g: &Gaussians, ex: &Example, near: f32, far: f32, sw: &common::
         let (e_enc, _) = err(&prior, &|_| true);
         let (e_new, _) = err(&new, &|_| true);
         let (e_sel_enc, c) = err(&prior, &|i| take[i]);
-        let (e_sel_mvs, _) = err(&s.dist, &|i| take[i]);
+        let (e_sel_mvs, _) = err(&s.distance, &|i| take[i]);
         println!(
             "  sweep {:.1} s: context distance error encoder {e_enc:.3} → fused {e_new:.3}; on the {c} replaced pixels encoder {e_sel_enc:.3} vs sweep {e_sel_mvs:.3}",
             t0.elapsed().as_secs_f64()
         );
-        for q in [0.5f32, 0.7, 0.9, 1.01] {
-            for k in [0u32, 1, 2] {
-                let (a, c) = err(&prior, &|i| s.cost[i].is_finite() && s.ratio[i] < q && cons[i] >= k);
-                let (b, _) = err(&s.dist, &|i| s.cost[i].is_finite() && s.ratio[i] < q && cons[i] >= k);
-                println!("    ratio < {q}, cons ≥ {k}: {c} pixels, encoder {a:.3}, sweep {b:.3}");
-            }
+        for k in [1u32, 2] {
+            let (a, c) = err(&prior, &|i| s.confirmations[i] >= k);
+            let (b, _) = err(&s.distance, &|i| s.confirmations[i] >= k);
+            println!("    confirmed by ≥ {k}: {c} pixels, encoder {a:.3}, sweep {b:.3}");
         }
     }
     let factor: Vec<f32> = (0..n).map(|i| new[i] / prior[i]).collect();
@@ -284,15 +281,15 @@ fn main() -> anyhow::Result<()> {
     let copy_opacity: f64 = take("--copy-opacity", "0.1").parse()?;
     // Product mode: also score each target rendered from its K nearest context views' Gaussians, K in this list.
     let nearest: Vec<usize> = take("--nearest", "").split(',').filter(|s| !s.is_empty()).map(|s| s.parse()).collect::<Result<_, _>>()?;
-    // Plane-sweep stereo: "" off; "all" replaces every distance; "ratio:X" only where best/second-best < X.
+    // The plane sweep's diagnostics: "" off; `all` replaces every distance; `cons:N` where ≥ N views confirm it.
     let mvs_mode = take("--mvs", "");
-    let sw = common::mvs::SweepSettings {
+    let sw = mvsplat360_pipeline::sweep::SweepSettings {
         candidates: take("--mvs-d", "64").parse()?,
         radius: take("--mvs-r", "2").parse()?,
-        topk: take("--mvs-k", "2").parse()?,
+        views: take("--mvs-k", "2").parse()?,
         range: take("--mvs-range", "0").parse()?,
-        prior: take("--mvs-prior", "0").parse()?,
-        trunc: take("--mvs-trunc", "0.2").parse()?,
+        truncation: take("--mvs-trunc", "0.2").parse()?,
+        ..Default::default()
     };
     // `render`'s plane sweep (`fit.sweep`, default settings) before the fit.
     let sweep = take("--sweep", "0") == "1";

@@ -3,8 +3,6 @@
 
 use candle_core::Tensor;
 
-pub mod mvs;
-
 /// Removes `flag VALUE` from `args` and returns VALUE, or `default` when the flag is absent.
 pub fn take_flag(args: &mut Vec<String>, flag: &str, default: &str) -> String {
     match args.iter().position(|a| a == flag) {
