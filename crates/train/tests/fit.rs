@@ -251,7 +251,7 @@ fn distance_errors(g: &Gaussians, ex: &Example) -> Vec<Option<f64>> {
 
 #[test]
 fn plane_sweep_puts_confirmed_pixels_at_the_true_distance() {
-    // Every view's Gaussians 1.3× too far, the shipped search range (÷ 1.5 … × 1.5 around them): the sweep must
+    // Every view's Gaussians 1.3× too far, searched within ÷ 1.5 … × 1.5 of them (the range measured in MODEL.md): the sweep must
     // find the ray caster's distances from the photos alone where other views confirm them, and leave the other
     // pixels where they were.
     let (scene, v, _) = protocol_scene("9000003", 64, 32, 16).unwrap();
@@ -284,7 +284,7 @@ fn plane_sweep_puts_confirmed_pixels_at_the_true_distance() {
     assert!(moved as f64 > 0.3 * seen as f64, "too few pixels confirmed: {moved} of {seen}");
     assert!(close as f64 > 0.75 * moved as f64, "most confirmed pixels must be within 5 % of the truth: {close} of {moved}");
     assert!(moved_err < 0.5 * off, "confirmed pixels must be much nearer the truth on average: {off} → {moved_err}");
-    // Colours, opacities and footprints in their own view are not the sweep's business.
+    // Opacities are not the sweep's business.
     assert_eq!(f.opacities.to_vec1::<f32>().unwrap(), g.opacities.to_vec1::<f32>().unwrap());
     let bad = FitSettings { sweep: Some(mvsplat360_pipeline::sweep::SweepSettings { confirmations: 0, ..sweep }), ..s };
     let e = fit(&g, &ex.context_cameras, &photos, NEAR, FAR, &bad, &Silent).unwrap_err().to_string();
