@@ -296,10 +296,11 @@ pub fn frames_3dgs(p: &Prepared, g: &Gaussians, progress: &dyn Progress) -> Resu
         return Ok(r.into_iter().map(|(rgb, features)| StageFrame { rgb, features, blended: None }).collect());
     };
     let net = crate::blend::BlendNet::load(weights, s, &p.device)?;
+    let ctx = blend_context_depths(p, g, s)?;
     progress.begin("rasterizing and blending", p.target_cameras.len() as u64);
     let mut out = Vec::with_capacity(p.target_cameras.len());
     for c in &p.target_cameras {
-        let (r, x) = blend_input(p, g, s, c)?;
+        let (r, x) = blend_input(p, g, s, &ctx, c)?;
         let (h, w) = (c.height as usize, c.width as usize);
         let y = net.blend_all(&[x], s, h, w, &p.device, 1)?.remove(0);
         check_finite("blend", &y)?;
@@ -310,16 +311,43 @@ pub fn frames_3dgs(p: &Prepared, g: &Gaussians, progress: &dyn Progress) -> Resu
     Ok(out)
 }
 
-/// The rasterized Gaussians at `c` and the learned blender's input for them (`crate::blend::candidates`, layout
-/// `s`): what `frames_3dgs` blends, and what `mvsplat360 train-blend` stores to train a blender on.
-pub fn blend_input(p: &Prepared, g: &Gaussians, s: &crate::blend::BlendSettings, c: &Camera) -> Result<(mvsplat360_splat::RenderOutput, Vec<f32>)> {
+fn host_vec(t: &Tensor) -> Result<Vec<f32>> {
+    t.flatten_all().and_then(|t| t.to_vec1()).map_err(compute("rasterizer"))
+}
+
+/// The context views' depth maps that a blender with `visibility` reads (`crate::blend::depth_map` of `g`
+/// rendered at each context camera); empty without it.
+pub fn blend_context_depths(p: &Prepared, g: &Gaussians, s: &crate::blend::BlendSettings) -> Result<Vec<Vec<f32>>> {
+    if !s.visibility {
+        return Ok(Vec::new());
+    }
     let (near, far) = (p.spec.encoder.near, p.spec.encoder.far);
-    let vec = |t: &Tensor| -> Result<Vec<f32>> { t.flatten_all().and_then(|t| t.to_vec1()).map_err(compute("rasterizer")) };
+    p.context_cameras
+        .iter()
+        .map(|c| {
+            let r = rasterize(g, &raster_camera(c, near, far), &RenderOptions::default()).map_err(compute("rasterizer"))?;
+            Ok(crate::blend::depth_map(&host_vec(&r.depth)?, &host_vec(&r.alpha)?))
+        })
+        .collect()
+}
+
+/// The rasterized Gaussians at `c` and the learned blender's input for them (`crate::blend::candidates`, layout
+/// `s`, context depth maps `ctx` of [`blend_context_depths`]): what `frames_3dgs` blends, and what `mvsplat360
+/// train-blend` stores to train a blender on.
+pub fn blend_input(
+    p: &Prepared,
+    g: &Gaussians,
+    s: &crate::blend::BlendSettings,
+    ctx: &[Vec<f32>],
+    c: &Camera,
+) -> Result<(mvsplat360_splat::RenderOutput, Vec<f32>)> {
+    let (near, far) = (p.spec.encoder.near, p.spec.encoder.far);
+    let vec = host_vec;
     let r = rasterize(g, &raster_camera(c, near, far), &RenderOptions::default()).map_err(compute("rasterizer"))?;
     check_finite("rasterizer", &r.rgb)?;
     let rgb = vec(&r.rgb.clamp(0f32, 1f32).map_err(compute("rasterizer"))?)?;
     let photos: Vec<&[f32]> = p.context_images.iter().map(|im| im.data.as_slice()).collect();
-    let x = crate::blend::candidates(s, c, &rgb, &vec(&r.alpha)?, &vec(&r.depth)?, &p.context_cameras, &photos, near as f64, far as f64);
+    let x = crate::blend::candidates(s, c, &rgb, &vec(&r.alpha)?, &vec(&r.depth)?, &p.context_cameras, &photos, ctx, near as f64, far as f64);
     Ok((r, x))
 }
 

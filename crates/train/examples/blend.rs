@@ -18,7 +18,8 @@
 //!         [--width 16] [--set 7x2x1.6]
 //!
 //! A set `PxVxS` is the candidates' layout: P depth planes for each of the V nearest context views, spread over
-//! a factor S either side of the rendered depth (the default, `BlendSettings::default()`, is 7x2x1.6). Without
+//! a factor S either side of the rendered depth (the default, `BlendSettings::default()`, is 7x2x1.6); `PxVxSv`
+//! adds the visibility channels (`BlendSettings::visibility`). Without
 //! `--sets`, `cache` writes the default layout into OUT_DIR; with it, one folder OUT_DIR/PxVxS per set, all from
 //! the same fit. `add` writes a copy of a model folder with the blender's weights and its `blend` settings added.
 
@@ -27,7 +28,7 @@ use std::path::{Path, PathBuf};
 
 use candle_core::{DType, Device, IndexOp, Tensor};
 use candle_nn::{Optimizer, VarBuilder, VarMap};
-use mvsplat360_pipeline::blend::{candidates, BlendNet, BlendSettings, PREFIX};
+use mvsplat360_pipeline::blend::{candidates, depth_map, BlendNet, BlendSettings, PREFIX};
 use mvsplat360_pipeline::render::raster_camera;
 use mvsplat360_splat::RenderOptions;
 use mvsplat360_train::trainer::Model;
@@ -35,12 +36,18 @@ use rand::{Rng, SeedableRng};
 
 mod common;
 
-/// A `PxVxS` set (planes, views, span) with `width`; the empty string is the default.
+/// A `PxVxS` set (planes, views, span; a trailing `v`: with visibility channels) with `width`; the empty string is
+/// the default.
 fn settings(spec: &str, width: usize) -> anyhow::Result<BlendSettings> {
     let d = BlendSettings { width, ..Default::default() };
     if spec.is_empty() {
         return Ok(d);
     }
+    let (spec, visibility) = match spec.strip_suffix('v') {
+        Some(s) => (s, true),
+        None => (spec, false),
+    };
+    let d = BlendSettings { visibility, ..d };
     let p: Vec<&str> = spec.split('x').collect();
     anyhow::ensure!(p.len() == 3, "`{spec}` is not a set: use PLANESxVIEWSxSPAN, e.g. 7x2x1.6");
     let s = BlendSettings { planes: p[0].parse()?, views: p[1].parse()?, span: p[2].parse()?, ..d };
@@ -84,13 +91,24 @@ fn cache(args: &mut Vec<String>) -> anyhow::Result<()> {
             let common::Fitted { ex, photos, gaussians: g, .. } = common::fitted_on(&model, arg, &dev)?;
             let refs: Vec<&[f32]> = photos.iter().map(|p| p.data.as_slice()).collect();
             let mut xs: Vec<Vec<Tensor>> = vec![Vec::new(); sets.len()];
+            let ctx: Vec<Vec<f32>> = if sets.iter().any(|(_, bs)| bs.visibility) {
+                ex.context_cameras
+                    .iter()
+                    .map(|c| -> anyhow::Result<Vec<f32>> {
+                        let r = mvsplat360_splat::render(&g, &raster_camera(c, near as f32, far as f32), &RenderOptions::default())?;
+                        Ok(depth_map(&r.depth.flatten_all()?.to_vec1()?, &r.alpha.flatten_all()?.to_vec1()?))
+                    })
+                    .collect::<anyhow::Result<_>>()?
+            } else {
+                Vec::new()
+            };
             for t in &ex.target_cameras {
                 let r = mvsplat360_splat::render(&g, &raster_camera(t, near as f32, far as f32), &RenderOptions::default())?;
                 let rgb: Vec<f32> = r.rgb.clamp(0f32, 1f32)?.flatten_all()?.to_vec1()?;
                 let a: Vec<f32> = r.alpha.flatten_all()?.to_vec1()?;
                 let d: Vec<f32> = r.depth.flatten_all()?.to_vec1()?;
                 for ((_, bs), xs) in sets.iter().zip(xs.iter_mut()) {
-                    let x = candidates(bs, t, &rgb, &a, &d, &ex.context_cameras, &refs, near, far);
+                    let x = candidates(bs, t, &rgb, &a, &d, &ex.context_cameras, &refs, &ctx, near, far);
                     xs.push(Tensor::from_vec(x, (bs.channels(), h as usize, w as usize), &Device::Cpu)?);
                 }
             }

@@ -196,9 +196,10 @@ pub fn scene_inputs(req: &BlendRequest, scene: &Path, progress: &dyn Progress) -
     let p = crate::scenes::protocol_prepared(scene, model)?;
     let g = render::encode(&p, progress)?;
     let (g, _) = render::fit_to_context(&p, g, progress)?;
+    let ctx = render::blend_context_depths(&p, &g, &req.layout)?;
     let (mut xs, mut ts) = (Vec::new(), Vec::new());
     for (c, photo) in p.target_cameras.iter().zip(&p.target_photos) {
-        let (_, x) = render::blend_input(&p, &g, &req.layout, c)?;
+        let (_, x) = render::blend_input(&p, &g, &req.layout, &ctx, c)?;
         let (h, w) = (c.height as usize, c.width as usize);
         xs.push(Tensor::from_vec(x, (req.layout.channels(), h, w), &Device::Cpu)?);
         let photo = photo.as_ref().ok_or_else(|| data_err(format!("{}: a target without a photo", scene.display())))?;
@@ -221,11 +222,16 @@ fn cache_settings(req: &BlendRequest) -> Result<serde_json::Value> {
     if let Some(o) = cfg.as_object_mut() {
         o.remove("blend");
     }
+    let mut layout = serde_json::json!({ "planes": req.layout.planes, "views": req.layout.views, "span": req.layout.span });
+    // Only when set, so caches made before the setting existed stay valid.
+    if req.layout.visibility {
+        layout["visibility"] = true.into();
+    }
     Ok(serde_json::json!({
         "model_config": cfg,
         "model_weights_fnv1a": format!("{hash:016x}"),
         "fit_steps": req.fit_steps,
-        "layout": { "planes": req.layout.planes, "views": req.layout.views, "span": req.layout.span },
+        "layout": layout,
     }))
 }
 

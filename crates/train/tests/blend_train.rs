@@ -25,7 +25,7 @@ fn request(model: &Path, out: &Path, steps: u64) -> BlendRequest {
         compute: Default::default(),
         train: vec![SceneSource::Procedural { first: 5, last: 5 }],
         val: vec![],
-        layout: BlendSettings { planes: 3, views: 2, span: 1.6, width: 4 },
+        layout: BlendSettings { planes: 3, views: 2, span: 1.6, width: 4, visibility: false },
         steps,
         lr: 1e-2,
         batch: 2,
