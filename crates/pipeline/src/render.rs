@@ -342,12 +342,11 @@ pub fn blend_input(
     c: &Camera,
 ) -> Result<(mvsplat360_splat::RenderOutput, Vec<f32>)> {
     let (near, far) = (p.spec.encoder.near, p.spec.encoder.far);
-    let vec = host_vec;
     let r = rasterize(g, &raster_camera(c, near, far), &RenderOptions::default()).map_err(compute("rasterizer"))?;
     check_finite("rasterizer", &r.rgb)?;
-    let rgb = vec(&r.rgb.clamp(0f32, 1f32).map_err(compute("rasterizer"))?)?;
+    let rgb = host_vec(&r.rgb.clamp(0f32, 1f32).map_err(compute("rasterizer"))?)?;
     let photos: Vec<&[f32]> = p.context_images.iter().map(|im| im.data.as_slice()).collect();
-    let x = crate::blend::candidates(s, c, &rgb, &vec(&r.alpha)?, &vec(&r.depth)?, &p.context_cameras, &photos, ctx, near as f64, far as f64);
+    let x = crate::blend::candidates(s, c, &rgb, &host_vec(&r.alpha)?, &host_vec(&r.depth)?, &p.context_cameras, &photos, ctx, near as f64, far as f64);
     Ok((r, x))
 }
 
