@@ -10,7 +10,7 @@
 //! folder every `--every` steps; `--save` writes its weights (keys `blend.*`).
 //!
 //!     cargo run --release -p mvsplat360-train --example blend -- cache CONFIG.toml MODEL_DIR OUT_DIR SEED|DIR…
-//!         [--device cpu|cuda] [--sets 7x2x1.6,9x3x1.6]
+//!         [--device cpu|cuda] [--sets 7x2x1.6,9x3x1.6] [--truth]
 //!     cargo run --release -p mvsplat360-train --example blend -- train TRAIN_DIR VAL_DIR [--steps 1000]
 //!         [--lr 1e-3] [--batch 8] [--width 16] [--set 7x2x1.6] [--every 100] [--seed 1] [--device cpu|cuda]
 //!         [--save NET.safetensors] [--init NET.safetensors]
@@ -21,7 +21,9 @@
 //! a factor S either side of the rendered depth (the default, `BlendSettings::default()`, is 7x2x1.6); `PxVxSv`
 //! adds the visibility channels (`BlendSettings::visibility`). Without
 //! `--sets`, `cache` writes the default layout into OUT_DIR; with it, one folder OUT_DIR/PxVxS per set, all from
-//! the same fit. `add` writes a copy of a model folder with the blender's weights and its `blend` settings added.
+//! the same fit. `--truth` (an oracle, for the ceiling of blending): the candidates are lifted around each target
+//! pixel's *true* depth (opacity 1 where known) and the visibility channels read the context views' true depths;
+//! only scenes that know their depths. `add` writes a copy of a model folder with the blender's weights and its `blend` settings added.
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -62,6 +64,7 @@ fn device(spec: &str) -> anyhow::Result<Device> {
 fn cache(args: &mut Vec<String>) -> anyhow::Result<()> {
     let dev = device(&common::take_flag(args, "--device", "cpu"))?;
     let specs = common::take_flag(args, "--sets", "");
+    let truth = args.iter().position(|a| a == "--truth").map(|i| args.remove(i)).is_some();
     anyhow::ensure!(args.len() >= 4, "usage: blend cache CONFIG.toml MODEL_DIR OUT_DIR SEED|DIR… [--device D] [--sets LIST]");
     let out = PathBuf::from(&args[2]);
     let sets: Vec<(PathBuf, BlendSettings)> = if specs.is_empty() {
@@ -88,10 +91,14 @@ fn cache(args: &mut Vec<String>) -> anyhow::Result<()> {
         }
         let t0 = std::time::Instant::now();
         let one = || -> anyhow::Result<usize> {
-            let common::Fitted { ex, photos, gaussians: g, .. } = common::fitted_on(&model, arg, &dev)?;
+            let fitted = common::fitted_on(&model, arg, &dev)?;
+            let oracle = if truth { Some(common::true_z(&fitted).ok_or_else(|| anyhow::anyhow!("--truth: {arg} has no depths"))?) } else { None };
+            let common::Fitted { ex, photos, gaussians: g, .. } = fitted;
             let refs: Vec<&[f32]> = photos.iter().map(|p| p.data.as_slice()).collect();
             let mut xs: Vec<Vec<Tensor>> = vec![Vec::new(); sets.len()];
-            let ctx: Vec<Vec<f32>> = if sets.iter().any(|(_, bs)| bs.visibility) {
+            let ctx: Vec<Vec<f32>> = if let Some((c, _)) = &oracle {
+                c.iter().map(|z| z.iter().map(|&z| if z.is_finite() && z > 0.0 { z } else { f32::NAN }).collect()).collect()
+            } else if sets.iter().any(|(_, bs)| bs.visibility) {
                 ex.context_cameras
                     .iter()
                     .map(|c| -> anyhow::Result<Vec<f32>> {
@@ -102,11 +109,14 @@ fn cache(args: &mut Vec<String>) -> anyhow::Result<()> {
             } else {
                 Vec::new()
             };
-            for t in &ex.target_cameras {
+            for (k, t) in ex.target_cameras.iter().enumerate() {
                 let r = mvsplat360_splat::render(&g, &raster_camera(t, near as f32, far as f32), &RenderOptions::default())?;
                 let rgb: Vec<f32> = r.rgb.clamp(0f32, 1f32)?.flatten_all()?.to_vec1()?;
-                let a: Vec<f32> = r.alpha.flatten_all()?.to_vec1()?;
-                let d: Vec<f32> = r.depth.flatten_all()?.to_vec1()?;
+                let (a, d): (Vec<f32>, Vec<f32>) = match &oracle {
+                    // Σ w·z with alpha 1 is the depth itself; unknown depths get alpha 0 (log-uniform planes).
+                    Some((_, zt)) => zt[k].iter().map(|&z| if z.is_finite() && z > 0.0 { (1.0, z) } else { (0.0, 0.0) }).unzip(),
+                    None => (r.alpha.flatten_all()?.to_vec1()?, r.depth.flatten_all()?.to_vec1()?),
+                };
                 for ((_, bs), xs) in sets.iter().zip(xs.iter_mut()) {
                     let x = candidates(bs, t, &rgb, &a, &d, &ex.context_cameras, &refs, &ctx, near, far);
                     xs.push(Tensor::from_vec(x, (bs.channels(), h as usize, w as usize), &Device::Cpu)?);

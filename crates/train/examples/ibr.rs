@@ -6,9 +6,13 @@
 //! as a third depth source. Columns: render, IBR with the rendered depth, IBR with the swept depth (without and
 //! with visibility), the swept IBR averaged with the render, IBR with the true depth, and the mean |ln z − ln z_true|
 //! of the rendered and the swept depths (the last three only where the scene knows its depths).
+//! `--noise S1,S2,…` adds one column per level: IBR with the true depth times exp(S·n), n a standard normal field
+//! drawn on a grid of `--noise-cell` pixels and bilinearly interpolated (1: independent per pixel) — how exact the
+//! depth must be for the true-depth figure. `--no-sweep` skips the sweep columns (the slow part).
 //!
 //!     cargo run --release -p mvsplat360-train --example ibr -- CONFIG.toml MODEL_DIR [--sigma 5] [--tol 0.05]
-//!         [--span 2] [--planes 33] [--win 2] [--lambda 0.002] [--cost-sigma 30] SEED|DIR…
+//!         [--span 2] [--planes 33] [--win 2] [--lambda 0.002] [--cost-sigma 30] [--noise S,…]
+//!         [--noise-cell 8] [--no-sweep] SEED|DIR…
 
 use candle_core::IndexOp;
 use mvsplat360_camera::Camera;
@@ -167,14 +171,18 @@ fn psnr(a: &[f32], b: &[f32]) -> f64 {
     mvsplat360_metrics::psnr::psnr(&a, b)
 }
 
-/// z-depth from a ray distance map of `cam`.
-fn ray_to_z(cam: &Camera, dist: &[f32]) -> Vec<f32> {
-    let (w, h) = (cam.width as usize, cam.height as usize);
+/// `z` times exp(`s`·n) where n is a standard normal field on a grid of `cell` pixels, bilinearly interpolated.
+fn perturb(z: &[f32], w: usize, h: usize, s: f64, cell: usize, rng: &mut impl rand::Rng) -> Vec<f32> {
+    let (gw, gh) = (w.div_ceil(cell) + 1, h.div_ceil(cell) + 1);
+    let grid: Vec<f64> = (0..gw * gh).map(|_| rng.sample::<f64, _>(rand_distr::StandardNormal)).collect();
     (0..w * h)
         .map(|i| {
-            let (px, py) = ((i % w) as f64 + 0.5, (i / w) as f64 + 0.5);
-            let n = (((px - cam.cx) / cam.fx).powi(2) + ((py - cam.cy) / cam.fy).powi(2) + 1.0).sqrt();
-            (dist[i] as f64 / n) as f32
+            let (x, y) = ((i % w) as f64 / cell as f64, (i / w) as f64 / cell as f64);
+            let (x0, y0) = (x.floor() as usize, y.floor() as usize);
+            let (fx, fy) = (x - x0 as f64, y - y0 as f64);
+            let g = |a: usize, b: usize| grid[b * gw + a];
+            let n = (1.0 - fy) * ((1.0 - fx) * g(x0, y0) + fx * g(x0 + 1, y0)) + fy * ((1.0 - fx) * g(x0, y0 + 1) + fx * g(x0 + 1, y0 + 1));
+            (z[i] as f64 * (s * n).exp()) as f32
         })
         .collect()
 }
@@ -190,17 +198,25 @@ fn main() -> anyhow::Result<()> {
     let win: usize = take("--win", "2").parse()?;
     let lambda: f64 = take("--lambda", "0.002").parse()?;
     let csigma: f64 = take("--cost-sigma", "30").parse()?;
+    let noise: Vec<f64> = take("--noise", "").split(',').filter(|x| !x.is_empty()).map(|x| x.parse()).collect::<Result<_, _>>()?;
+    let cell: usize = take("--noise-cell", "8").parse::<usize>()?.max(1);
+    let no_sweep = args.iter().position(|a| a == "--no-sweep").map(|i| args.remove(i)).is_some();
+    let mut rng = <rand::rngs::StdRng as rand::SeedableRng>::seed_from_u64(7);
     anyhow::ensure!(args.len() >= 3, "usage: ibr CONFIG.toml MODEL_DIR [flags] SEED|DIR…");
     let model = Model::encoder_with_weights(args[0].as_ref(), args[1].as_ref())?;
     let cfg = model.cfg.clone();
     let (near, far) = (cfg.model.near, cfg.model.far);
     let factors: Vec<f64> = (0..planes).map(|k| span.powf(2.0 * k as f64 / (planes - 1) as f64 - 1.0)).collect();
-    let names = ["render", "ibr-render-z", "ibr-sweep", "ibr-sweep-vis", "blend", "oracle-ibr", "zerr-render", "zerr-sweep"];
+    let mut names: Vec<String> =
+        ["render", "ibr-render-z", "ibr-sweep", "ibr-sweep-vis", "blend", "oracle-ibr", "zerr-render", "zerr-sweep"].map(String::from).to_vec();
+    names.extend(noise.iter().map(|s| format!("oracle-ibr-noise-{s}")));
     let mut sums = vec![0f64; names.len()];
     let mut nscenes = vec![0usize; names.len()];
     println!("columns: {names:?}");
     for arg in &args[2..] {
-        let common::Fitted { scene, views: v, label, ex, photos, gaussians: g } = common::fitted(&model, arg)?;
+        let fitted = common::fitted(&model, arg)?;
+        let truth = common::true_z(&fitted);
+        let common::Fitted { label, ex, photos, gaussians: g, .. } = fitted;
         let zmap = |c: &Camera, min_alpha: f32| -> anyhow::Result<(Vec<f32>, Vec<f32>)> {
             let r = mvsplat360_splat::render(&g, &raster_camera(c, near, far), &RenderOptions::default())?;
             let a: Vec<f32> = r.alpha.flatten_all()?.to_vec1()?;
@@ -214,16 +230,8 @@ fn main() -> anyhow::Result<()> {
             .zip(&photos)
             .map(|(c, p)| Ok(View { cam: c.clone(), img: p.data.clone(), z: zmap(c, 0.5)?.0 }))
             .collect::<anyhow::Result<_>>()?;
-        // Oracle: true depths scaled as the example scaled the scene (ratio of two camera distances).
-        let oracle = scene.depths.as_ref().map(|d| {
-            let (a, b) = (&scene.cameras[v.context[0]], &scene.cameras[v.context[1]]);
-            let s = (ex.context_cameras[0].center() - ex.context_cameras[1].center()).norm() / (a.center() - b.center()).norm();
-            let scaled: Vec<Vec<f32>> = d.iter().map(|x| x.iter().map(|&y| (y as f64 * s) as f32).collect()).collect();
-            scaled
-        });
-        let oviews: Option<Vec<View>> = oracle
-            .as_ref()
-            .map(|d| views.iter().zip(&v.context).map(|(vw, &i)| View { cam: vw.cam.clone(), img: vw.img.clone(), z: ray_to_z(&vw.cam, &d[i]) }).collect());
+        let oviews: Option<Vec<View>> =
+            truth.as_ref().map(|(zc, _)| views.iter().zip(zc).map(|(vw, z)| View { cam: vw.cam.clone(), img: vw.img.clone(), z: z.clone() }).collect());
         let mut row = vec![0f64; names.len()];
         let n = ex.target_cameras.len();
         for (k, t) in ex.target_cameras.iter().enumerate() {
@@ -231,22 +239,30 @@ fn main() -> anyhow::Result<()> {
             let (z, rgb) = zmap(t, 0.5)?;
             row[0] += psnr(&rgb, &photo);
             row[1] += psnr(&warp(t, &z, &views, sigma, tol, &rgb).0, &photo);
-            let zs = sweep(t, &z, &views, &factors, (near as f64, far as f64), win, lambda, csigma);
-            let im = warp(t, &zs, &views, sigma, f32::INFINITY, &rgb).0;
-            row[2] += psnr(&im, &photo);
-            row[3] += psnr(&warp(t, &zs, &views, sigma, tol, &rgb).0, &photo);
-            let blend: Vec<f32> = im.iter().zip(&rgb).map(|(a, b)| 0.5 * (a + b)).collect();
-            row[4] += psnr(&blend, &photo);
-            if let (Some(d), Some(ov)) = (&oracle, &oviews) {
-                let zt = ray_to_z(t, &d[v.target[k]]);
-                row[5] += psnr(&warp(t, &zt, ov, sigma, tol, &rgb).0, &photo);
-                row[6] += log_err(&z, &zt);
-                row[7] += log_err(&zs, &zt);
+            let zs = if no_sweep { vec![f32::NAN; z.len()] } else { sweep(t, &z, &views, &factors, (near as f64, far as f64), win, lambda, csigma) };
+            if no_sweep {
+                row[2..5].fill(f64::NAN);
+            } else {
+                let im = warp(t, &zs, &views, sigma, f32::INFINITY, &rgb).0;
+                row[2] += psnr(&im, &photo);
+                row[3] += psnr(&warp(t, &zs, &views, sigma, tol, &rgb).0, &photo);
+                let blend: Vec<f32> = im.iter().zip(&rgb).map(|(a, b)| 0.5 * (a + b)).collect();
+                row[4] += psnr(&blend, &photo);
+            }
+            if let (Some((_, zts)), Some(ov)) = (&truth, &oviews) {
+                let zt = &zts[k];
+                row[5] += psnr(&warp(t, zt, ov, sigma, tol, &rgb).0, &photo);
+                row[6] += log_err(&z, zt);
+                row[7] += if no_sweep { f64::NAN } else { log_err(&zs, zt) };
+                for (j, &s) in noise.iter().enumerate() {
+                    let zn = perturb(zt, t.width as usize, t.height as usize, s, cell, &mut rng);
+                    row[8 + j] += psnr(&warp(t, &zn, ov, sigma, tol, &rgb).0, &photo);
+                }
             }
         }
         print!("{label}:");
         for (j, x) in row.iter().enumerate() {
-            if j >= 5 && oracle.is_none() {
+            if j >= 5 && truth.is_none() {
                 continue;
             }
             sums[j] += x / n as f64;

@@ -53,3 +53,27 @@ pub fn fitted_on(model: &mvsplat360_train::trainer::Model, arg: &str, dev: &cand
     let (gaussians, _) = mvsplat360_pipeline::fit::fit(&g0, &ex.context_cameras, &photos, cfg.near, cfg.far, &fs, &mvsplat360_pipeline::render::Silent)?;
     Ok(Fitted { scene, views, label, ex, photos, gaussians })
 }
+
+/// z-depth from a ray distance map of `cam`.
+pub fn ray_to_z(cam: &mvsplat360_camera::Camera, dist: &[f32]) -> Vec<f32> {
+    let (w, h) = (cam.width as usize, cam.height as usize);
+    (0..w * h)
+        .map(|i| {
+            let (px, py) = ((i % w) as f64 + 0.5, (i / w) as f64 + 0.5);
+            let n = (((px - cam.cx) / cam.fx).powi(2) + ((py - cam.cy) / cam.fy).powi(2) + 1.0).sqrt();
+            (dist[i] as f64 / n) as f32
+        })
+        .collect()
+}
+
+/// The scene's true z-depth maps of the example's context and target views (in that order), scaled as the
+/// example scaled the scene (the ratio of two context cameras' distances); `None` where the scene has no depths.
+pub fn true_z(f: &Fitted) -> Option<(Vec<Vec<f32>>, Vec<Vec<f32>>)> {
+    let d = f.scene.depths.as_ref()?;
+    let (a, b) = (&f.scene.cameras[f.views.context[0]], &f.scene.cameras[f.views.context[1]]);
+    let s = (f.ex.context_cameras[0].center() - f.ex.context_cameras[1].center()).norm() / (a.center() - b.center()).norm();
+    let z = |cam: &mvsplat360_camera::Camera, i: usize| -> Vec<f32> { ray_to_z(cam, &d[i]).into_iter().map(|z| (z as f64 * s) as f32).collect() };
+    let ctx = f.ex.context_cameras.iter().zip(&f.views.context).map(|(c, &i)| z(c, i)).collect();
+    let tgt = f.ex.target_cameras.iter().zip(&f.views.target).map(|(c, &i)| z(c, i)).collect();
+    Some((ctx, tgt))
+}
