@@ -23,7 +23,8 @@
 //! `--sets`, `cache` writes the default layout into OUT_DIR; with it, one folder OUT_DIR/PxVxS per set, all from
 //! the same fit. `--truth` (an oracle, for the ceiling of blending): the candidates are lifted around each target
 //! pixel's *true* depth (opacity 1 where known) and the visibility channels read the context views' true depths;
-//! only scenes that know their depths. `add` writes a copy of a model folder with the blender's weights and its `blend` settings added.
+//! only scenes that know their depths. `add` writes a copy of a model folder with the blender's weights and its
+//! `blend` settings added.
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -65,7 +66,7 @@ fn cache(args: &mut Vec<String>) -> anyhow::Result<()> {
     let dev = device(&common::take_flag(args, "--device", "cpu"))?;
     let specs = common::take_flag(args, "--sets", "");
     let truth = args.iter().position(|a| a == "--truth").map(|i| args.remove(i)).is_some();
-    anyhow::ensure!(args.len() >= 4, "usage: blend cache CONFIG.toml MODEL_DIR OUT_DIR SEED|DIR… [--device D] [--sets LIST]");
+    anyhow::ensure!(args.len() >= 4, "usage: blend cache CONFIG.toml MODEL_DIR OUT_DIR SEED|DIR… [--device D] [--sets LIST] [--truth]");
     let out = PathBuf::from(&args[2]);
     let sets: Vec<(PathBuf, BlendSettings)> = if specs.is_empty() {
         vec![(out.clone(), BlendSettings::default())]
