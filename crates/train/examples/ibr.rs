@@ -239,21 +239,21 @@ fn main() -> anyhow::Result<()> {
             let (z, rgb) = zmap(t, 0.5)?;
             row[0] += psnr(&rgb, &photo);
             row[1] += psnr(&warp(t, &z, &views, sigma, tol, &rgb).0, &photo);
-            let zs = if no_sweep { vec![f32::NAN; z.len()] } else { sweep(t, &z, &views, &factors, (near as f64, far as f64), win, lambda, csigma) };
-            if no_sweep {
-                row[2..5].fill(f64::NAN);
-            } else {
-                let im = warp(t, &zs, &views, sigma, f32::INFINITY, &rgb).0;
+            let zs = (!no_sweep).then(|| sweep(t, &z, &views, &factors, (near as f64, far as f64), win, lambda, csigma));
+            if let Some(zs) = &zs {
+                let im = warp(t, zs, &views, sigma, f32::INFINITY, &rgb).0;
                 row[2] += psnr(&im, &photo);
-                row[3] += psnr(&warp(t, &zs, &views, sigma, tol, &rgb).0, &photo);
+                row[3] += psnr(&warp(t, zs, &views, sigma, tol, &rgb).0, &photo);
                 let blend: Vec<f32> = im.iter().zip(&rgb).map(|(a, b)| 0.5 * (a + b)).collect();
                 row[4] += psnr(&blend, &photo);
+            } else {
+                row[2..5].fill(f64::NAN);
             }
             if let (Some((_, zts)), Some(ov)) = (&truth, &oviews) {
                 let zt = &zts[k];
                 row[5] += psnr(&warp(t, zt, ov, sigma, tol, &rgb).0, &photo);
                 row[6] += log_err(&z, zt);
-                row[7] += if no_sweep { f64::NAN } else { log_err(&zs, zt) };
+                row[7] += zs.as_ref().map_or(f64::NAN, |zs| log_err(zs, zt));
                 for (j, &s) in noise.iter().enumerate() {
                     let zn = perturb(zt, t.width as usize, t.height as usize, s, cell, &mut rng);
                     row[8 + j] += psnr(&warp(t, &zn, ov, sigma, tol, &rgb).0, &photo);
