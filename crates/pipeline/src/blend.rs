@@ -198,6 +198,17 @@ impl BlendNet {
     /// Blends a batch of [`candidates`] (N,C,H,W) into frames (N,3,H,W) (not clamped).
     pub fn forward(&self, x: &Tensor) -> candle_core::Result<Tensor> {
         let (n, _, h, w) = x.dims4()?;
+        let (wts, residual) = self.heads(x)?;
+        let k = self.ncand;
+        let cands = Tensor::cat(&[x.narrow(1, 0, 3)?, x.narrow(1, 4, 3 * (k - 1))?], 1)?.reshape((n, k, 3, h, w))?;
+        let pick = cands.broadcast_mul(&wts.unsqueeze(2)?)?.sum(1)?;
+        pick + residual
+    }
+
+    /// The two heads for a batch of [`candidates`]: the softmax weights of the candidates (N,1+views·planes,H,W;
+    /// the render first, then the candidates in their input order) and the RGB residual (N,3,H,W).
+    pub fn heads(&self, x: &Tensor) -> candle_core::Result<(Tensor, Tensor)> {
+        let (_, _, h, w) = x.dims4()?;
         let y0 = self.inp.forward(&(x - 0.5)?)?.gelu()?;
         let y0 = self.a.forward(&y0)?.gelu()?;
         let mut y = y0.avg_pool2d(2)?;
@@ -211,9 +222,7 @@ impl BlendNet {
         let k = self.ncand;
         let bias = Tensor::from_vec((0..k).map(|i| if i == 0 { 2f32 } else { 0.0 }).collect(), (1, k, 1, 1), x.device())?;
         let wts = candle_nn::ops::softmax(&o.narrow(1, 0, k)?.broadcast_add(&bias)?, 1)?;
-        let cands = Tensor::cat(&[x.narrow(1, 0, 3)?, x.narrow(1, 4, 3 * (k - 1))?], 1)?.reshape((n, k, 3, h, w))?;
-        let pick = cands.broadcast_mul(&wts.unsqueeze(2)?)?.sum(1)?;
-        pick + o.narrow(1, k, 3)?
+        Ok((wts, o.narrow(1, k, 3)?))
     }
 
     /// The blender of a model's weights file (keys `blend.*`).

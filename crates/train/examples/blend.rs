@@ -16,6 +16,7 @@
 //!         [--save NET.safetensors] [--init NET.safetensors]
 //!     cargo run --release -p mvsplat360-train --example blend -- add MODEL_DIR NET.safetensors OUT_DIR
 //!         [--width 16] [--set 7x2x1.6]
+//!     cargo run --release -p mvsplat360-train --example blend -- depth CONFIG.toml MODEL_DIR SCENE…
 //!
 //! A set `PxVxS` is the candidates' layout: P depth planes for each of the V nearest context views, spread over
 //! a factor S either side of the rendered depth (the default, `BlendSettings::default()`, is 7x2x1.6); `PxVxSv`
@@ -24,7 +25,10 @@
 //! the same fit. `--truth` (an oracle, for the ceiling of blending): the candidates are lifted around each target
 //! pixel's *true* depth (opacity 1 where known) and the visibility channels read the context views' true depths;
 //! only scenes that know their depths. `add` writes a copy of a model folder with the blender's weights and its
-//! `blend` settings added.
+//! `blend` settings added. `depth` (a diagnostic, on scenes that know their depths) scores against the true
+//! z-depths: the encoder's (alone, and averaged with its run on the mirrored example) and the fitted Gaussians'
+//! depth at the context views, and at the targets the rendered depth, the median depth, the nearest of the
+//! candidate planes and the depth the model's blender implies.
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -276,15 +280,194 @@ fn add(args: &mut Vec<String>) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// The median z-depth of each pixel (where the accumulated opacity first reaches half of the pixel's alpha),
+/// from one rasterization whose features are indicators [z_gaussian < τ] for `k` thresholds τ log-spaced in
+/// near…far, interpolated in ln τ; NaN where alpha < 0.5.
+fn median_depth(g: &mvsplat360_splat::Gaussians, cam: &mvsplat360_splat::RasterCamera, near: f64, far: f64, k: usize) -> anyhow::Result<Vec<f32>> {
+    let n = g.means.dim(0)?;
+    let means: Vec<f32> = g.means.flatten_all()?.to_vec1()?;
+    let cov: Vec<f32> = g.covariances.flatten_all()?.to_vec1()?;
+    let cov6: Vec<f32> = cov.chunks_exact(9).flat_map(|c| [c[0], c[1], c[2], c[4], c[5], c[8]]).collect();
+    let op: Vec<f32> = g.opacities.flatten_all()?.to_vec1()?;
+    let sh = vec![0f32; 3 * n];
+    let v = cam.viewmatrix;
+    let tau: Vec<f64> = (0..k).map(|i| near * (far / near).powf(i as f64 / (k - 1) as f64)).collect();
+    let mut feats = vec![0f32; k * n];
+    for i in 0..n {
+        let p = &means[3 * i..3 * i + 3];
+        let z = (v[2][0] * p[0] + v[2][1] * p[1] + v[2][2] * p[2] + v[2][3]) as f64;
+        for (j, &t) in tau.iter().enumerate() {
+            feats[k * i + j] = if z < t { 1.0 } else { 0.0 };
+        }
+    }
+    let inp = mvsplat360_splat::RasterInputs {
+        means: &means,
+        cov: mvsplat360_splat::CovInput::Cov3d(&cov6),
+        opacities: &op,
+        sh: &sh,
+        sh_coeffs: 1,
+        sh_degree: 0,
+        features: &feats,
+        num_features: k,
+    };
+    let out = mvsplat360_splat::cpu::forward(&inp, &mvsplat360_splat::RasterSettings { camera: *cam, background: [0.0; 3] })?;
+    let hw = out.width * out.height;
+    Ok((0..hw)
+        .map(|i| {
+            let a = out.alpha[i];
+            if a < 0.5 {
+                return f32::NAN;
+            }
+            let half = 0.5 * a;
+            let f = |j: usize| out.features[j * hw + i];
+            match (0..k).find(|&j| f(j) >= half) {
+                Some(0) => tau[0] as f32,
+                Some(j) => {
+                    let (f0, f1) = (f(j - 1), f(j));
+                    let u = ((half - f0) / (f1 - f0).max(1e-9)) as f64;
+                    (tau[j - 1].ln() * (1.0 - u) + tau[j].ln() * u).exp() as f32
+                }
+                None => far as f32,
+            }
+        })
+        .collect())
+}
+
+/// Depth errors against the truth (mean |ln ratio|, true depths within near…far): the encoder's (also averaged
+/// in ln z with its run on the mirrored example) and the fitted Gaussians' at the context views; at the targets the rendered (Σ w·z / alpha) and median depth and the nearest
+/// candidate plane (the layout's quantisation), and where the candidates carry at least half of the blender's
+/// weight the depth its weights imply (averaged in ln z) against the rendered one.
+fn depth(args: &mut Vec<String>) -> anyhow::Result<()> {
+    anyhow::ensure!(args.len() >= 3, "usage: blend depth CONFIG.toml MODEL_DIR SCENE…");
+    let model = Model::encoder_with_weights_on(args[0].as_ref(), args[1].as_ref(), &Device::Cpu)?;
+    let spec = mvsplat360_pipeline::model::read_model_dir(Path::new(&args[1]))?;
+    let (bs, wf) = spec.blend.ok_or_else(|| anyhow::anyhow!("{}: the model has no blender", args[1]))?;
+    let net = BlendNet::load(&wf, &bs, &Device::Cpu)?;
+    let cfg = model.cfg.clone();
+    let (w, h) = (cfg.model.width as usize, cfg.model.height as usize);
+    let (near, far) = (cfg.model.near as f64, cfg.model.far as f64);
+    // Sums: pixels, |ln| of the render, of the nearest plane, blended pixels, render and implied |ln| there, median.
+    let report = |label: &str, a: &[f64; 7]| {
+        println!(
+            "{label}: render |ln| {:.3}, median {:.3}, best plane {:.3}; {:.0} % of pixels blended, there render {:.3} implied {:.3}",
+            a[1] / a[0],
+            a[6] / a[0],
+            a[2] / a[0],
+            100.0 * a[3] / a[0],
+            a[4] / a[3].max(1.0),
+            a[5] / a[3].max(1.0)
+        )
+    };
+    let mut tot = [0f64; 7];
+    for arg in &args[2..] {
+        let fitted = common::fitted_on(&model, arg, &Device::Cpu)?;
+        let (zc, zt) = common::true_z(&fitted).ok_or_else(|| anyhow::anyhow!("{arg} has no depths"))?;
+        let g0 = mvsplat360_train::trainer::render_example_full(&model, &fitted.ex)?.gaussians;
+        // Test-time augmentation: the encoder on the mirrored example, its context depths mirrored back.
+        let mut vf = fitted.views.clone();
+        vf.flip = true;
+        let exf = mvsplat360_train::trainer::example_from_views(&fitted.scene, &vf, cfg.model.near, cfg.model.far)?;
+        let gf = mvsplat360_train::trainer::render_example_full(&model, &exf)?.gaussians;
+        {
+            let (mut n, mut e0, mut e1, mut e2) = (0f64, 0f64, 0f64, 0f64);
+            for ((c, cf), z) in fitted.ex.context_cameras.iter().zip(&exf.context_cameras).zip(&zc) {
+                let dm = |gg: &mvsplat360_splat::Gaussians, cam| -> anyhow::Result<Vec<f32>> {
+                    let r = mvsplat360_splat::render(gg, &raster_camera(cam, near as f32, far as f32), &RenderOptions::default())?;
+                    Ok(depth_map(&r.depth.flatten_all()?.to_vec1()?, &r.alpha.flatten_all()?.to_vec1()?))
+                };
+                let (d0, df) = (dm(&g0, c)?, dm(&gf, cf)?);
+                for (i, &t) in z.iter().enumerate() {
+                    let (x, y) = (i % w, i / w);
+                    let (a, b) = (d0[i], df[y * w + (w - 1 - x)]);
+                    if a.is_finite() && a > 0.0 && b.is_finite() && b > 0.0 && t.is_finite() && (near..=far).contains(&(t as f64)) {
+                        let lt = (t as f64).ln();
+                        n += 1.0;
+                        e0 += ((a as f64).ln() - lt).abs();
+                        e1 += ((b as f64).ln() - lt).abs();
+                        e2 += (0.5 * ((a as f64).ln() + (b as f64).ln()) - lt).abs();
+                    }
+                }
+            }
+            println!("{label0}: context depths: encoder {:.3}, mirrored {:.3}, mean of both {:.3}", e0 / n, e1 / n, e2 / n, label0 = fitted.label);
+        }
+        let common::Fitted { ex, photos, gaussians: g, label, .. } = fitted;
+        for (name, gg) in [("encoder", &g0), ("fitted", &g)] {
+            let (mut n, mut e) = (0f64, 0f64);
+            for (c, z) in ex.context_cameras.iter().zip(&zc) {
+                let r = mvsplat360_splat::render(gg, &raster_camera(c, near as f32, far as f32), &RenderOptions::default())?;
+                let dm = depth_map(&r.depth.flatten_all()?.to_vec1()?, &r.alpha.flatten_all()?.to_vec1()?);
+                for (&d, &t) in dm.iter().zip(z) {
+                    if d.is_finite() && d > 0.0 && t.is_finite() && (near..=far).contains(&(t as f64)) {
+                        n += 1.0;
+                        e += ((d / t) as f64).ln().abs();
+                    }
+                }
+            }
+            println!("{label}: {name} Gaussians at the context views |ln| {:.3} on {:.0} % of pixels", e / n, 100.0 * n / (zc.len() * w * h) as f64);
+        }
+        let refs: Vec<&[f32]> = photos.iter().map(|p| p.data.as_slice()).collect();
+        let mut acc = [0f64; 7];
+        for (k, t) in ex.target_cameras.iter().enumerate() {
+            let rc = raster_camera(t, near as f32, far as f32);
+            let r = mvsplat360_splat::render(&g, &rc, &RenderOptions::default())?;
+            let rgb: Vec<f32> = r.rgb.clamp(0f32, 1f32)?.flatten_all()?.to_vec1()?;
+            let a: Vec<f32> = r.alpha.flatten_all()?.to_vec1()?;
+            let d: Vec<f32> = r.depth.flatten_all()?.to_vec1()?;
+            let med = median_depth(&g, &rc, near, far, 96)?;
+            let x = candidates(&bs, t, &rgb, &a, &d, &ex.context_cameras, &refs, &[], near, far);
+            let x = Tensor::from_vec(x, (1, bs.channels(), h, w), &Device::Cpu)?;
+            let (wts, _) = net.heads(&x)?;
+            let wts: Vec<f32> = wts.flatten_all()?.to_vec1()?;
+            let n = w * h;
+            for i in 0..n {
+                let z = zt[k][i];
+                if !(z.is_finite() && (near..=far).contains(&(z as f64))) || a[i] < 0.5 {
+                    continue;
+                }
+                let zr = (d[i] / a[i]) as f64;
+                let (mut sw, mut sl) = (0f64, 0f64);
+                let mut best = f64::INFINITY;
+                for v in 0..bs.views {
+                    for p in 0..bs.planes {
+                        let f = p as f64 / (bs.planes - 1).max(1) as f64;
+                        let lz = zr.ln() + (2.0 * f - 1.0) * bs.span.ln();
+                        let wv = wts[(1 + v * bs.planes + p) * n + i] as f64;
+                        sw += wv;
+                        sl += wv * lz;
+                        best = best.min((lz - (z as f64).ln()).abs());
+                    }
+                }
+                let lt = (z as f64).ln();
+                acc[0] += 1.0;
+                acc[1] += (zr.ln() - lt).abs();
+                acc[2] += best;
+                acc[6] += ((med[i] as f64).ln() - lt).abs();
+                if sw >= 0.5 {
+                    acc[3] += 1.0;
+                    acc[4] += (zr.ln() - lt).abs();
+                    acc[5] += ((sl / sw) - lt).abs();
+                }
+            }
+        }
+        report(&label, &acc);
+        for (t, a) in tot.iter_mut().zip(acc) {
+            *t += a;
+        }
+    }
+    report("all", &tot);
+    Ok(())
+}
+
 fn main() -> anyhow::Result<()> {
     mvsplat360_pipeline::setup::init_process();
     let mut args: Vec<String> = std::env::args().skip(1).collect();
-    anyhow::ensure!(!args.is_empty(), "usage: blend cache|train|add …");
+    anyhow::ensure!(!args.is_empty(), "usage: blend cache|train|add|depth …");
     let cmd = args.remove(0);
     match cmd.as_str() {
         "cache" => cache(&mut args),
         "train" => train(&mut args),
         "add" => add(&mut args),
-        c => anyhow::bail!("blend cache|train|add, got {c}"),
+        "depth" => depth(&mut args),
+        c => anyhow::bail!("blend cache|train|add|depth, got {c}"),
     }
 }
