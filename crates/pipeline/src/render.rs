@@ -315,20 +315,24 @@ fn host_vec(t: &Tensor) -> Result<Vec<f32>> {
     t.flatten_all().and_then(|t| t.to_vec1()).map_err(compute("rasterizer"))
 }
 
-/// The context views' depth maps that a blender with `visibility` reads (`crate::blend::depth_map` of `g`
-/// rendered at each context camera); empty without it.
-pub fn blend_context_depths(p: &Prepared, g: &Gaussians, s: &crate::blend::BlendSettings) -> Result<Vec<Vec<f32>>> {
-    if !s.visibility {
-        return Ok(Vec::new());
-    }
-    let (near, far) = (p.spec.encoder.near, p.spec.encoder.far);
-    p.context_cameras
+/// The z-depth maps of `g` rendered at `cameras` (`crate::blend::depth_map`: NaN where the opacity is below 0.5).
+pub fn depth_maps(g: &Gaussians, cameras: &[Camera], near: f32, far: f32) -> Result<Vec<Vec<f32>>> {
+    cameras
         .iter()
         .map(|c| {
             let r = rasterize(g, &raster_camera(c, near, far), &RenderOptions::default()).map_err(compute("rasterizer"))?;
             Ok(crate::blend::depth_map(&host_vec(&r.depth)?, &host_vec(&r.alpha)?))
         })
         .collect()
+}
+
+/// The context views' depth maps that a blender with `visibility` reads ([`depth_maps`] at the context
+/// cameras); empty without it.
+pub fn blend_context_depths(p: &Prepared, g: &Gaussians, s: &crate::blend::BlendSettings) -> Result<Vec<Vec<f32>>> {
+    if !s.visibility {
+        return Ok(Vec::new());
+    }
+    depth_maps(g, &p.context_cameras, p.spec.encoder.near, p.spec.encoder.far)
 }
 
 /// The rasterized Gaussians at `c` and the learned blender's input for them (`crate::blend::candidates`, layout

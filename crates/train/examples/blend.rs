@@ -35,8 +35,8 @@ use std::path::{Path, PathBuf};
 
 use candle_core::{DType, Device, IndexOp, Tensor};
 use candle_nn::{Optimizer, VarBuilder, VarMap};
-use mvsplat360_pipeline::blend::{candidates, depth_map, BlendNet, BlendSettings, PREFIX};
-use mvsplat360_pipeline::render::raster_camera;
+use mvsplat360_pipeline::blend::{candidates, BlendNet, BlendSettings, PREFIX};
+use mvsplat360_pipeline::render::{depth_maps, raster_camera};
 use mvsplat360_splat::RenderOptions;
 use mvsplat360_train::trainer::Model;
 use rand::{Rng, SeedableRng};
@@ -104,13 +104,7 @@ fn cache(args: &mut Vec<String>) -> anyhow::Result<()> {
             let ctx: Vec<Vec<f32>> = if let Some((c, _)) = &oracle {
                 c.iter().map(|z| z.iter().map(|&z| if z.is_finite() && z > 0.0 { z } else { f32::NAN }).collect()).collect()
             } else if sets.iter().any(|(_, bs)| bs.visibility) {
-                ex.context_cameras
-                    .iter()
-                    .map(|c| -> anyhow::Result<Vec<f32>> {
-                        let r = mvsplat360_splat::render(&g, &raster_camera(c, near as f32, far as f32), &RenderOptions::default())?;
-                        Ok(depth_map(&r.depth.flatten_all()?.to_vec1()?, &r.alpha.flatten_all()?.to_vec1()?))
-                    })
-                    .collect::<anyhow::Result<_>>()?
+                depth_maps(&g, &ex.context_cameras, near as f32, far as f32)?
             } else {
                 Vec::new()
             };
@@ -334,9 +328,10 @@ fn median_depth(g: &mvsplat360_splat::Gaussians, cam: &mvsplat360_splat::RasterC
 }
 
 /// Depth errors against the truth (mean |ln ratio|, true depths within near…far): the encoder's (also averaged
-/// in ln z with its run on the mirrored example) and the fitted Gaussians' at the context views; at the targets the rendered (Σ w·z / alpha) and median depth and the nearest
-/// candidate plane (the layout's quantisation), and where the candidates carry at least half of the blender's
-/// weight the depth its weights imply (averaged in ln z) against the rendered one.
+/// in ln z with its run on the mirrored example) and the fitted Gaussians' at the context views; at the targets
+/// the rendered (Σ w·z / alpha) and median depth and the nearest candidate plane (the layout's quantisation), and
+/// where the candidates carry at least half of the blender's weight the depth its weights imply (averaged in ln z)
+/// against the rendered one.
 fn depth(args: &mut Vec<String>) -> anyhow::Result<()> {
     anyhow::ensure!(args.len() >= 3, "usage: blend depth CONFIG.toml MODEL_DIR SCENE…");
     let model = Model::encoder_with_weights_on(args[0].as_ref(), args[1].as_ref(), &Device::Cpu)?;
@@ -368,34 +363,29 @@ fn depth(args: &mut Vec<String>) -> anyhow::Result<()> {
         vf.flip = true;
         let exf = mvsplat360_train::trainer::example_from_views(&fitted.scene, &vf, cfg.model.near, cfg.model.far)?;
         let gf = mvsplat360_train::trainer::render_example_full(&model, &exf)?.gaussians;
-        {
-            let (mut n, mut e0, mut e1, mut e2) = (0f64, 0f64, 0f64, 0f64);
-            for ((c, cf), z) in fitted.ex.context_cameras.iter().zip(&exf.context_cameras).zip(&zc) {
-                let dm = |gg: &mvsplat360_splat::Gaussians, cam| -> anyhow::Result<Vec<f32>> {
-                    let r = mvsplat360_splat::render(gg, &raster_camera(cam, near as f32, far as f32), &RenderOptions::default())?;
-                    Ok(depth_map(&r.depth.flatten_all()?.to_vec1()?, &r.alpha.flatten_all()?.to_vec1()?))
-                };
-                let (d0, df) = (dm(&g0, c)?, dm(&gf, cf)?);
-                for (i, &t) in z.iter().enumerate() {
-                    let (x, y) = (i % w, i / w);
-                    let (a, b) = (d0[i], df[y * w + (w - 1 - x)]);
-                    if a.is_finite() && a > 0.0 && b.is_finite() && b > 0.0 && t.is_finite() && (near..=far).contains(&(t as f64)) {
-                        let lt = (t as f64).ln();
-                        n += 1.0;
-                        e0 += ((a as f64).ln() - lt).abs();
-                        e1 += ((b as f64).ln() - lt).abs();
-                        e2 += (0.5 * ((a as f64).ln() + (b as f64).ln()) - lt).abs();
-                    }
+        let (nf, ff) = (near as f32, far as f32);
+        let encoder = depth_maps(&g0, &fitted.ex.context_cameras, nf, ff)?;
+        let mirrored = depth_maps(&gf, &exf.context_cameras, nf, ff)?;
+        let fit = depth_maps(&fitted.gaussians, &fitted.ex.context_cameras, nf, ff)?;
+        let common::Fitted { ex, photos, gaussians: g, label, .. } = fitted;
+        let (mut n, mut e0, mut e1, mut e2) = (0f64, 0f64, 0f64, 0f64);
+        for ((d0, df), z) in encoder.iter().zip(&mirrored).zip(&zc) {
+            for (i, &t) in z.iter().enumerate() {
+                let (x, y) = (i % w, i / w);
+                let (a, b) = (d0[i], df[y * w + (w - 1 - x)]);
+                if a.is_finite() && a > 0.0 && b.is_finite() && b > 0.0 && t.is_finite() && (near..=far).contains(&(t as f64)) {
+                    let lt = (t as f64).ln();
+                    n += 1.0;
+                    e0 += ((a as f64).ln() - lt).abs();
+                    e1 += ((b as f64).ln() - lt).abs();
+                    e2 += (0.5 * ((a as f64).ln() + (b as f64).ln()) - lt).abs();
                 }
             }
-            println!("{label0}: context depths: encoder {:.3}, mirrored {:.3}, mean of both {:.3}", e0 / n, e1 / n, e2 / n, label0 = fitted.label);
         }
-        let common::Fitted { ex, photos, gaussians: g, label, .. } = fitted;
-        for (name, gg) in [("encoder", &g0), ("fitted", &g)] {
+        println!("{label}: context depths: encoder {:.3}, mirrored {:.3}, mean of both {:.3}", e0 / n, e1 / n, e2 / n);
+        for (name, maps) in [("encoder", &encoder), ("fitted", &fit)] {
             let (mut n, mut e) = (0f64, 0f64);
-            for (c, z) in ex.context_cameras.iter().zip(&zc) {
-                let r = mvsplat360_splat::render(gg, &raster_camera(c, near as f32, far as f32), &RenderOptions::default())?;
-                let dm = depth_map(&r.depth.flatten_all()?.to_vec1()?, &r.alpha.flatten_all()?.to_vec1()?);
+            for (dm, z) in maps.iter().zip(&zc) {
                 for (&d, &t) in dm.iter().zip(z) {
                     if d.is_finite() && d > 0.0 && t.is_finite() && (near..=far).contains(&(t as f64)) {
                         n += 1.0;
