@@ -17,6 +17,7 @@
 //!     cargo run --release -p mvsplat360-train --example blend -- add MODEL_DIR NET.safetensors OUT_DIR
 //!         [--width 16] [--set 7x2x1.6]
 //!     cargo run --release -p mvsplat360-train --example blend -- depth CONFIG.toml MODEL_DIR SCENE…
+//!     cargo run --release -p mvsplat360-train --example blend -- loo CONFIG.toml MODEL_DIR OUT_DIR SCENE_DIR…
 //!
 //! A set `PxVxS` is the candidates' layout: P depth planes for each of the V nearest context views, spread over
 //! a factor S either side of the rendered depth (the default, `BlendSettings::default()`, is 7x2x1.6); `PxVxSv`
@@ -28,7 +29,9 @@
 //! `blend` settings added. `depth` (a diagnostic, on scenes that know their depths) scores against the true
 //! z-depths: the encoder's (alone, and averaged with its run on the mirrored example) and the fitted Gaussians'
 //! depth at the context views, and at the targets the rendered depth, the median depth, the nearest of the
-//! candidate planes and the depth the model's blender implies.
+//! candidate planes and the depth the model's blender implies. `loo` caches leave-one-out inputs in the default
+//! layout (each context view rendered from the other views' fitted Gaussians, its candidates from the other context
+//! photos, its own photo as the target), for adapting the blender to a scene with `train --init` at test time.
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -141,6 +144,46 @@ fn cache(args: &mut Vec<String>) -> anyhow::Result<()> {
     }
     anyhow::ensure!(failed == 0, "{failed} scene(s) skipped");
     println!("done");
+    Ok(())
+}
+
+/// Leave-one-out inputs for test-time adaptation: each context view rendered from the other views' fitted
+/// Gaussians, its candidates from the other context photos; the target is its own photo. One file per scene.
+fn cache_loo(args: &mut Vec<String>) -> anyhow::Result<()> {
+    anyhow::ensure!(args.len() >= 4, "usage: blend loo CONFIG.toml MODEL_DIR OUT_DIR DIR…");
+    let out = PathBuf::from(&args[2]);
+    std::fs::create_dir_all(&out)?;
+    let model = Model::encoder_with_weights_on(args[0].as_ref(), args[1].as_ref(), &Device::Cpu)?;
+    let cfg = model.cfg.clone();
+    let (w, h) = (cfg.model.width, cfg.model.height);
+    let (near, far) = (cfg.model.near as f64, cfg.model.far as f64);
+    let bs = BlendSettings::default();
+    for arg in &args[3..] {
+        let name = Path::new(arg).file_name().map_or(arg.clone(), |n| n.to_string_lossy().to_string());
+        let common::Fitted { ex, photos, gaussians: g, .. } = common::fitted_on(&model, arg, &Device::Cpu)?;
+        let v = ex.context_cameras.len();
+        // View-major pixel-aligned Gaussians: view i owns [i·per, (i+1)·per).
+        anyhow::ensure!(g.means.dim(0)? % v == 0, "{name}: {} Gaussians do not split into {v} views", g.means.dim(0)?);
+        let per = g.means.dim(0)? / v;
+        let mut xs = Vec::new();
+        for i in 0..v {
+            let idx: Vec<u32> = (0..(v * per) as u32).filter(|&k| k as usize / per != i).collect();
+            let gi = g.select(&Tensor::from_vec(idx, v * per - per, &Device::Cpu)?)?;
+            let t = &ex.context_cameras[i];
+            let r = mvsplat360_splat::render(&gi, &raster_camera(t, near as f32, far as f32), &RenderOptions::default())?;
+            let rgb: Vec<f32> = r.rgb.clamp(0f32, 1f32)?.flatten_all()?.to_vec1()?;
+            let (a, d): (Vec<f32>, Vec<f32>) = (r.alpha.flatten_all()?.to_vec1()?, r.depth.flatten_all()?.to_vec1()?);
+            let others: Vec<usize> = (0..v).filter(|&k| k != i).collect();
+            let cams: Vec<_> = others.iter().map(|&k| ex.context_cameras[k].clone()).collect();
+            let refs: Vec<&[f32]> = others.iter().map(|&k| photos[k].data.as_slice()).collect();
+            let x = candidates(&bs, t, &rgb, &a, &d, &cams, &refs, &[], near, far);
+            xs.push(Tensor::from_vec(x, (bs.channels(), h as usize, w as usize), &Device::Cpu)?);
+        }
+        let target = ex.context_images.to_device(&Device::Cpu)?;
+        let tensors: HashMap<String, Tensor> = [("x".to_string(), Tensor::stack(&xs, 0)?), ("target".to_string(), target)].into();
+        candle_core::safetensors::save(&tensors, out.join(format!("{name}.safetensors")))?;
+        println!("{name}: {v} leave-one-out views");
+    }
     Ok(())
 }
 
@@ -451,13 +494,14 @@ fn depth(args: &mut Vec<String>) -> anyhow::Result<()> {
 fn main() -> anyhow::Result<()> {
     mvsplat360_pipeline::setup::init_process();
     let mut args: Vec<String> = std::env::args().skip(1).collect();
-    anyhow::ensure!(!args.is_empty(), "usage: blend cache|train|add|depth …");
+    anyhow::ensure!(!args.is_empty(), "usage: blend cache|train|add|depth|loo …");
     let cmd = args.remove(0);
     match cmd.as_str() {
         "cache" => cache(&mut args),
+        "loo" => cache_loo(&mut args),
         "train" => train(&mut args),
         "add" => add(&mut args),
         "depth" => depth(&mut args),
-        c => anyhow::bail!("blend cache|train|add|depth, got {c}"),
+        c => anyhow::bail!("blend cache|train|add|depth|loo, got {c}"),
     }
 }
