@@ -42,31 +42,43 @@ pub struct RenderOutput {
     pub radii: Tensor,
 }
 
-/// Column layout of the packed per-Gaussian tensor: means 3 | cov 6 | opacity 1 | SH K·3 | features C.
-#[derive(Debug, Clone, Copy)]
+/// Column layout of the packed per-Gaussian tensor: means 3 | cov 6 | opacity 1 | SH K·3 | features C. With
+/// `held`, the tensor has the first 10 columns only and the SH and feature columns (rows of K·3 + C) travel in the
+/// op: constants then cost no gradient buffers.
+#[derive(Debug, Clone)]
 struct Packing {
     n: usize,
     k: usize,
     nf: usize,
+    held: Option<Arc<Vec<f32>>>,
 }
 
 impl Packing {
     fn width(&self) -> usize {
-        10 + 3 * self.k + self.nf
+        if self.held.is_some() {
+            10
+        } else {
+            10 + 3 * self.k + self.nf
+        }
     }
     fn unpack(&self, data: &[f32]) -> [Vec<f32>; 5] {
         let (n, k, nf, d) = (self.n, self.k, self.nf, self.width());
+        let r = 3 * k + nf;
         let mut means = Vec::with_capacity(3 * n);
         let mut cov = Vec::with_capacity(6 * n);
         let mut op = Vec::with_capacity(n);
         let mut shv = Vec::with_capacity(3 * k * n);
         let mut feat = Vec::with_capacity(nf * n);
-        for row in data.chunks_exact(d) {
+        for (i, row) in data.chunks_exact(d).enumerate() {
             means.extend_from_slice(&row[0..3]);
             cov.extend_from_slice(&row[3..9]);
             op.push(row[9]);
-            shv.extend_from_slice(&row[10..10 + 3 * k]);
-            feat.extend_from_slice(&row[10 + 3 * k..]);
+            let rest = match &self.held {
+                Some(h) => &h[r * i..r * (i + 1)],
+                None => &row[10..],
+            };
+            shv.extend_from_slice(&rest[..3 * k]);
+            feat.extend_from_slice(&rest[3 * k..]);
         }
         [means, cov, op, shv, feat]
     }
@@ -153,8 +165,10 @@ impl CustomOp1 for RasterOp {
             row[0..3].copy_from_slice(&gr.means[3 * i..3 * i + 3]);
             row[3..9].copy_from_slice(&gr.cov3d[6 * i..6 * i + 6]);
             row[9] = gr.opacities[i];
-            row[10..10 + 3 * p.k].copy_from_slice(&gr.sh[3 * p.k * i..3 * p.k * (i + 1)]);
-            row[10 + 3 * p.k..].copy_from_slice(&gr.features[nf * i..nf * (i + 1)]);
+            if p.held.is_none() {
+                row[10..10 + 3 * p.k].copy_from_slice(&gr.sh[3 * p.k * i..3 * p.k * (i + 1)]);
+                row[10 + 3 * p.k..].copy_from_slice(&gr.features[nf * i..nf * (i + 1)]);
+            }
         }
         Ok(Some(Tensor::from_vec(packed, (p.n, d), &dev)?))
     }
@@ -211,9 +225,20 @@ pub fn render(g: &Gaussians, camera: &RasterCamera, opts: &RenderOptions) -> Res
     // The official wrapper passes the upper triangle of the covariance (cov3D_precomp).
     let cov6 = f32t(&g.covariances)?.reshape((n, 9))?.index_select(&idx, 1)?;
     let shc = f32t(&g.harmonics)?.transpose(1, 2)?.reshape((n, 3 * k))?;
-    let packed = Tensor::cat(&[&means, &cov6, &f32t(&g.opacities)?.reshape((n, 1))?, &shc, &feats], 1)?;
+    let opac = f32t(&g.opacities)?.reshape((n, 1))?;
     // With the CUDA kernels built, a GPU tensor stays on its device; anything else runs on the CPU kernels.
     let on_gpu = cfg!(feature = "cuda") && dev.is_cuda();
+    // Where only the geometry takes gradients (test-time fitting), the constant colours and features are held by
+    // the op: autograd's concatenation would otherwise allocate, zero and sum a gradient for each of their columns
+    // at every render. Without any gradient the one concatenation below is cheaper.
+    let geometry_grads = means.track_op() || cov6.track_op() || opac.track_op();
+    let hold = !on_gpu && geometry_grads && !shc.track_op() && (nf == 0 || !feats.track_op());
+    let (packed, held) = if hold {
+        let rest = Tensor::cat(&[&shc, &feats], 1)?.to_device(&Device::Cpu)?.flatten_all()?.to_vec1::<f32>()?;
+        (Tensor::cat(&[&means, &cov6, &opac], 1)?, Some(Arc::new(rest)))
+    } else {
+        (Tensor::cat(&[&means, &cov6, &opac, &shc, &feats], 1)?, None)
+    };
     let packed = if on_gpu { packed } else { packed.to_device(&Device::Cpu)? }.contiguous()?;
     let state = Arc::new(Mutex::new(None));
     #[cfg(feature = "cuda")]
@@ -222,7 +247,7 @@ pub fn render(g: &Gaussians, camera: &RasterCamera, opts: &RenderOptions) -> Res
         settings: RasterSettings { camera: *camera, background: opts.background },
         mode: opts.grad_mode,
         sh_degree: opts.sh_degree,
-        packing: Packing { n, k, nf },
+        packing: Packing { n, k, nf, held },
         state: state.clone(),
         #[cfg(feature = "cuda")]
         cuda_state: cuda_state.clone(),
