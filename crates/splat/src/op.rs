@@ -45,12 +45,12 @@ pub struct RenderOutput {
 /// Column layout of the packed per-Gaussian tensor: means 3 | cov 6 | opacity 1 | SH K·3 | features C. With
 /// `held`, the tensor has the first 10 columns only and the SH and feature columns (rows of K·3 + C) travel in the
 /// op: constants then cost no gradient buffers.
-#[derive(Debug, Clone)]
+#[derive(Debug)]
 struct Packing {
     n: usize,
     k: usize,
     nf: usize,
-    held: Option<Arc<Vec<f32>>>,
+    held: Option<Vec<f32>>,
 }
 
 impl Packing {
@@ -235,7 +235,7 @@ pub fn render(g: &Gaussians, camera: &RasterCamera, opts: &RenderOptions) -> Res
     let hold = !on_gpu && geometry_grads && !shc.track_op() && (nf == 0 || !feats.track_op());
     let (packed, held) = if hold {
         let rest = Tensor::cat(&[&shc, &feats], 1)?.to_device(&Device::Cpu)?.flatten_all()?.to_vec1::<f32>()?;
-        (Tensor::cat(&[&means, &cov6, &opac], 1)?, Some(Arc::new(rest)))
+        (Tensor::cat(&[&means, &cov6, &opac], 1)?, Some(rest))
     } else {
         (Tensor::cat(&[&means, &cov6, &opac, &shc, &feats], 1)?, None)
     };

@@ -126,10 +126,7 @@ fn cache(args: &mut Vec<String>) -> anyhow::Result<()> {
             }
             let target = ex.target_images.to_device(&Device::Cpu)?;
             for ((d, _), xs) in sets.iter().zip(xs) {
-                let tensors: HashMap<String, Tensor> = [("x".to_string(), Tensor::stack(&xs, 0)?), ("target".to_string(), target.clone())].into();
-                let tmp = d.join(format!("{name}.tmp"));
-                candle_core::safetensors::save(&tensors, &tmp)?;
-                std::fs::rename(&tmp, d.join(&file))?;
+                save_cache(d, &name, &xs, &target)?;
             }
             Ok(ex.target_cameras.len())
         };
@@ -144,6 +141,16 @@ fn cache(args: &mut Vec<String>) -> anyhow::Result<()> {
     }
     anyhow::ensure!(failed == 0, "{failed} scene(s) skipped");
     println!("done");
+    Ok(())
+}
+
+/// One scene's cache file `dir/name.safetensors` (inputs `x` stacked, `target`), written under a temporary name
+/// first so that an interrupted run leaves no half file that a rerun would skip.
+fn save_cache(dir: &Path, name: &str, xs: &[Tensor], target: &Tensor) -> anyhow::Result<()> {
+    let tensors: HashMap<String, Tensor> = [("x".to_string(), Tensor::stack(xs, 0)?), ("target".to_string(), target.clone())].into();
+    let tmp = dir.join(format!("{name}.tmp"));
+    candle_core::safetensors::save(&tensors, &tmp)?;
+    std::fs::rename(&tmp, dir.join(format!("{name}.safetensors")))?;
     Ok(())
 }
 
@@ -179,9 +186,7 @@ fn cache_loo(args: &mut Vec<String>) -> anyhow::Result<()> {
             let x = candidates(&bs, t, &rgb, &a, &d, &cams, &refs, &[], near, far);
             xs.push(Tensor::from_vec(x, (bs.channels(), h as usize, w as usize), &Device::Cpu)?);
         }
-        let target = ex.context_images.to_device(&Device::Cpu)?;
-        let tensors: HashMap<String, Tensor> = [("x".to_string(), Tensor::stack(&xs, 0)?), ("target".to_string(), target)].into();
-        candle_core::safetensors::save(&tensors, out.join(format!("{name}.safetensors")))?;
+        save_cache(&out, &name, &xs, &ex.context_images.to_device(&Device::Cpu)?)?;
         println!("{name}: {v} leave-one-out views");
     }
     Ok(())
