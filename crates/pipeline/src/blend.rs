@@ -5,7 +5,7 @@
 //! pixel is lifted to a few depths around its rendered one and coloured from the nearest context photos there
 //! (bilinear). A small CNN sees the render, its opacity and those candidates, and outputs per pixel a softmax
 //! choice among the render and the candidates plus an RGB residual. Its weights are trained on rendered targets of
-//! the training scenes (MODEL.md of the shipped model says how).
+//! the training scenes (docs/research/learned-blending.md says how).
 
 use std::path::Path;
 

@@ -251,9 +251,9 @@ fn distance_errors(g: &Gaussians, ex: &Example) -> Vec<Option<f64>> {
 
 #[test]
 fn plane_sweep_puts_confirmed_pixels_at_the_true_distance() {
-    // Every view's Gaussians 1.3× too far, searched within ÷ 1.5 … × 1.5 of them (the range measured in MODEL.md): the sweep must
-    // find the ray caster's distances from the photos alone where other views confirm them, and leave the other
-    // pixels where they were.
+    // Every view's Gaussians 1.3× too far, searched within ÷ 1.5 … × 1.5 of them (the range measured in
+    // docs/research/plane-sweep.md): the sweep must find the ray caster's distances from the photos alone where
+    // other views confirm them, and leave the other pixels where they were.
     let (scene, v, _) = protocol_scene("9000003", 64, 32, 16).unwrap();
     let ex = example_from_views(&scene, &v, NEAR, FAR).unwrap();
     let off = 1.3f64.ln();
