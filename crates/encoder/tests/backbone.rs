@@ -1,5 +1,9 @@
 //! Backbone parity against the official PyTorch encoder (fixtures/encoder, README "Intermediates").
-//! Tolerance: normalised error e = max|Δ| / max(1, max|ref|) ≤ 2e-4 (README: f32 reference noise ≤ 3.1e-5).
+//! Tolerance: |Δ| ≤ f × max|ref| of the tensor (scale-relative: attention and convolution outputs are sums that
+//! cancel). CNN features and the positional input: f = 5e-6 (measured 1.6e-6). Transformer block k (k = 5: the
+//! output): f = 1.2e-5 × 1.5^k — each block adds its own rounding to what it is fed, measured 3.8e-6 after block 0
+//! growing by ≤ 1.5× per block to 2.7e-5 at the output (× 3.1 margin at block 0, ≥ 3.4× at the output). Measured
+//! on 7 fixtures (shared + seeds 0–2 × 32×64, 48×80).
 
 use candle_core::{DType, Device, IndexOp};
 use mvsplat360_encoder::backbone::{camera_distances, BackboneMultiview};
@@ -7,12 +11,13 @@ use mvsplat360_encoder::config::EncoderCostVolumeCfg;
 use mvsplat360_encoder::weights::load_strict;
 use mvsplat360_testkit as tk;
 
-const TOL: f64 = 2e-4;
+const CNN: f64 = 5e-6;
+fn block_tol(k: usize) -> f64 {
+    1.2e-5 * 1.5f64.powi(k as i32)
+}
 
-fn report(name: &str, a: &candle_core::Tensor, e: &candle_core::Tensor) {
-    let (d, m) = tk::max_abs_diff(a, e);
-    eprintln!("{name}: max abs {d:.3e}, max|ref| {m:.3e}, e {:.3e}", d / m.max(1.0));
-    tk::assert_close_norm(name, a, e, TOL);
+fn report(name: &str, a: &candle_core::Tensor, e: &candle_core::Tensor, f: f64) {
+    tk::assert_check(name, a, e, tk::Tol::of_max(f));
 }
 
 #[test]
@@ -25,7 +30,7 @@ fn backbone_matches_official_intermediates() {
 
     // Nearest-view ranking.
     let (dist, index) = camera_distances(extrinsics).unwrap();
-    report("encoder.camera_distances", &dist, tk::get(&inter, "encoder.camera_distances"));
+    report("encoder.camera_distances", &dist, tk::get(&inter, "encoder.camera_distances"), 1e-6);
     let want: Vec<Vec<Vec<i64>>> = tk::get(&inter, "encoder.cameras_dist_index").to_dtype(DType::I64).unwrap().to_vec3().unwrap();
     let got: Vec<Vec<Vec<i64>>> = index.iter().map(|b| b.iter().map(|r| r.iter().map(|&x| x as i64).collect()).collect()).collect();
     assert_eq!(got, want, "cameras_dist_index");
@@ -38,13 +43,14 @@ fn backbone_matches_official_intermediates() {
     let nn: Vec<Vec<Vec<u32>>> = index.iter().map(|b| b.iter().map(|r| r[..n.min(r.len())].to_vec()).collect()).collect();
     let out = model.forward(images, cfg.multiview_trans_attn_split, Some(&nn), true).unwrap();
 
-    report("backbone.cnn_features", &out.cnn_features, tk::get(&inter, "backbone.cnn_features"));
-    report("backbone.transformer_input", out.transformer_input.as_ref().unwrap(), tk::get(&inter, "backbone.transformer_input"));
+    report("backbone.cnn_features", &out.cnn_features, tk::get(&inter, "backbone.cnn_features"), CNN);
+    report("backbone.transformer_input", out.transformer_input.as_ref().unwrap(), tk::get(&inter, "backbone.transformer_input"), CNN);
     for i in 0..cfg.num_transformer_layers - 1 {
         let name = format!("backbone.transformer.layers.{i}.out");
-        report(&name, &out.block_outputs[i], tk::get(&inter, &name));
+        report(&name, &out.block_outputs[i], tk::get(&inter, &name), block_tol(i));
     }
-    report("backbone.trans_features", &out.trans_features, tk::get(&inter, "backbone.trans_features"));
+    let last = cfg.num_transformer_layers - 1;
+    report("backbone.trans_features", &out.trans_features, tk::get(&inter, "backbone.trans_features"), block_tol(last));
 }
 
 /// Every trainable backbone Var receives a non-zero gradient (composed LayerNorm/softmax in the trainable path),
@@ -112,5 +118,11 @@ fn backbone_batches_are_independent_and_view_equivariant() {
     eprintln!("batch/view-reversal consistency: max abs {d:.3e} (max {m:.3e})");
     tk::assert_close_norm("reversed batch element", &b, &a, 1e-5);
     let inter = tk::load("encoder/intermediates.safetensors");
-    tk::assert_close_norm("batch element 0", &out.trans_features.narrow(0, 0, 1).unwrap(), tk::get(&inter, "backbone.trans_features"), TOL);
+    let last = cfg.num_transformer_layers - 1;
+    tk::assert_check(
+        "batch element 0",
+        &out.trans_features.narrow(0, 0, 1).unwrap(),
+        tk::get(&inter, "backbone.trans_features"),
+        tk::Tol::of_max(block_tol(last)),
+    );
 }

@@ -1,6 +1,9 @@
 //! Parity of the OpenCLIP image embedder (open_clip-layout model, loaded from the transformers-layout fixture
 //! through `keymap::clip`, and from the same weights re-keyed into the official layout) against
-//! `svd/svd_pipeline.safetensors` (see svd/README.md). Tolerance: max-abs ≤ 1e-4 (README).
+//! `svd/svd_pipeline.safetensors` (see svd/README.md). Tolerance: |Δ| ≤ 1e-5 × max|ref| of the tensor (scale-
+//! relative; measured on 7 fixtures — shared + seeds 0–2 at two sizes — ≤ 8e-7 of max for the preprocessing and
+//! ≤ 2.3e-7 for the embeddings and their mean: a 10× margin kept because the CLIP towers of real checkpoints are
+//! 32 layers deep, not 2).
 
 use std::collections::HashMap;
 use std::path::PathBuf;
@@ -9,7 +12,7 @@ use candle_core::{DType, Device, Tensor};
 use mvsplat360_refiner::clip::{clip_preprocess, ClipError, ClipImageEmbedder, ClipLayout, ClipVisionConfig};
 use mvsplat360_refiner::keymap::clip::transformers_to_open_clip;
 use mvsplat360_refiner::vae::Piece;
-use mvsplat360_testkit::{assert_close, fixture, get, load, max_abs_diff};
+use mvsplat360_testkit::{self as tk, fixture, get, load, max_abs_diff, Tol};
 
 fn cfg() -> ClipVisionConfig {
     ClipVisionConfig::from_transformers_json(&fixture("svd/svd_clip_vision_config.json")).expect("clip config")
@@ -25,9 +28,7 @@ fn flat_views(t: &Tensor) -> Tensor {
 }
 
 fn report(name: &str, a: &Tensor, e: &Tensor, tol: f64) {
-    let (d, m) = max_abs_diff(a, e);
-    println!("{name} max abs {d:.3e} (max |ref| {m:.3})");
-    assert_close(name, a, e, tol);
+    tk::assert_check(name, a, e, Tol::of_max(tol));
 }
 
 fn temp_file(tag: &str) -> PathBuf {
@@ -40,7 +41,7 @@ fn temp_file(tag: &str) -> PathBuf {
 fn preprocessing_matches_clip_pixel_values() {
     let p = load("svd/svd_pipeline.safetensors");
     let px = clip_preprocess(&flat_views(get(&p, "context_views")), cfg().image_size).unwrap();
-    report("clip_pixel_values", &px, get(&p, "clip_pixel_values"), 1e-4);
+    report("clip_pixel_values", &px, get(&p, "clip_pixel_values"), 1e-5);
 }
 
 #[test]
@@ -48,11 +49,11 @@ fn embeddings_and_view_mean_match_fixture() {
     let p = load("svd/svd_pipeline.safetensors");
     let e = embedder();
     let from_px = e.embed_pixels(get(&p, "clip_pixel_values")).unwrap();
-    report("clip_image_embeds (from fixture pixels)", &from_px, get(&p, "clip_image_embeds"), 1e-4);
+    report("clip_image_embeds (from fixture pixels)", &from_px, get(&p, "clip_image_embeds"), 1e-5);
     let from_views = e.embed(&flat_views(get(&p, "context_views"))).unwrap();
-    report("clip_image_embeds (from views)", &from_views, get(&p, "clip_image_embeds"), 1e-4);
+    report("clip_image_embeds (from views)", &from_views, get(&p, "clip_image_embeds"), 1e-5);
     let mean = e.embed_mean(get(&p, "context_views")).unwrap();
-    report("clip_embedding", &mean, get(&p, "clip_embedding"), 1e-4);
+    report("clip_embedding", &mean, get(&p, "clip_embedding"), 1e-5);
 }
 
 /// Fixture weights rounded through f16: a transformers-layout f32 file and an official-layout

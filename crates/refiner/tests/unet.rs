@@ -1,5 +1,10 @@
 //! VideoUNet parity against the diffusers fixture (`svd/`), plus the sgm-layout, f16 and label_emb-slicing
 //! load paths (the fixture re-saved under sgm names through the key table).
+//!
+//! Tolerance of a single UNet call: |Δ| ≤ CALL × max|ref| of the output (scale-relative: attention and convolution
+//! outputs are sums that cancel, so entries near zero carry the tensor-scale noise). Measured on 7 fixtures (shared
+//! + seeds 0–2 at two sizes): ≤ 2.2e-6 of max (3.3e-6 at max ~1.5); the fixture README's float32-vs-float64 run
+//! of the reference is 1.05e-5 of max → CALL = 1e-5 (4.5× the measured f32-vs-f32 spread).
 
 use std::collections::HashMap;
 
@@ -7,7 +12,9 @@ use candle_core::{DType, Device, Tensor};
 use mvsplat360_refiner::keymap::unet::diffusers_to_sgm;
 use mvsplat360_refiner::unet::util::timestep_embedding;
 use mvsplat360_refiner::unet::{UNetError, UNetInputs, UNetLayout, VideoUNet, VideoUNetConfig};
-use mvsplat360_testkit::{assert_close, fixture, get, load, max_abs_diff};
+use mvsplat360_testkit::{self as tk, assert_close, fixture, get, load, max_abs_diff, Tol};
+
+const CALL: f64 = 1e-5;
 
 struct Case {
     pipe: HashMap<String, Tensor>,
@@ -49,11 +56,8 @@ fn unet_matches_diffusers_fixture_every_step() {
     let steps = get(&c.pipe, "timesteps").dim(0).unwrap();
     for i in 0..steps {
         let (vu, vc) = run_step(&unet, &c, i);
-        let (du, _) = max_abs_diff(&vu, &expected(&c, "step_v_uncond", i));
-        let (dc, _) = max_abs_diff(&vc, &expected(&c, "step_v_cond", i));
-        eprintln!("step {i}: v_uncond max abs {du:.2e}, v_cond max abs {dc:.2e}");
-        assert_close(&format!("step_v_uncond[{i}]"), &vu, &expected(&c, "step_v_uncond", i), 1e-4);
-        assert_close(&format!("step_v_cond[{i}]"), &vc, &expected(&c, "step_v_cond", i), 1e-4);
+        tk::assert_check(&format!("step_v_uncond[{i}]"), &vu, &expected(&c, "step_v_uncond", i), Tol::of_max(CALL));
+        tk::assert_check(&format!("step_v_cond[{i}]"), &vc, &expected(&c, "step_v_cond", i), Tol::of_max(CALL));
     }
 }
 

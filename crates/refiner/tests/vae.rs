@@ -1,14 +1,19 @@
 //! Parity of the SVD VAE (sgm layout model, loaded from the diffusers-layout fixture through
 //! `keymap::vae`, and from the same weights re-keyed into the official sgm layout) against
-//! `svd/svd_pipeline.safetensors` (see svd/README.md). Tolerances: single model calls max-abs ≤ 1e-4 (README),
-//! resize glue ≤ 2e-5 (float32 generator vs float64: 4.6e-6).
+//! `svd/svd_pipeline.safetensors` (see svd/README.md). Tolerances, relative to each output's max |ref| (sums that
+//! cancel: entries near zero carry the tensor-scale noise): single model calls CALL = 1e-5 (measured on 7 fixtures —
+//! shared + seeds 0–2 at two sizes — ≤ 2.8e-6 of max: encoder mean/logvar, decoder, frames); resize glue 2e-5
+//! (measured 4.6e-6 at max ~1: bilinear weights rounded differently; README float32 vs float64 4.6e-6).
 
 use std::collections::HashMap;
 
 use candle_core::{DType, Device, Tensor};
 use mvsplat360_refiner::keymap::vae::diffusers_to_sgm;
 use mvsplat360_refiner::vae::{frames_from_decoded, prepare_encoder_input, AutoencoderConfig, AutoencoderKL, Piece, VaeError, VaeLayout};
-use mvsplat360_testkit::{assert_close, fixture, get, load, max_abs_diff};
+use mvsplat360_testkit::{self as tk, fixture, get, load, max_abs_diff, Tol};
+
+const CALL: f64 = 1e-5;
+const GLUE: f64 = 2e-5;
 
 fn cfg() -> AutoencoderConfig {
     AutoencoderConfig::from_diffusers_json(&fixture("svd/svd_vae_config.json")).expect("vae config")
@@ -35,15 +40,11 @@ fn flat_frames(t: &Tensor) -> Tensor {
 fn encoder_input_and_posterior_match_fixture() {
     let p = load("svd/svd_pipeline.safetensors");
     let x = prepare_encoder_input(&flat_frames(get(&p, "target_views")), 2).unwrap();
-    let (d, _) = max_abs_diff(&x, get(&p, "vae_encode_input"));
-    println!("vae_encode_input max abs {d:.3e}");
-    assert_close("vae_encode_input", &x, get(&p, "vae_encode_input"), 2e-5);
+    tk::assert_check("vae_encode_input", &x, get(&p, "vae_encode_input"), Tol::of_max(GLUE));
 
     let (mean, logvar) = vae().encode(get(&p, "vae_encode_input")).unwrap();
     for (n, a) in [("vae_encode_mean", &mean), ("vae_encode_logvar", &logvar)] {
-        let (d, _) = max_abs_diff(a, get(&p, n));
-        println!("{n} max abs {d:.3e}");
-        assert_close(n, a, get(&p, n), 1e-4);
+        tk::assert_check(n, a, get(&p, n), Tol::of_max(CALL));
     }
 }
 
@@ -55,9 +56,7 @@ fn decoder_all_frames_and_one_per_call_match_fixture() {
     let all = vae.decode(&z, f).unwrap();
     let chunk1 = vae.decode_chunked(&z, Some(1)).unwrap();
     for (n, a) in [("decoded_all", &all), ("decoded_chunk1", &chunk1)] {
-        let (d, _) = max_abs_diff(a, get(&p, n));
-        println!("{n} max abs {d:.3e}");
-        assert_close(n, a, get(&p, n), 1e-4);
+        tk::assert_check(n, a, get(&p, n), Tol::of_max(CALL));
     }
     // Chunks of 2 differ from both (temporal mixing sees other neighbours): guards the chunking.
     if f > 2 {
@@ -67,9 +66,7 @@ fn decoder_all_frames_and_one_per_call_match_fixture() {
     for (n, a) in [("frames_all", &all), ("frames_chunk1", &chunk1)] {
         let fr = frames_from_decoded(a, 2).unwrap();
         let expected = flat_frames(get(&p, n));
-        let (d, _) = max_abs_diff(&fr, &expected);
-        println!("{n} max abs {d:.3e}");
-        assert_close(n, &fr, &expected, 1e-4);
+        tk::assert_check(n, &fr, &expected, Tol::of_max(CALL));
     }
 }
 
