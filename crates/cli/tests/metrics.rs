@@ -40,7 +40,8 @@ fn json_report_with_missing_weights_is_nulls_warning_exit_zero() {
     let v: serde_json::Value = serde_json::from_slice(&out.stdout).expect("one JSON object on stdout");
     let mut keys: Vec<&str> = v.as_object().unwrap().keys().map(String::as_str).collect();
     keys.sort();
-    assert_eq!(keys, ["dists", "fid", "lpips", "per_image", "psnr", "ssim"]);
+    assert_eq!(keys, ["dists", "fid", "fid_variant", "lpips", "per_image", "psnr", "ssim"]);
+    assert_eq!(v["fid_variant"], "pytorch-fid");
     assert!(v["lpips"].is_null() && v["dists"].is_null() && v["fid"].is_null(), "{v}");
     let psnr = v["psnr"].as_f64().unwrap();
     let ssim = v["ssim"].as_f64().unwrap();

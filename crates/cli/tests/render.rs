@@ -225,3 +225,66 @@ fn interrupted_render_leaves_only_complete_files() {
         assert!(!out.join("run.json").exists(), "run.json is written last");
     }
 }
+
+/// The bundled scene's photos and cameras, with every camera position multiplied by `scale`.
+fn scaled_woodbox(dst: &Path, scale: f64) {
+    std::fs::create_dir_all(dst).unwrap();
+    copy_dir(&root().join("assets/woodbox/images"), &dst.join("images"));
+    let mut t: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(root().join("assets/woodbox/transforms.json")).unwrap()).unwrap();
+    for f in t["frames"].as_array_mut().unwrap() {
+        for r in 0..3 {
+            let v = f["transform_matrix"][r][3].as_f64().unwrap();
+            f["transform_matrix"][r][3] = serde_json::json!(v * scale);
+        }
+    }
+    std::fs::write(dst.join("transforms.json"), serde_json::to_string(&t).unwrap()).unwrap();
+}
+
+fn mean_psnr(a: &Path, b: &Path, n: usize) -> f64 {
+    let mut s = 0.0;
+    for i in 0..n {
+        let (x, y) = (image::open(a.join(format!("{i:04}.png"))).unwrap().to_rgb8(), image::open(b.join(format!("{i:04}.png"))).unwrap().to_rgb8());
+        let se: f64 = x.as_raw().iter().zip(y.as_raw()).map(|(&p, &q)| ((p as f64 - q as f64) / 255.0).powi(2)).sum();
+        s += -10.0 * (se / x.as_raw().len() as f64).max(1e-12).log10();
+    }
+    s / n as f64
+}
+
+/// The shipped model scales scenes by its config.json (`auto`): the bundled scene given in 5× larger units renders
+/// the frames of its own units (model-space cameras equal up to rounding: ≥ 40 dB between the two, where the
+/// 8-bit frames of one run differ from the other's by at most a level here and there), and run.json says why;
+/// `--scene-scale none` overrides it and the same scene, now ≈ 65 units away, comes out a different picture.
+#[test]
+fn the_model_folder_decides_the_scene_scale() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (orig, big) = (tmp.path().join("orig"), tmp.path().join("big"));
+    scaled_woodbox(&orig, 1.0);
+    scaled_woodbox(&big, 5.0);
+    let render = |scene: &Path, out: &str, extra: &[&str]| {
+        let out = tmp.path().join(out);
+        let o = bin()
+            .env("RAYON_NUM_THREADS", "2")
+            .args(["--quiet", "render"])
+            .arg(scene)
+            .args(["--context", "0,5,10,14,19", "--targets", "3,12", "--no-video", "--no-metrics"])
+            .args(extra)
+            .arg("--out")
+            .arg(&out)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        out
+    };
+    let (a, b) = (render(&orig, "a", &[]), render(&big, "b", &[]));
+    let run: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(b.join("run.json")).unwrap()).unwrap();
+    assert_eq!(run["settings"]["scene_scale"], "Auto");
+    assert_eq!(run["settings"]["scene_scale_source"], "the model's config.json");
+    let same = mean_psnr(&a.join("frames/final"), &b.join("frames/final"), 2);
+    assert!(same >= 40.0, "5× units: {same:.1} dB from the original units' frames");
+    // The encoder alone (fast) with the flag against the model's rule.
+    let (c, d) = (render(&orig, "c", &["--fit-steps", "0", "--no-blend"]), render(&big, "d", &["--fit-steps", "0", "--no-blend", "--scene-scale", "none"]));
+    let run: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("run.json")).unwrap()).unwrap();
+    assert_eq!(run["settings"]["scene_scale_source"], "--scene-scale");
+    let other = mean_psnr(&c.join("frames/final"), &d.join("frames/final"), 2);
+    assert!(other < 30.0, "--scene-scale none on 5× units: {other:.1} dB from the original frames, expected a different picture");
+}

@@ -52,12 +52,14 @@ impl ImageF32 {
         ImageF32 { width: w as u32, height: h as u32, data }
     }
 
-    /// To 8-bit RGB (rounded, clamped).
+    /// To 8-bit RGB as the official code saves images (`(x.clip(0, 1) * 255).type(torch.uint8)`: f32 product,
+    /// truncated toward zero), so that every PNG written here holds the levels the official scripts would score.
+    /// Decoded 8-bit images come back unchanged (`p/255·255` truncates to `p` for every level in f32).
     pub fn to_rgb8(&self) -> ::image::RgbImage {
         let (w, h) = (self.width as usize, self.height as usize);
         ::image::RgbImage::from_fn(self.width, self.height, |x, y| {
             let i = y as usize * w + x as usize;
-            let px = |c: usize| (self.data[c * w * h + i].clamp(0.0, 1.0) * 255.0).round() as u8;
+            let px = |c: usize| (self.data[c * w * h + i].clamp(0.0, 1.0) * 255.0) as u8;
             ::image::Rgb([px(0), px(1), px(2)])
         })
     }
@@ -157,6 +159,25 @@ mod tests {
         assert_eq!((c.width, c.height), (3, 2));
         assert_eq!(c.to_rgb8().get_pixel(0, 0), img.get_pixel(1, 2));
         assert_eq!(c.to_rgb8().get_pixel(2, 1), img.get_pixel(3, 3));
+    }
+
+    #[test]
+    fn rgb8_truncates_as_the_official_save_image() {
+        // Every 8-bit level survives decode → save; a fraction of a level is cut, never rounded up; outside
+        // [0, 1] clamps.
+        let levels: Vec<f32> = (0..=255).map(|p| p as f32 / 255.0).collect();
+        let mut data = Vec::new();
+        for c in 0..3 {
+            data.extend(levels.iter().map(|&v| if c == 0 { v } else { (v + 0.7 / 255.0).min(1.0) }));
+        }
+        let img = ImageF32 { width: 256, height: 1, data }.to_rgb8();
+        for p in 0..=255u32 {
+            let px = img.get_pixel(p, 0);
+            assert_eq!(px[0] as u32, p, "level {p}");
+            assert_eq!(px[1] as u32, p, "level {p} + 0.7 truncates to {p}");
+        }
+        let edge = ImageF32 { width: 1, height: 1, data: vec![-0.2, 1.5, 0.999] }.to_rgb8();
+        assert_eq!(edge.get_pixel(0, 0).0, [0, 255, 254]);
     }
 
     #[test]

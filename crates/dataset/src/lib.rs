@@ -1,11 +1,13 @@
 //! Scene readers: nerfstudio/instant-ngp `transforms.json`, COLMAP `sparse/0` (binary or text), the
 //! pixelSplat/MVSplat `.torch` chunks, and the evaluation index. Every reader returns the same [`Scene`]
-//! with cameras already in the project convention (c2w, OpenCV axes, pixel intrinsics).
+//! with cameras already in the project convention (c2w, OpenCV axes, pixel intrinsics). Images are decoded
+//! to f32 ([`image`]) and resized as the official loader resizes them ([`resize`]).
 
 pub mod colmap;
 pub mod error;
 pub mod image;
 pub mod index;
+pub mod resize;
 pub mod torch_chunk;
 pub mod transforms;
 
@@ -16,6 +18,7 @@ use mvsplat360_camera::Camera;
 pub use error::DatasetError;
 pub use image::{ImageF32, ImageSource};
 pub use index::{read_evaluation_index, EvaluationEntry};
+pub use resize::resize_pil_lanczos;
 
 /// One scene: per view a name, a camera and where its image comes from (decoded on demand).
 #[derive(Debug, Clone)]

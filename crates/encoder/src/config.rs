@@ -62,6 +62,14 @@ pub struct EncoderCostVolumeCfg {
     pub num_views: usize,
     pub near: f32,
     pub far: f32,
+    /// Widths of the backbone CNN's three stages: not in the official YAML (unimatch hard-codes [64, 96, 128]);
+    /// only narrower test models set it.
+    #[serde(skip_serializing_if = "is_official_cnn")]
+    pub cnn_feature_dims: [usize; 3],
+}
+
+fn is_official_cnn(d: &[usize; 3]) -> bool {
+    *d == crate::backbone::unimatch::backbone::FEATURE_DIMS
 }
 
 impl Default for EncoderCostVolumeCfg {
@@ -89,6 +97,7 @@ impl Default for EncoderCostVolumeCfg {
             num_views: 5,
             near: 1.0,
             far: 100.0,
+            cnn_feature_dims: crate::backbone::unimatch::backbone::FEATURE_DIMS,
         }
     }
 }

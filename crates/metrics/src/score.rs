@@ -4,7 +4,8 @@
 //! * PSNR ([`crate::psnr`]), SSIM ([`crate::ssim`]), LPIPS-VGG ([`crate::lpips`], the paper's LPIPS) and DISTS
 //!   ([`crate::dists`]) are per image pair and averaged over the pairs;
 //! * FID is over the whole set: the Fréchet distance ([`crate::frechet`]) between the InceptionV3 pool3
-//!   features ([`crate::inception`]) of all predictions and of all ground truths.
+//!   features ([`crate::inception`]) of all predictions and of all ground truths, prepared as pytorch-fid does
+//!   unless [`ScoreOptions::fid_variant`] says otherwise.
 //!
 //! Images are `.png`, `.jpg` or `.jpeg` files (case-insensitive) directly in each folder; other files are
 //! ignored. They are decoded to RGB in [0, 1] (grey is expanded, alpha dropped, 16-bit scaled by 65535).
@@ -21,7 +22,7 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::dists::Dists;
-use crate::inception::FidInception;
+use crate::inception::{FidInception, FidVariant};
 use crate::lpips::{Lpips, Net};
 use crate::weights::MetricsWeightsError;
 use crate::{psnr, ssim};
@@ -46,6 +47,8 @@ pub struct ScoreOptions {
     pub dists: bool,
     /// Compute FID (when its weights are found).
     pub fid: bool,
+    /// Whose input preparation the FID follows (default: pytorch-fid, the paper's).
+    pub fid_variant: FidVariant,
     /// Where the networks run.
     pub device: Device,
     /// Progress callback.
@@ -54,7 +57,7 @@ pub struct ScoreOptions {
 
 impl Default for ScoreOptions {
     fn default() -> Self {
-        Self { weights_dir: None, batch_size: 4, lpips: true, dists: true, fid: true, device: Device::Cpu, progress: None }
+        Self { weights_dir: None, batch_size: 4, lpips: true, dists: true, fid: true, fid_variant: FidVariant::default(), device: Device::Cpu, progress: None }
     }
 }
 
@@ -66,6 +69,7 @@ impl fmt::Debug for ScoreOptions {
             .field("lpips", &self.lpips)
             .field("dists", &self.dists)
             .field("fid", &self.fid)
+            .field("fid_variant", &self.fid_variant)
             .field("device", &self.device)
             .field("progress", &self.progress.is_some())
             .finish()
@@ -84,7 +88,7 @@ pub struct PerImage {
 }
 
 /// The scores of a folder pair. Serialises to
-/// `{"psnr","ssim","lpips","dists","fid","per_image":[{"name","psnr","ssim","lpips"}]}` (missing metrics as
+/// `{"psnr","ssim","lpips","dists","fid","fid_variant","per_image":[{"name","psnr","ssim","lpips"}]}` (missing metrics as
 /// `null`; an infinite PSNR — identical images — also becomes `null`, JSON having no infinity).
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Report {
@@ -98,6 +102,8 @@ pub struct Report {
     pub dists: Option<f64>,
     /// FID between the two sets (None without weights or with fewer than 2 images).
     pub fid: Option<f64>,
+    /// Whose input preparation the FID followed.
+    pub fid_variant: FidVariant,
     /// Per pair, sorted by name.
     pub per_image: Vec<PerImage>,
     /// What was skipped and why (not serialised).
@@ -259,7 +265,7 @@ pub fn score_dirs(pred: &Path, gt: &Path, opts: &ScoreOptions) -> Result<Report,
     let dev = &opts.device;
     let lpips = if opts.lpips { load_net("LPIPS", Lpips::load(wd, Net::Vgg, dev), &mut warnings)? } else { None };
     let dists = if opts.dists { load_net("DISTS", Dists::load(wd, dev), &mut warnings)? } else { None };
-    let inception = if opts.fid { load_net("FID", FidInception::load(wd, dev), &mut warnings)? } else { None };
+    let inception = if opts.fid { load_net("FID", FidInception::load(wd, dev).map(|n| n.with_variant(opts.fid_variant)), &mut warnings)? } else { None };
 
     let total = names.len();
     let batch = opts.batch_size.max(1);
@@ -344,6 +350,7 @@ pub fn score_dirs(pred: &Path, gt: &Path, opts: &ScoreOptions) -> Result<Report,
         lpips: lpips.as_ref().map(|_| mean(per_image.iter().map(|p| p.lpips.unwrap_or(f64::NAN)))),
         dists: dists.as_ref().map(|_| mean(dists_vals.iter().copied())),
         fid,
+        fid_variant: opts.fid_variant,
         per_image,
         warnings,
     })

@@ -17,7 +17,7 @@ use std::path::Path;
 
 use candle_core::{DType, Device, Tensor, Var};
 use mvsplat360_metrics::dists::Dists;
-use mvsplat360_metrics::inception::{nv_bilinear, preprocess, FidInception};
+use mvsplat360_metrics::inception::{nv_bilinear, preprocess, preprocess_pytorch_fid, FidInception, FidVariant};
 use mvsplat360_metrics::lpips::{Lpips, Net};
 use serde_json::Value;
 
@@ -85,7 +85,7 @@ fn dists_matches_dists_pytorch() {
 #[test]
 fn fid_features_match_fid_helper() {
     let (t, _) = fixture();
-    let m = need(FidInception::load(None, &Device::Cpu));
+    let m = need(FidInception::load(None, &Device::Cpu)).with_variant(FidVariant::FidHelper);
     let got = m.features(&image(&t, "fid_images")).unwrap();
     assert_eq!(got.dims(), &[3, 2048]);
     let got: Vec<f32> = got.flatten_all().unwrap().to_vec1().unwrap();
@@ -123,6 +123,66 @@ fn fid_resize_and_preprocess_match_fid_helper() {
     let err = max_abs(&got, &want);
     println!("preprocess: max abs err {err:e}");
     assert!(err < 1e-5, "preprocess: max abs error {err}");
+}
+
+/// `scripts/fixtures/pytorch_fid_reference.py`: pytorch_fid 0.3.0's features of images of several sizes (the
+/// same TF Inception weights injected into its network), and samples of its 299×299 network input.
+fn pytorch_fid_fixture() -> (HashMap<String, Tensor>, Value) {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures");
+    let t = candle_core::safetensors::load(dir.join("pytorch_fid.safetensors"), &Device::Cpu).expect("tests/fixtures/pytorch_fid.safetensors");
+    let j: Value = serde_json::from_str(&std::fs::read_to_string(dir.join("pytorch_fid.json")).unwrap()).unwrap();
+    (t, j)
+}
+
+fn fixture_image_names(j: &Value) -> Vec<String> {
+    j["images"].as_array().unwrap().iter().map(|v| v.as_str().unwrap().to_string()).collect()
+}
+
+/// The resize and range alone (no weights): PyTorch's bilinear `interpolate(align_corners=False)` to 299×299
+/// (down by up to 15×, up by up to 8×, non-square, and the identity at 299) and `2x − 1`, at the edges too.
+#[test]
+fn fid_input_matches_pytorch_fid() {
+    let (t, j) = pytorch_fid_fixture();
+    let idx: Vec<u32> = t["sample_idx"].to_dtype(DType::I64).unwrap().to_vec1::<i64>().unwrap().into_iter().map(|v| v as u32).collect();
+    let idx = Tensor::new(idx.as_slice(), &Device::Cpu).unwrap();
+    let want = &t["net_input_sub"];
+    for (k, name) in fixture_image_names(&j).iter().enumerate() {
+        let pre = preprocess_pytorch_fid(&image(&t, name).unsqueeze(0).unwrap()).unwrap();
+        assert_eq!(pre.dims(), &[1, 3, 299, 299]);
+        let sub = pre.index_select(&idx, 2).unwrap().index_select(&idx, 3).unwrap();
+        let got: Vec<f32> = sub.flatten_all().unwrap().to_vec1().unwrap();
+        let w: Vec<f32> = want.get(k).unwrap().flatten_all().unwrap().to_vec1().unwrap();
+        let err = max_abs(&got, &w);
+        println!("{name}: max abs err {err:e}");
+        // Values in [−1, 1]: two f32 interpolation weights and a different summation order, a few ulps.
+        assert!(err < 1e-5, "{name}: network input max abs error {err}");
+    }
+}
+
+/// The features as the paper's FID computes them (`python -m pytorch_fid`), per image: ≤ 1e-4 of the image's
+/// largest feature (f32 through ~100 layers; the reference network matches ours to 5.7e-7).
+#[test]
+fn fid_features_match_pytorch_fid() {
+    let (t, j) = pytorch_fid_fixture();
+    let m = need(FidInception::load(None, &Device::Cpu));
+    assert_eq!(m.variant(), FidVariant::PytorchFid, "the paper's FID is the default");
+    let want = &t["features"];
+    let check = |name: &str, got: Tensor, w: Vec<f32>| {
+        let got: Vec<f32> = got.flatten_all().unwrap().to_vec1().unwrap();
+        let scale = w.iter().fold(0f32, |a, v| a.max(v.abs()));
+        let err = max_abs(&got, &w);
+        println!("{name}: max abs err {err:e}, relative to the largest feature {:e}", err / scale);
+        assert!(err <= 1e-4 * scale, "{name}: features differ by {err} (largest feature {scale})");
+    };
+    for (k, name) in fixture_image_names(&j).iter().enumerate() {
+        check(name, m.features(&image(&t, name)).unwrap(), want.get(k).unwrap().to_vec1().unwrap());
+    }
+    // The fid-helper fixture's 299×299 images, batched.
+    let (t2, _) = fixture();
+    let got = m.features(&image(&t2, "fid_images")).unwrap();
+    for k in 0..3 {
+        check(&format!("fid_images[{k}]"), got.get(k).unwrap(), t["metric_nets_fid_features"].get(k).unwrap().to_vec1().unwrap());
+    }
 }
 
 /// `Lpips::forward` is differentiable: its gradient matches central differences.

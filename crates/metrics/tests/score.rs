@@ -5,6 +5,7 @@
 use std::path::{Path, PathBuf};
 
 use mvsplat360_metrics::score::{self, load_rgb, score_dirs, write_report_json, PerImage, Report, ScoreError, ScoreOptions};
+use mvsplat360_metrics::inception::FidVariant;
 use mvsplat360_metrics::{psnr, ssim};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
@@ -72,18 +73,19 @@ fn decoding_is_channel_first_over_255() {
 }
 
 #[test]
-fn report_json_has_exactly_the_table_fields() {
+fn report_json_has_exactly_the_table_fields_and_the_fid_variant() {
     let r = Report {
         psnr: 25.5,
         ssim: 0.75,
         lpips: None,
         dists: Some(0.125),
         fid: None,
+        fid_variant: FidVariant::PytorchFid,
         per_image: vec![PerImage { name: "a.png".into(), psnr: 25.5, ssim: 0.75, lpips: Some(0.25) }],
         warnings: vec!["not serialised".into()],
     };
     let s = serde_json::to_string(&r).unwrap();
-    assert_eq!(s, r#"{"psnr":25.5,"ssim":0.75,"lpips":null,"dists":0.125,"fid":null,"per_image":[{"name":"a.png","psnr":25.5,"ssim":0.75,"lpips":0.25}]}"#);
+    assert_eq!(s, r#"{"psnr":25.5,"ssim":0.75,"lpips":null,"dists":0.125,"fid":null,"fid_variant":"pytorch-fid","per_image":[{"name":"a.png","psnr":25.5,"ssim":0.75,"lpips":0.25}]}"#);
     // Infinite PSNR (identical images) becomes null.
     let inf = Report { psnr: f64::INFINITY, ..r };
     let v: serde_json::Value = serde_json::to_value(&inf).unwrap();
@@ -186,7 +188,7 @@ fn report_file_is_written_atomically() {
     assert_eq!(path, out.join(score::REPORT_FILE));
     let v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
     let keys: Vec<&str> = v.as_object().unwrap().keys().map(String::as_str).collect();
-    let mut want = vec!["psnr", "ssim", "lpips", "dists", "fid", "per_image"];
+    let mut want = vec!["psnr", "ssim", "lpips", "dists", "fid", "fid_variant", "per_image"];
     want.sort();
     let mut keys_sorted = keys.clone();
     keys_sorted.sort();

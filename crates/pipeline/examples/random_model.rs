@@ -20,6 +20,7 @@ fn main() {
                 format: MODEL_FORMAT.into(),
                 fit: None,
                 blend: None,
+                scene_scale: None,
                 encoder: model::experiment_encoder(&data),
                 data,
                 refiner: refiner.then(RefinerModelConfig::default),

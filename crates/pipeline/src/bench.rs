@@ -86,10 +86,11 @@ pub fn run_scene_bench(o: &SceneBenchOpts) -> Result<serde_json::Value> {
             targets: TargetSpec::Orbit(o.frames),
             model: ModelArgs { ckpt: Some(model_dir.clone()), compute: Compute { device: o.device, refiner_dtype: o.dtype }, ..Default::default() },
             size: None,
-            scene_scale: crate::scale::SceneScale::Auto,
+            scene_scale: Some(crate::scale::SceneScale::Auto),
             refine: RefineSettings { steps: o.steps, ..RefineSettings::default() },
             splat: false,
             metrics: false,
+            fid_variant: Default::default(),
             weights_dir: None,
             video: false,
             fps: 30,
@@ -186,6 +187,7 @@ fn bench_model_config(o: &SceneBenchOpts) -> ModelConfig {
             refiner: Some(RefinerModelConfig::default()),
             fit: None,
             blend: None,
+            scene_scale: None,
         }
     };
     // The scene's photos are written at the model's input size, so no resize happens.
@@ -257,10 +259,11 @@ pub fn run_fit_bench(o: &FitBenchOpts) -> Result<serde_json::Value> {
         targets: TargetSpec::Orbit(1),
         model: ModelArgs { ckpt: Some(o.model.clone()), compute: Compute { device: o.device, ..Compute::default() }, fit_steps: o.steps, ..Default::default() },
         size: None,
-        scene_scale: crate::scale::SceneScale::Auto,
+        scene_scale: Some(crate::scale::SceneScale::Auto),
         refine: RefineSettings::default(),
         splat: false,
         metrics: false,
+        fid_variant: Default::default(),
         weights_dir: None,
         video: false,
         fps: 30,

@@ -48,7 +48,7 @@ use mvsplat360_camera::Camera;
 use mvsplat360_dataset::torch_chunk::{self, ChunkScene};
 use mvsplat360_dataset::{EvaluationEntry, ImageF32, Scene};
 use mvsplat360_metrics::dists::Dists;
-use mvsplat360_metrics::inception::FidInception;
+use mvsplat360_metrics::inception::{FidInception, FidVariant};
 use mvsplat360_metrics::lpips::{Lpips, Net};
 use mvsplat360_metrics::score::{load_rgb, RgbImage};
 use mvsplat360_metrics::weights::MetricsWeightsError;
@@ -136,7 +136,8 @@ pub struct EvalRequest {
     pub model: ModelArgs,
     /// Model input size; None = the model's own.
     pub size: Option<InputSize>,
-    pub scene_scale: SceneScale,
+    /// `--scene-scale`; None = the model's own setting ([`crate::scale::resolve`]).
+    pub scene_scale: Option<SceneScale>,
     pub refine: RefineSettings,
     /// Where the metric networks' weights are (`--weights-dir`; then the env var, then the default folder).
     pub weights_dir: Option<PathBuf>,
@@ -144,11 +145,20 @@ pub struct EvalRequest {
     pub lpips: bool,
     pub dists: bool,
     pub fid: bool,
+    /// Whose FID (default pytorch-fid, the paper's).
+    pub fid_variant: FidVariant,
     /// Only these scenes of the index (index order kept).
     pub scenes: Option<Vec<String>>,
     /// At most this many (non-null) scenes, in index order.
     pub limit: Option<usize>,
     pub out: PathBuf,
+    /// `--noise`: a safetensors file with the refiner's initial noise per scene (key = scene, shape = one
+    /// window's latents: window × 4 × H/8 × W/8), e.g. the noise the official `test_step` drew; None = `--seed`.
+    pub noise: Option<PathBuf>,
+    /// One rank of `eval --world-size N` ([`crate::launch`]): render and score only the selected scenes whose
+    /// position in index order is `rank` modulo `world`, and write no `metrics.json`/`metrics.md` (the launcher
+    /// writes them from every scene's record once the ranks are done, as a resumed run does). None = all.
+    pub shard: Option<crate::launch::Place>,
 }
 
 /// Averages of one method over a set of images.
@@ -223,6 +233,9 @@ pub struct Networks {
     pub lpips: bool,
     pub dists: bool,
     pub fid: bool,
+    /// The FID features' input preparation (absent in records of runs that predate the choice: fid-helper).
+    #[serde(default)]
+    pub fid_variant: Option<FidVariant>,
 }
 
 /// `scenes/{scene}.json`: written last, so its presence means the scene's images and scores are complete.
@@ -284,7 +297,7 @@ struct Nets {
 
 impl Nets {
     fn used(&self) -> Networks {
-        Networks { lpips: self.lpips.is_some(), dists: self.dists.is_some(), fid: self.fid.is_some() }
+        Networks { lpips: self.lpips.is_some(), dists: self.dists.is_some(), fid: self.fid.is_some(), fid_variant: self.fid.as_ref().map(|n| n.variant()) }
     }
 }
 
@@ -305,7 +318,7 @@ fn load_nets(req: &EvalRequest, warnings: &mut Vec<String>) -> Result<Nets> {
     Ok(Nets {
         lpips: if req.lpips { load_net("LPIPS", Lpips::load(wd, Net::Vgg, &dev), warnings)? } else { None },
         dists: if req.dists { load_net("DISTS", Dists::load(wd, &dev), warnings)? } else { None },
-        fid: if req.fid { load_net("FID", FidInception::load(wd, &dev), warnings)? } else { None },
+        fid: if req.fid { load_net("FID", FidInception::load(wd, &dev).map(|n| n.with_variant(req.fid_variant)), warnings)? } else { None },
     })
 }
 
@@ -383,9 +396,14 @@ fn settings_json(req: &EvalRequest, spec: &crate::model::ModelSpec, size: InputS
         "encoder": file(&spec.encoder_file),
         "refiner": refiner_file,
         "size": size,
-        "scene_scale": req.scene_scale,
+        // What applies, not how it was asked for: a folder resumes whichever way the same scaling was chosen.
+        "scene_scale": crate::scale::resolve(req.scene_scale, spec.scene_scale).0,
         "refine": spec.refiner.as_ref().map(|_| &req.refine),
     });
+    // Given noise changes every refined frame; none adds nothing, so folders of earlier runs still resume.
+    if let Some(n) = &req.noise {
+        v["noise"] = file(n);
+    }
     // Fitting changes every frame; none adds nothing, so folders of earlier runs still resume.
     if spec.fit.steps > 0 {
         v["fit"] = json!(spec.fit);
@@ -469,7 +487,7 @@ fn resume_state(out: &Path, plan: &ScenePlan, methods: &[Method], nets: Networks
     let scores_ok = methods.iter().all(|m| rec.methods.get(m.key()).is_some_and(|v| v.len() == plan.scored.len()));
     let nets_ok = (!nets.lpips || rec.networks.lpips)
         && (!nets.dists || rec.networks.dists)
-        && (!nets.fid || (rec.networks.fid && features_file(out, &plan.key).is_file()));
+        && (!nets.fid || (rec.networks.fid && rec.networks.fid_variant == nets.fid_variant && features_file(out, &plan.key).is_file()));
     if scores_ok && nets_ok {
         Resume::Done(Box::new(rec))
     } else {
@@ -569,6 +587,10 @@ struct Ctx<'a> {
     device: candle_core::Device,
     methods: Vec<Method>,
     nets: Nets,
+    /// The scene scaling that applies and why ([`crate::scale::resolve`]).
+    scene_scale: (SceneScale, &'static str),
+    /// `--noise`, read once.
+    noise: Option<HashMap<String, Tensor>>,
     progress: &'a dyn Progress,
 }
 
@@ -620,7 +642,7 @@ fn render_scene(cx: &Ctx, scene: Scene, plan: &ScenePlan, warnings: &mut Vec<Str
         context_images.push(img);
         raw_cams.push(cam);
     }
-    let (transform, warning) = crate::scale::scene_transform(cx.req.scene_scale, &raw_cams, spec.data.near, spec.data.far);
+    let (transform, warning) = crate::scale::scene_transform(cx.scene_scale.0, &raw_cams, spec.data.near, spec.data.far);
     if let Some(w) = warning {
         cx.progress.note(&format!("warning: scene {}: {w}", plan.key));
     }
@@ -643,12 +665,15 @@ fn render_scene(cx: &Ctx, scene: Scene, plan: &ScenePlan, warnings: &mut Vec<Str
         choice,
         pre: cx.pre,
         transform,
+        scene_scale: cx.scene_scale,
         context_images,
         context_cameras,
         target_cameras,
         target_photos,
         device: cx.device.clone(),
         refiner_dtype: cx.req.model.compute.refiner_dtype,
+        // Every scene's key was checked when the file was read.
+        noise: cx.noise.as_ref().and_then(|m| m.get(&plan.key).cloned()),
     };
 
     let g = render::encode(&p, cx.progress)?;
@@ -788,6 +813,19 @@ pub fn markdown(summary_line: &str, methods: &[(Method, MethodScores)], per_scen
     s
 }
 
+/// What the ranks of a multi-process evaluation share, done once before they start: the model resolved, the
+/// output folder's settings checked (`eval.json` written), an official checkpoint's refiner converted.
+pub fn prepare(req: &EvalRequest, progress: &dyn Progress) -> Result<()> {
+    let spec = crate::model::resolve(&req.model)?;
+    output::check_writable(&req.out, "--out")?;
+    let size = req.size.unwrap_or(InputSize::Fixed { width: spec.data.image_width, height: spec.data.image_height });
+    check_settings(&req.out, &settings_json(req, &spec, size))?;
+    if let Some((_, w)) = &spec.refiner {
+        crate::model::refiner_safetensors(w, &|m| progress.note(m))?;
+    }
+    Ok(())
+}
+
 /// The whole evaluation (see the module docs).
 pub fn run(req: &EvalRequest, progress: &dyn Progress) -> Result<EvalSummary> {
     let t_all = Instant::now();
@@ -866,14 +904,26 @@ pub fn run(req: &EvalRequest, progress: &dyn Progress) -> Result<EvalSummary> {
     let description = spec.description.clone();
     let experiment = spec.data.experiment.clone();
     let device = req.model.compute.open()?;
-    let cx = Ctx { req, spec, pre, refine_file, device, methods: methods.clone(), nets, progress };
+    let scene_scale = crate::scale::resolve(req.scene_scale, spec.scene_scale);
+    let noise = match &req.noise {
+        Some(f) => {
+            let m = candle_core::safetensors::load(f, &Device::Cpu).map_err(|e| flag("--noise", format!("{}: {e}", f.display())))?;
+            if let Some(p) = plans.iter().find(|p| !m.contains_key(&p.key)) {
+                return Err(flag("--noise", format!("{} has no noise for scene `{}`: it needs one tensor per evaluated scene", f.display(), p.key)));
+            }
+            Some(m)
+        }
+        None => None,
+    };
+    let cx = Ctx { req, spec, pre, refine_file, device, methods: methods.clone(), nets, scene_scale, noise, progress };
 
     // Resume: complete scenes are kept, scenes with images but incomplete scores are re-scored from disk.
     let used = cx.nets.used();
     let mut records: Vec<Option<SceneRecord>> = vec![None; plans.len()];
     let (mut resumed, mut rescored, mut rendered) = (Vec::new(), Vec::new(), Vec::new());
     let mut to_render: BTreeMap<String, Vec<usize>> = BTreeMap::new();
-    for (i, plan) in plans.iter().enumerate() {
+    let mine = |i: usize| req.shard.is_none_or(|p| i % p.world == p.rank);
+    for (i, plan) in plans.iter().enumerate().filter(|(i, _)| mine(*i)) {
         match resume_state(out, plan, &methods, used) {
             Resume::Done(rec) => {
                 resumed.push(plan.key.clone());
@@ -928,6 +978,12 @@ pub fn run(req: &EvalRequest, progress: &dyn Progress) -> Result<EvalSummary> {
             records[i] = Some(rec);
         }
     }
+    if req.shard.is_some() {
+        // A rank: its scenes' records are on disk; the launcher aggregates.
+        let seconds = t_all.elapsed().as_secs_f64();
+        let images = records.iter().flatten().map(|r| r.scored.len()).sum();
+        return Ok(EvalSummary { out: out.clone(), selected, null_entries, rendered, rescored, resumed, missing, skipped_fov: Vec::new(), images, methods: Vec::new(), warnings, seconds });
+    }
     // Aggregate.
     let done_records: Vec<&SceneRecord> = records.iter().flatten().filter(|r| r.skipped.is_none()).collect();
     let skipped_fov: Vec<String> = records.iter().flatten().filter(|r| r.skipped.is_some()).map(|r| r.scene.clone()).collect();
@@ -970,6 +1026,7 @@ pub fn run(req: &EvalRequest, progress: &dyn Progress) -> Result<EvalSummary> {
         "settings": settings,
         "primary": primary.key(),
         "columns": ["psnr", "ssim", "lpips", "dists", "fid"],
+        "fid_variant": req.fid_variant.name(),
         "scenes": {
             "selected": selected,
             "evaluated": done_records.len(),

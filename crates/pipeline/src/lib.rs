@@ -11,6 +11,7 @@ pub mod compute;
 pub mod error;
 pub mod eval;
 pub mod fit;
+pub mod launch;
 pub mod model;
 pub mod output;
 pub mod preprocess;

@@ -71,11 +71,18 @@ pub struct ModelConfig {
     /// absent: none.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub blend: Option<crate::blend::BlendSettings>,
+    /// How scenes are brought to this model's units (`none`, `auto` or a factor; see [`crate::scale`]): the
+    /// default of every command that uses the folder, unless `--scene-scale` is given. Absent: `none`, the
+    /// official protocol (official checkpoints have no such setting).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub scene_scale: Option<String>,
 }
 
 pub const MODEL_FORMAT: &str = "mvsplat360-model/1";
 pub const MODEL_CONFIG: &str = "config.json";
 pub const MODEL_WEIGHTS: &str = "model.safetensors";
+/// A model folder's weights as an official Lightning checkpoint (used when `model.safetensors` is absent).
+pub const MODEL_CKPT: &str = "model.ckpt";
 
 /// What the user asked for on the command line.
 #[derive(Debug, Clone, PartialEq, Default)]
@@ -122,6 +129,8 @@ pub struct ModelSpec {
     pub fit: crate::fit::FitSettings,
     /// The model's learned blending and the file holding its weights (only model folders set it).
     pub blend: Option<(crate::blend::BlendSettings, PathBuf)>,
+    /// The model's scene scaling (only model folders set it; None = scene units, the official protocol).
+    pub scene_scale: Option<crate::scale::SceneScale>,
 }
 
 /// Where the refiner's weights are.
@@ -225,6 +234,7 @@ fn resolve_weights(args: &ModelArgs) -> Result<ModelSpec> {
             description: desc,
             fit: Default::default(),
             blend: None,
+            scene_scale: None,
         });
     }
     if let Some(RefinerArg::File(_)) = &args.refiner {
@@ -261,10 +271,11 @@ fn official_ckpt(path: &Path, experiment: Option<&str>) -> Result<ModelSpec> {
         description: format!("official checkpoint {}", path.display()),
         fit: Default::default(),
         blend: None,
+        scene_scale: None,
     })
 }
 
-/// Read a model folder (`config.json` + `model.safetensors`).
+/// Read a model folder (`config.json` + `model.safetensors`, or + an official `model.ckpt`).
 pub fn read_model_dir(dir: &Path) -> Result<ModelSpec> {
     let cfg_path = dir.join(MODEL_CONFIG);
     let text =
@@ -274,15 +285,32 @@ pub fn read_model_dir(dir: &Path) -> Result<ModelSpec> {
     if cfg.format != MODEL_FORMAT {
         return Err(PipelineError::Model { path: cfg_path, msg: format!("format is `{}`, expected `{MODEL_FORMAT}`", cfg.format) });
     }
+    // An official Lightning checkpoint of another architecture than DL3DV's is a folder with its config.json.
+    let ckpt = dir.join(MODEL_CKPT);
     let weights = dir.join(MODEL_WEIGHTS);
-    if !weights.is_file() {
-        return Err(PipelineError::Model { path: weights, msg: "missing: a model folder holds config.json and model.safetensors".into() });
+    let from_ckpt = !weights.is_file() && ckpt.is_file();
+    if !weights.is_file() && !from_ckpt {
+        return Err(PipelineError::Model {
+            path: weights,
+            msg: format!("missing: a model folder holds config.json and {MODEL_WEIGHTS} (or an official Lightning {MODEL_CKPT})"),
+        });
     }
+    if from_ckpt && cfg.blend.is_some() {
+        return Err(PipelineError::Model { path: cfg_path, msg: format!("`blend` needs its weights in {MODEL_WEIGHTS}; {MODEL_CKPT} has none") });
+    }
+    let weights = if from_ckpt { ckpt } else { weights };
     let fit = cfg.fit.unwrap_or_default();
     fit.validate().map_err(|e| PipelineError::Model { path: cfg_path.clone(), msg: format!("invalid `fit` settings: {e}") })?;
     if let Some(b) = &cfg.blend {
         b.validate().map_err(|e| PipelineError::Model { path: cfg_path.clone(), msg: format!("invalid `blend` settings: {e}") })?;
     }
+    let scene_scale = match &cfg.scene_scale {
+        None => None,
+        Some(s) => Some(s.parse::<crate::scale::SceneScale>().map_err(|e| PipelineError::Model {
+            path: cfg_path.clone(),
+            msg: format!("invalid `scene_scale`: {e} (`auto` for models trained on auto-scaled scenes; remove the key for the official protocol)"),
+        })?),
+    };
     let mut encoder = cfg.encoder.clone();
     encoder.near = cfg.data.near;
     encoder.far = cfg.data.far;
@@ -290,10 +318,11 @@ pub fn read_model_dir(dir: &Path) -> Result<ModelSpec> {
         data: cfg.data,
         encoder,
         encoder_file: weights.clone(),
-        refiner: cfg.refiner.map(|r| (r, RefinerWeights::File(weights.clone()))),
+        refiner: cfg.refiner.map(|r| (r, if from_ckpt { RefinerWeights::Ckpt(weights.clone()) } else { RefinerWeights::File(weights.clone()) })),
         description: format!("model folder {}", dir.display()),
         fit,
         blend: cfg.blend.map(|b| (b, weights.clone())),
+        scene_scale,
     })
 }
 
@@ -354,7 +383,7 @@ pub fn tiny_config(with_refiner: bool) -> ModelConfig {
         vae: AutoencoderConfig { ch: 32, ch_mult: vec![1, 1, 2, 2], num_res_blocks: 1, ..AutoencoderConfig::default() },
         clip: ClipVisionConfig { width: 32, layers: 2, heads: 2, mlp_width: 64, patch_size: 8, image_size: 32, output_dim: 32, ..ClipVisionConfig::default() },
     });
-    ModelConfig { format: MODEL_FORMAT.into(), data, encoder, refiner, fit: None, blend: None }
+    ModelConfig { format: MODEL_FORMAT.into(), data, encoder, refiner, fit: None, blend: None, scene_scale: None }
 }
 
 /// Seeded random weights for `cfg` under the official key names (what a model folder's safetensors holds).

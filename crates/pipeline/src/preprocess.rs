@@ -84,25 +84,13 @@ impl Preprocess {
     }
 }
 
-/// Antialiased Lanczos-3 resize (the official loader resizes with PIL's LANCZOS).
+/// Resize exactly as the official loader does (`rescale` in `crop_shim.py`): quantise to 8 bits as torch does,
+/// Pillow's `Image.LANCZOS`, back to f32 — bit-exact against Pillow; see [`mvsplat360_dataset::resize`], which
+/// also says where our intrinsics (exact rescale and crop) differ from the official ones. [`Preprocess::view`]
+/// skips the call when the size is unchanged: the official call is then a copy after a quantisation that is
+/// lossless for decoded 8-bit photos.
 pub fn resize(img: &ImageF32, width: u32, height: u32) -> ImageF32 {
-    let (w, h) = (img.width as usize, img.height as usize);
-    let mut buf = image::Rgb32FImage::new(img.width, img.height);
-    for (x, y, px) in buf.enumerate_pixels_mut() {
-        let i = y as usize * w + x as usize;
-        *px = image::Rgb([img.data[i], img.data[w * h + i], img.data[2 * w * h + i]]);
-    }
-    let out = image::imageops::resize(&buf, width, height, image::imageops::FilterType::Lanczos3);
-    let n = (width * height) as usize;
-    let mut data = vec![0f32; 3 * n];
-    for (x, y, px) in out.enumerate_pixels() {
-        let i = (y * width + x) as usize;
-        for c in 0..3 {
-            // Lanczos rings past the input range; photos live in [0, 1].
-            data[c * n + i] = px.0[c].clamp(0.0, 1.0);
-        }
-    }
-    ImageF32 { width, height, data }
+    mvsplat360_dataset::resize_pil_lanczos(img, width, height)
 }
 
 /// One preprocessed view of a scene.
@@ -185,9 +173,13 @@ mod tests {
 
     #[test]
     fn resize_keeps_constant_image_and_view_matches_plan() {
-        let img = ImageF32 { width: 40, height: 30, data: vec![0.25; 3 * 40 * 30] };
+        // A decoded photo's level survives exactly; an off-grid value is truncated to 8 bits first, as the
+        // official `(image * 255).type(torch.uint8)` does (0.25 · 255 = 63.75 → 63).
+        let img = ImageF32 { width: 40, height: 30, data: vec![64.0 / 255.0; 3 * 40 * 30] };
         let r = resize(&img, 17, 13);
-        assert!(r.data.iter().all(|&v| (v - 0.25).abs() < 1e-5));
+        assert!(r.data.iter().all(|&v| v == 64.0 / 255.0));
+        let off_grid = ImageF32 { width: 40, height: 30, data: vec![0.25; 3 * 40 * 30] };
+        assert!(resize(&off_grid, 17, 13).data.iter().all(|&v| v == 63.0 / 255.0));
         let pre = Preprocess { size: InputSize::Fixed { width: 16, height: 16 }, multiple: 16 };
         let (out, c) = pre.view(&img, &cam(40, 30)).unwrap();
         assert_eq!((out.width, out.height, c.width, c.height), (16, 16, 16, 16));

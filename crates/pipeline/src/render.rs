@@ -75,13 +75,16 @@ pub struct RenderRequest {
     pub model: ModelArgs,
     /// Model input size; None = the model's own.
     pub size: Option<InputSize>,
-    /// Scene units → model units.
-    pub scene_scale: crate::scale::SceneScale,
+    /// Scene units → model units (`--scene-scale`); None = the model's own setting ([`crate::scale::resolve`]).
+    pub scene_scale: Option<crate::scale::SceneScale>,
     pub refine: RefineSettings,
     /// Also write `gaussians.splat`.
     pub splat: bool,
-    /// Score `frames/final` against `frames/gt` into `metrics.json` when the targets have photos.
+    /// Score against `frames/gt` into `metrics.json` when the targets have photos: `frames/refined` (the
+    /// paper's figures) with `frames/final` as a second row under `"final"`, or `frames/final` without a refiner.
     pub metrics: bool,
+    /// Whose FID (default pytorch-fid, the paper's).
+    pub fid_variant: mvsplat360_metrics::inception::FidVariant,
     /// Where the metric networks' weights are (`--weights-dir`; then the env var, then the default folder).
     pub weights_dir: Option<PathBuf>,
     /// Write `video.mp4` / `compare.mp4`.
@@ -108,6 +111,8 @@ pub struct Prepared {
     pub choice: ViewChoice,
     pub pre: Preprocess,
     pub transform: SceneTransform,
+    /// The scene scaling that applied and why ([`crate::scale::resolve`]).
+    pub scene_scale: (crate::scale::SceneScale, &'static str),
     /// Preprocessed context photos and cameras (model space).
     pub context_images: Vec<ImageF32>,
     pub context_cameras: Vec<Camera>,
@@ -118,6 +123,9 @@ pub struct Prepared {
     pub device: Device,
     /// The refiner's precision (`--dtype`).
     pub refiner_dtype: DType,
+    /// The refiner's initial noise (`eval --noise`), shape [`Refiner::noise_shape`] of one window; None = drawn
+    /// from `--seed`.
+    pub noise: Option<Tensor>,
 }
 
 /// Open every image of the scene and check it against its camera (size, decodability), in parallel.
@@ -155,7 +163,8 @@ pub fn prepare(req: &RenderRequest, progress: &dyn Progress) -> Result<Prepared>
         context_images.push(img);
         context_cameras_raw.push(cam);
     }
-    let (transform, warning) = crate::scale::scene_transform(req.scene_scale, &context_cameras_raw, spec.data.near, spec.data.far);
+    let scene_scale = crate::scale::resolve(req.scene_scale, spec.scene_scale);
+    let (transform, warning) = crate::scale::scene_transform(scene_scale.0, &context_cameras_raw, spec.data.near, spec.data.far);
     if let Some(w) = warning {
         progress.note(&format!("warning: {w}"));
     }
@@ -181,7 +190,7 @@ pub fn prepare(req: &RenderRequest, progress: &dyn Progress) -> Result<Prepared>
     }
     let device = req.model.compute.open()?;
     let refiner_dtype = req.model.compute.refiner_dtype;
-    Ok(Prepared { scene, spec, choice, pre, transform, context_images, context_cameras, target_cameras, target_photos, device, refiner_dtype })
+    Ok(Prepared { scene, spec, choice, pre, transform, scene_scale, context_images, context_cameras, target_cameras, target_photos, device, refiner_dtype, noise: None })
 }
 
 /// The rasterizer's camera for a project camera.
@@ -424,7 +433,13 @@ pub fn refine_frames_timed(
     let (c, h, w) = feats[0].dims3().map_err(compute("refiner"))?;
     let shape = m.refiner.noise_shape(&[1, window, c, h, w]);
     // One noise for every window (the official sampler draws it once per video).
-    let noise = seeded_noise(s.seed, &shape, &p.device).map_err(compute("refiner"))?;
+    let noise = match &p.noise {
+        Some(n) if n.dims() != shape.as_slice() => {
+            return Err(PipelineError::Compute { stage: "refiner", msg: format!("the given initial noise is {:?}, this run needs {shape:?} (window × 4 × latent height × latent width)", n.dims()) })
+        }
+        Some(n) => n.to_dtype(DType::F32).and_then(|n| n.to_device(&p.device)).map_err(compute("refiner"))?,
+        None => seeded_noise(s.seed, &shape, &p.device).map_err(compute("refiner"))?,
+    };
     let mut out = Vec::with_capacity(n);
     for (start, len) in wins {
         let mut fr: Vec<&Tensor> = feats[start..start + len].iter().collect();
@@ -664,13 +679,26 @@ pub fn run(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSummary
     if req.metrics && all_gt {
         let t = Instant::now();
         progress.begin("scoring", 0);
-        let opts = mvsplat360_metrics::score::ScoreOptions { weights_dir: req.weights_dir.clone(), ..Default::default() };
-        let report = mvsplat360_metrics::score::score_dirs(&out.join("frames/final"), &out.join("frames/gt"), &opts).map_err(compute("metrics"))?;
+        let opts = mvsplat360_metrics::score::ScoreOptions { weights_dir: req.weights_dir.clone(), fid_variant: req.fid_variant, ..Default::default() };
+        let score = |frames: &str| -> Result<serde_json::Value> {
+            let report = mvsplat360_metrics::score::score_dirs(&out.join("frames").join(frames), &out.join("frames/gt"), &opts).map_err(compute("metrics"))?;
+            for w in &report.warnings {
+                progress.note(&format!("metrics ({frames}): {w}"));
+            }
+            let mut v = serde_json::to_value(&report).map_err(compute("metrics"))?;
+            v["frames"] = json!(frames);
+            Ok(v)
+        };
+        // The paper scores the refined frames; the histogram-matched final frames are a second, labelled row.
+        let metrics = if refine_file.is_some() {
+            let mut v = score("refined")?;
+            v["final"] = score("final")?;
+            v
+        } else {
+            score("final")?
+        };
         progress.end();
-        for w in &report.warnings {
-            progress.note(&format!("metrics: {w}"));
-        }
-        mvsplat360_metrics::score::write_report_json(out, &report).map_err(|e| PipelineError::Write { path: out.join("metrics.json"), msg: e.to_string() })?;
+        write_json(&out.join("metrics.json"), &metrics)?;
         times.push(("metrics".into(), t.elapsed().as_secs_f64()));
     }
     times.push(("total".into(), t_all.elapsed().as_secs_f64()));
@@ -690,7 +718,8 @@ pub fn run(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSummary
             "preprocess": p.pre,
             "image_width": p.context_images[0].width,
             "image_height": p.context_images[0].height,
-            "scene_scale": req.scene_scale,
+            "scene_scale": p.scene_scale.0,
+            "scene_scale_source": p.scene_scale.1,
             "scene_to_model": p.transform.to_json(),
             "near": near,
             "far": far,

@@ -19,6 +19,16 @@ pub enum SceneScale {
     Factor(f64),
 }
 
+/// The scaling that applies to a run and why: `--scene-scale` when given, else the model folder's
+/// `scene_scale`, else scene units (the official protocol).
+pub fn resolve(flag: Option<SceneScale>, model: Option<SceneScale>) -> (SceneScale, &'static str) {
+    match (flag, model) {
+        (Some(s), _) => (s, "--scene-scale"),
+        (None, Some(s)) => (s, "the model's config.json"),
+        (None, None) => (SceneScale::None, "default: scene units, the official protocol (the model sets no scene_scale)"),
+    }
+}
+
 /// Target distance of `auto`: √(near·far) for the official near 1 / far 100.
 pub const AUTO_DISTANCE: f64 = 10.0;
 
@@ -133,5 +143,13 @@ mod tests {
         assert_eq!(scene_transform(SceneScale::Factor(3.0), &cams, 1.0, 100.0).0.scale, 3.0);
         assert_eq!("auto".parse::<SceneScale>().unwrap(), SceneScale::Auto);
         assert!("-1".parse::<SceneScale>().is_err());
+    }
+
+    #[test]
+    fn the_flag_wins_over_the_model_which_wins_over_scene_units() {
+        assert_eq!(resolve(Some(SceneScale::Factor(2.0)), Some(SceneScale::Auto)), (SceneScale::Factor(2.0), "--scene-scale"));
+        assert_eq!(resolve(Some(SceneScale::None), Some(SceneScale::Auto)).0, SceneScale::None);
+        assert_eq!(resolve(None, Some(SceneScale::Auto)), (SceneScale::Auto, "the model's config.json"));
+        assert_eq!(resolve(None, None).0, SceneScale::None);
     }
 }

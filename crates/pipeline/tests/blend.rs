@@ -185,6 +185,7 @@ fn render_one(m: &Path, out: &Path, no_blend: bool) -> (Vec<u8>, serde_json::Val
         refine: RefineSettings::default(),
         splat: false,
         metrics: false,
+        fid_variant: Default::default(),
         weights_dir: None,
         video: false,
         fps: 8,

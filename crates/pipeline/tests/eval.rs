@@ -60,9 +60,12 @@ fn request(data: &Path, index: &Path, m: &Path, out: &Path) -> EvalRequest {
         lpips: false,
         dists: false,
         fid: false,
+        fid_variant: Default::default(),
         scenes: None,
         limit: None,
         out: out.to_path_buf(),
+        noise: None,
+        shard: None,
     }
 }
 

@@ -34,6 +34,7 @@ fn request(model_dir: &Path, out: &Path, targets: TargetSpec) -> RenderRequest {
         refine: RefineSettings { steps: 2, window: 3, ..RefineSettings::default() },
         splat: true,
         metrics: false,
+        fid_variant: Default::default(),
         weights_dir: None,
         video: true,
         fps: 8,
@@ -117,11 +118,29 @@ fn tiny_model_render_writes_every_output() {
     assert!(run["stage_seconds"]["encoder"].as_f64().unwrap() > 0.0);
     assert!(run["input_fingerprint"].as_str().unwrap().len() == 16);
 
-    // metrics.json scores final against GT (PSNR/SSIM always; the networks when their weights are installed).
+    // metrics.json scores the refined frames against GT as the paper does, and the final frames as a second
+    // row (PSNR/SSIM always; the networks when their weights are installed). PSNR checked against the saved
+    // PNGs' 8-bit levels directly.
     let scores: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("metrics.json")).unwrap()).unwrap();
-    assert_eq!(scores["per_image"].as_array().unwrap().len(), 8);
-    let psnr = scores["psnr"].as_f64().unwrap();
-    assert!(psnr.is_finite() && psnr > 0.0 && psnr < 40.0, "psnr {psnr}");
+    let mean_psnr = |frames: &str| {
+        let per: Vec<f64> = (0..8)
+            .map(|k| {
+                let (a, b) = (png(&out.join(format!("frames/{frames}/{k:04}.png"))), png(&out.join(format!("frames/gt/{k:04}.png"))));
+                let se: f64 = a.as_raw().iter().zip(b.as_raw()).map(|(&x, &y)| ((x as f64 - y as f64) / 255.0).powi(2)).sum();
+                -10.0 * (se / a.as_raw().len() as f64).log10()
+            })
+            .collect();
+        per.iter().sum::<f64>() / 8.0
+    };
+    for (row, frames) in [(&scores, "refined"), (&scores["final"], "final")] {
+        assert_eq!(row["frames"], frames);
+        assert_eq!(row["per_image"].as_array().unwrap().len(), 8);
+        assert_eq!(row["fid_variant"], "pytorch-fid");
+        let psnr = row["psnr"].as_f64().unwrap();
+        let want = mean_psnr(frames);
+        assert!((psnr - want).abs() < 1e-6 * want, "{frames}: psnr {psnr}, from the PNGs {want}");
+    }
+    assert_ne!(scores["psnr"], scores["final"]["psnr"], "the two rows score different frames");
 
     // Videos: one H.264 track with one sample per frame at the frame size (compare = three frames wide).
     for (name, w) in [("video.mp4", 128), ("compare.mp4", 3 * 128)] {

@@ -6,21 +6,20 @@
 //!
 //! Backends: `nccl` (GPUs; candle's `nccl` feature, this crate's `nccl` feature) and `host` (TCP through the
 //! launching process, gradients through host memory; any device — the CPU, or GPUs without NCCL, as PyTorch's
-//! gloo). [`launch`] starts the ranks as child processes of one binary and passes each its place through the
-//! environment ([`ENV_RANK`] …); a child finds it with [`Rank::from_env`].
+//! gloo). [`launch`] starts the ranks as child processes of one binary with the pipeline's launcher
+//! (`mvsplat360_pipeline::launch`, which `eval --world-size` uses too) and passes each its place and link through
+//! the environment ([`ENV_RANK`] …); a child finds them with [`Rank::from_env`].
 
 use std::io::{BufReader, BufWriter, Read, Write};
 use std::net::{TcpListener, TcpStream};
-use std::process::{Child, Command, ExitStatus};
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::time::Duration;
+use std::process::Command;
+use std::sync::atomic::AtomicBool;
 
 use candle_core::{DType, Device, Tensor};
 
 use crate::error::{Result, TrainError};
 
-pub const ENV_RANK: &str = "MVSPLAT360_DIST_RANK";
-pub const ENV_WORLD: &str = "MVSPLAT360_DIST_WORLD";
+pub use mvsplat360_pipeline::launch::{ENV_RANK, ENV_WORLD};
 /// `host` backend: the launcher's address (`127.0.0.1:PORT`).
 pub const ENV_HUB: &str = "MVSPLAT360_DIST_HUB";
 /// `nccl` backend: the NCCL unique id made by the launcher, hex.
@@ -112,13 +111,8 @@ pub enum Link {
 impl Rank {
     /// The launcher's variables, when this process is a rank (None when it is not).
     pub fn from_env() -> Result<Option<Self>> {
-        let Ok(rank) = std::env::var(ENV_RANK) else { return Ok(None) };
-        let num = |name: &str, v: &str| v.parse::<usize>().map_err(|_| net(name, format!("`{v}` is not a number")));
-        let rank = num(ENV_RANK, &rank)?;
-        let world = num(ENV_WORLD, &std::env::var(ENV_WORLD).map_err(|_| net(ENV_WORLD, "missing"))?)?;
-        if world == 0 || rank >= world {
-            return Err(net(ENV_RANK, format!("rank {rank} of world size {world}")));
-        }
+        let Some(place) = mvsplat360_pipeline::launch::Place::from_env().map_err(|e| net("launcher", e))? else { return Ok(None) };
+        let (rank, world) = (place.rank, place.world);
         let link = match (std::env::var(ENV_HUB), std::env::var(ENV_NCCL_ID)) {
             (Ok(a), _) => Link::Hub(a),
             (_, Ok(id)) => Link::NcclId(id),
@@ -330,16 +324,17 @@ pub struct LaunchSpec {
     pub cpu: bool,
 }
 
-/// Starts `spec.world` ranks, `command(r)` each with its place in the environment, and waits for them. Ranks
-/// inherit stdout and stderr. When `stop` turns true the ranks are asked to stop (SIGTERM: each finishes its
-/// step, rank 0 writes a checkpoint). When a rank fails, the others are killed (an NCCL rank whose peer died
-/// would wait forever). `Err(Interrupted)` when the ranks stopped on request.
-pub fn launch(spec: &LaunchSpec, mut command: impl FnMut(usize) -> Command, stop: &AtomicBool) -> Result<()> {
+/// Starts `spec.world` ranks, `command(r)` each with its place and the backend's link in the environment, and
+/// waits for them (`mvsplat360_pipeline::launch::launch`: inherited stdout and stderr, one SIGTERM forwarded
+/// when `stop` turns true — each rank finishes its step, rank 0 writes a checkpoint —, the others killed when
+/// one fails). `Err(Interrupted)` when the ranks stopped on request.
+pub fn launch(spec: &LaunchSpec, command: impl FnMut(usize) -> Command, stop: &AtomicBool) -> Result<()> {
+    use mvsplat360_pipeline::launch::{self as l, LaunchError};
     let world = spec.world;
     if world == 0 {
         return Err(flag("--world-size", "must be at least 1"));
     }
-    let mut env: Vec<(String, String)> = vec![(ENV_WORLD.into(), world.to_string())];
+    let mut env: Vec<(String, String)> = Vec::new();
     let hub = match spec.backend {
         Backend::Nccl => {
             #[cfg(feature = "nccl")]
@@ -355,72 +350,21 @@ pub fn launch(spec: &LaunchSpec, mut command: impl FnMut(usize) -> Command, stop
             Some(std::thread::spawn(move || serve_hub(l, world)))
         }
     };
-    let threads = (spec.cpu && std::env::var_os("RAYON_NUM_THREADS").is_none())
-        .then(|| (std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1) / world).max(1));
-    let mut children: Vec<Child> = Vec::with_capacity(world);
-    for r in 0..world {
-        let mut c = command(r);
-        c.envs(env.iter().map(|(k, v)| (k.as_str(), v.as_str()))).env(ENV_RANK, r.to_string());
-        // A group of their own: a terminal's Ctrl-C reaches the launcher only, which forwards one SIGTERM (a
-        // second signal would make a rank exit without its checkpoint).
-        #[cfg(unix)]
-        std::os::unix::process::CommandExt::process_group(&mut c, 0);
-        if let Some(t) = threads {
-            c.env("RAYON_NUM_THREADS", t.to_string());
-        }
-        match c.spawn() {
-            Ok(ch) => children.push(ch),
-            Err(e) => {
-                kill_all(&mut children);
-                return Err(net(&format!("launcher: starting rank {r}"), e));
-            }
-        }
-    }
-    let mut status: Vec<Option<ExitStatus>> = vec![None; world];
-    let mut forwarded = false;
-    let mut failed: Vec<String> = Vec::new();
-    while status.iter().any(Option::is_none) {
-        if stop.load(Ordering::SeqCst) && !forwarded {
-            forwarded = true;
-            for (c, s) in children.iter().zip(&status) {
-                if s.is_none() {
-                    terminate(c);
-                }
-            }
-        }
-        for (r, c) in children.iter_mut().enumerate() {
-            if status[r].is_none() {
-                if let Some(s) = c.try_wait().map_err(|e| net(&format!("launcher: rank {r}"), e))? {
-                    status[r] = Some(s);
-                    if !s.success() && s.code() != Some(130) {
-                        failed.push(format!("rank {r} {s}"));
-                    }
-                }
-            }
-        }
-        if !failed.is_empty() {
-            kill_all(&mut children);
-            for (r, c) in children.iter_mut().enumerate() {
-                if status[r].is_none() {
-                    status[r] = c.wait().ok();
-                }
-            }
-            break;
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    }
-    if !failed.is_empty() {
-        return Err(TrainError::Dist(format!("{}; the other ranks were stopped", failed.join(", "))));
-    }
+    let interrupted = match l::launch(&l::LaunchSpec { world, cpu: spec.cpu, env }, command, stop) {
+        Ok(()) => false,
+        Err(LaunchError::Interrupted) => true,
+        Err(e @ LaunchError::Failed(_)) => return Err(TrainError::Dist(e.to_string())),
+        Err(LaunchError::Io(m)) => return Err(net("launcher", m)),
+    };
     if let Some(h) = hub {
         // Every rank exited: the hub has seen every connection close.
         match h.join() {
-            Ok(Err(e)) if !status.iter().any(|s| s.is_some_and(|s| s.code() == Some(130))) => return Err(e),
+            Ok(Err(e)) if !interrupted => return Err(e),
             Err(_) => return Err(net("launcher", "the hub thread panicked")),
             _ => {}
         }
     }
-    if status.iter().any(|s| s.is_some_and(|s| s.code() == Some(130))) {
+    if interrupted {
         return Err(TrainError::Interrupted);
     }
     Ok(())
@@ -441,22 +385,6 @@ pub fn launch_self(world: usize, backend: Backend, cuda: bool, stop: &AtomicBool
         },
         stop,
     )
-}
-
-fn kill_all(children: &mut [Child]) {
-    for c in children.iter_mut() {
-        let _ = c.kill();
-    }
-}
-
-/// SIGTERM: the rank checkpoints and exits (its handler), where SIGKILL would lose the steps since the last one.
-fn terminate(c: &Child) {
-    #[cfg(unix)]
-    unsafe {
-        libc::kill(c.id() as libc::pid_t, libc::SIGTERM);
-    }
-    #[cfg(not(unix))]
-    let _ = c;
 }
 
 // ---------------------------------------------------------------------------------------------- nccl backend

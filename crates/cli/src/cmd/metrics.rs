@@ -8,6 +8,7 @@ use std::sync::Arc;
 
 use anyhow::Context;
 use indicatif::{ProgressBar, ProgressStyle};
+use mvsplat360_metrics::inception::FidVariant;
 use mvsplat360_metrics::score::{score_dirs, write_report_json, Report, ScoreOptions};
 
 #[derive(clap::Args)]
@@ -29,6 +30,10 @@ pub struct Args {
     /// Image pairs decoded and run through the networks at once (bounds memory).
     #[arg(long, default_value_t = 4, value_parser = clap::value_parser!(u64).range(1..))]
     pub batch_size: u64,
+    /// Whose FID: `pytorch-fid` (the paper's: `python -m pytorch_fid`, bilinear resize of the float image, range
+    /// [−1, 1]) or `fid-helper` (fid-helper-pytorch's defaults: NVIDIA's resize of the 8-bit image, TF range).
+    #[arg(long, default_value = "pytorch-fid")]
+    pub fid_variant: FidVariant,
 }
 
 /// A cell of the table: the value with `digits` decimals, or '-' when missing.
@@ -70,7 +75,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<()> {
             pb.set_position(done as u64);
         }) as mvsplat360_metrics::score::ProgressFn
     });
-    let opts = ScoreOptions { weights_dir: args.weights_dir.clone(), batch_size: args.batch_size as usize, progress, ..ScoreOptions::default() };
+    let opts = ScoreOptions { weights_dir: args.weights_dir.clone(), batch_size: args.batch_size as usize, fid_variant: args.fid_variant, progress, ..ScoreOptions::default() };
     let result = score_dirs(&args.pred_dir, &args.gt_dir, &opts);
     if let Some(pb) = &bar {
         pb.finish_and_clear();

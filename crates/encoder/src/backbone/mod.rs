@@ -47,10 +47,15 @@ pub fn normalize_images(images: &Tensor) -> Result<Tensor> {
 }
 
 impl BackboneMultiview {
-    /// `vb` = `encoder.backbone`.
+    /// `vb` = `encoder.backbone`; the CNN at the official widths.
     pub fn new(vb: VarBuilder, feature_channels: usize, num_layers: usize, ffn_expansion: usize) -> Result<Self> {
+        Self::with_cnn_dims(vb, unimatch::backbone::FEATURE_DIMS, feature_channels, num_layers, ffn_expansion)
+    }
+
+    /// [`Self::new`] with other CNN stage widths (`cnn_feature_dims`).
+    pub fn with_cnn_dims(vb: VarBuilder, cnn_dims: [usize; 3], feature_channels: usize, num_layers: usize, ffn_expansion: usize) -> Result<Self> {
         Ok(Self {
-            backbone: CnnEncoder::new(vb.pp("backbone"), feature_channels)?,
+            backbone: CnnEncoder::new(vb.pp("backbone"), cnn_dims, feature_channels)?,
             transformer: MultiViewFeatureTransformer::new(vb.pp("transformer"), num_layers, feature_channels, ffn_expansion)?,
             feature_channels,
         })

@@ -43,22 +43,23 @@ pub struct CnnEncoder {
     conv2: Conv2d,
 }
 
+/// The official widths of the three stages (hard-coded in unimatch's `CNNEncoder`).
 pub const FEATURE_DIMS: [usize; 3] = [64, 96, 128];
 
 impl CnnEncoder {
-    /// `vb` = `encoder.backbone.backbone`.
-    pub fn new(vb: VarBuilder, output_dim: usize) -> Result<Self> {
-        let conv1 = Conv2d::new(vb.pp("conv1"), 3, FEATURE_DIMS[0], 7, 2, 3, false)?;
+    /// `vb` = `encoder.backbone.backbone`; `dims` = the stages' widths ([`FEATURE_DIMS`] officially).
+    pub fn new(vb: VarBuilder, dims: [usize; 3], output_dim: usize) -> Result<Self> {
+        let conv1 = Conv2d::new(vb.pp("conv1"), 3, dims[0], 7, 2, 3, false)?;
         let strides = [1, 2, 1];
         let mut layers = Vec::with_capacity(6);
-        let mut c_in = FEATURE_DIMS[0];
-        for (i, (&dim, &stride)) in FEATURE_DIMS.iter().zip(strides.iter()).enumerate() {
+        let mut c_in = dims[0];
+        for (i, (&dim, &stride)) in dims.iter().zip(strides.iter()).enumerate() {
             let lvb = vb.pp(format!("layer{}", i + 1));
             layers.push(ResidualBlock::new(lvb.pp("0"), c_in, dim, stride)?);
             layers.push(ResidualBlock::new(lvb.pp("1"), dim, dim, 1)?);
             c_in = dim;
         }
-        let conv2 = Conv2d::new(vb.pp("conv2"), FEATURE_DIMS[2], output_dim, 1, 1, 0, true)?;
+        let conv2 = Conv2d::new(vb.pp("conv2"), dims[2], output_dim, 1, 1, 0, true)?;
         Ok(Self { conv1, layers, conv2 })
     }
 }
