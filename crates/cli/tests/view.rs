@@ -3,7 +3,11 @@
 //! no console errors; the OpenCV → three.js camera conversion of the bundle against the pinhole formula; the 3D
 //! canvas is not blank; the view from target 0 resembles `frames/gsplat/0000.png` (our rasterizer's image of the
 //! same Gaussians) better than any other target's frame; the frame slider changes the images shown; the parts
-//! without data (refined frames) are hidden. Screenshots land in `$CARGO_TARGET_TMPDIR/view-test/`.
+//! without data (refined frames) are hidden; the 3D panel's loading line goes fetching → decoding → sorting → done
+//! and is hidden at the end; the metrics table has a row per scored frame set. Then a second Chromium without
+//! WebGL2 (`--disable-webgl2`: a real absence, nothing in the page is faked) gets the page's one-line notice, no 3D
+//! view and no Gaussians download, and the frames and run info still show. Screenshots land in
+//! `$CARGO_TARGET_TMPDIR/view-test/`.
 //!
 //! Without Chromium this test fails (it does not skip): `apt-get install -y chromium`, or set `CHROMIUM`.
 
@@ -83,6 +87,94 @@ fn eval(tab: &Tab, expr: &str) -> serde_json::Value {
     }
 }
 
+/// Headless Chromium with `extra` flags; the profile folder must outlive the browser.
+fn launch(chrome: &Path, extra: &[&str]) -> (Browser, tempfile::TempDir) {
+    let profile = tempfile::tempdir().unwrap();
+    // Chromium hangs on this closed network without these; SwiftShader gives WebGL without a GPU.
+    let args: Vec<&OsStr> = [
+        "--disable-quic",
+        "--disable-component-update",
+        "--disable-background-networking",
+        "--disable-sync",
+        "--no-first-run",
+        "--use-angle=swiftshader",
+        "--enable-unsafe-swiftshader",
+        "--force-device-scale-factor=1",
+        "--hide-scrollbars",
+    ]
+    .iter()
+    .chain(extra)
+    .map(OsStr::new)
+    .collect();
+    let browser = Browser::new(
+        LaunchOptions::default_builder()
+            .path(Some(chrome.to_path_buf()))
+            .headless(true)
+            .sandbox(false)
+            .window_size(Some((1300, 1400)))
+            .user_data_dir(Some(profile.path().to_path_buf()))
+            .idle_browser_timeout(Duration::from_secs(120))
+            .args(args)
+            .build()
+            .unwrap(),
+    )
+    .expect("launching headless Chromium");
+    (browser, profile)
+}
+
+/// The tab's console: (errors and exceptions, every line).
+type Console = (Arc<Mutex<Vec<String>>>, Arc<Mutex<Vec<String>>>);
+
+fn watch_console(tab: &Tab) -> Console {
+    let errors: Arc<Mutex<Vec<String>>> = Arc::default();
+    let log: Arc<Mutex<Vec<String>>> = Arc::default();
+    let (e, l) = (errors.clone(), log.clone());
+    tab.enable_log().unwrap().enable_runtime().unwrap();
+    tab.add_event_listener(Arc::new(move |ev: &Event| {
+        let (level, text) = match ev {
+            Event::RuntimeConsoleAPICalled(e) => {
+                let text: Vec<String> =
+                    e.params.args.iter().map(|a| a.value.as_ref().map(|v| v.to_string()).or(a.description.clone()).unwrap_or_default()).collect();
+                (format!("{:?}", e.params.Type).to_lowercase(), text.join(" "))
+            }
+            Event::RuntimeExceptionThrown(e) => {
+                let d = &e.params.exception_details;
+                ("exception".to_string(), format!("{} {}", d.text, d.exception.as_ref().and_then(|x| x.description.clone()).unwrap_or_default()))
+            }
+            Event::LogEntryAdded(e) => {
+                (format!("{:?}", e.params.entry.level).to_lowercase(), format!("{} {}", e.params.entry.text, e.params.entry.url.clone().unwrap_or_default()))
+            }
+            _ => return,
+        };
+        l.lock().unwrap().push(format!("[{level}] {text}"));
+        if level == "error" || level == "exception" {
+            e.lock().unwrap().push(format!("[{level}] {text}"));
+        }
+    }))
+    .unwrap();
+    (errors, log)
+}
+
+/// Open `url` and wait until the page says it is ready (or shows an error: that fails the test).
+fn open_page(tab: &Tab, url: &str, log: &Mutex<Vec<String>>) -> Duration {
+    let t0 = Instant::now();
+    tab.navigate_to(url).unwrap().wait_until_navigated().unwrap();
+    loop {
+        let state = eval(tab, "({ ready: !!(window.mvsplat360 && window.mvsplat360.ready), error: document.getElementById('error').hidden ? null : document.getElementById('error').textContent })");
+        if let Some(e) = state["error"].as_str() {
+            panic!("the page reports: {e}\nconsole:\n{}", log.lock().unwrap().join("\n"));
+        }
+        if state["ready"] == true {
+            return t0.elapsed();
+        }
+        assert!(t0.elapsed() < Duration::from_secs(60), "page not ready after 60 s; console:\n{}", log.lock().unwrap().join("\n"));
+        std::thread::sleep(Duration::from_millis(100));
+    }
+}
+
+/// The metrics table's rows, header first, as the cells' text.
+const METRICS_ROWS: &str = "[...document.querySelectorAll('#metrics-table tr')].map(tr => [...tr.cells].map(c => c.textContent))";
+
 fn screenshot(tab: &Tab, selector: &str) -> image::RgbImage {
     let r = eval(tab, &format!("(() => {{ const e = document.querySelector('{selector}'); e.scrollIntoView(); const r = e.getBoundingClientRect(); return [r.x + scrollX, r.y + scrollY, r.width, r.height]; }})()"));
     let v: Vec<f64> = serde_json::from_value(r).unwrap();
@@ -125,90 +217,45 @@ fn view_page_in_headless_chromium() {
     let out = tmp.path().join("out");
     render(&out);
     assert!(!out.join("frames/refined").exists(), "--refiner none render has no refined frames");
-    // metrics.json as `render --metrics` / `metrics --out` write it (the real one needs the metric networks).
-    std::fs::write(out.join("metrics.json"), r#"{"psnr": 12.5, "ssim": 0.41, "lpips": null, "dists": null, "fid": null, "per_image": [], "warnings": []}"#)
-        .unwrap();
+    // metrics.json as `render --metrics` writes it with a refiner (the real one needs the metric networks): the
+    // refined frames' score (the paper's) at the top level, the histogram-matched final frames' nested under "final".
+    std::fs::write(
+        out.join("metrics.json"),
+        r#"{"frames": "refined", "psnr": 12.5, "ssim": 0.41, "lpips": 0.2, "dists": null, "fid": 85.5, "fid_variant": "pytorch-fid", "per_image": [],
+            "final": {"frames": "final", "psnr": 11.25, "ssim": 0.375, "lpips": 0.25, "dists": null, "fid": 91.25, "fid_variant": "pytorch-fid", "per_image": []}}"#,
+    )
+    .unwrap();
     let (_server, url) = serve(&out);
     let shots = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("view-test");
     std::fs::create_dir_all(&shots).unwrap();
 
-    let profile = tempfile::tempdir().unwrap();
-    // Chromium hangs on this closed network without these; SwiftShader gives WebGL without a GPU.
-    let args: Vec<&OsStr> = [
-        "--disable-quic",
-        "--disable-component-update",
-        "--disable-background-networking",
-        "--disable-sync",
-        "--no-first-run",
-        "--use-angle=swiftshader",
-        "--enable-unsafe-swiftshader",
-        "--force-device-scale-factor=1",
-        "--hide-scrollbars",
-    ]
-    .iter()
-    .map(OsStr::new)
-    .collect();
-    let browser = Browser::new(
-        LaunchOptions::default_builder()
-            .path(Some(chrome))
-            .headless(true)
-            .sandbox(false)
-            .window_size(Some((1300, 1400)))
-            .user_data_dir(Some(profile.path().to_path_buf()))
-            .idle_browser_timeout(Duration::from_secs(120))
-            .args(args)
-            .build()
-            .unwrap(),
-    )
-    .expect("launching headless Chromium");
+    let (browser, _profile) = launch(&chrome, &[]);
     let tab = browser.new_tab().unwrap();
     tab.set_default_timeout(Duration::from_secs(60));
-
-    let errors: Arc<Mutex<Vec<String>>> = Arc::default();
-    let log: Arc<Mutex<Vec<String>>> = Arc::default();
-    {
-        let (errors, log) = (errors.clone(), log.clone());
-        tab.enable_log().unwrap().enable_runtime().unwrap();
-        tab.add_event_listener(Arc::new(move |ev: &Event| {
-            let (level, text) = match ev {
-                Event::RuntimeConsoleAPICalled(e) => {
-                    let text: Vec<String> =
-                        e.params.args.iter().map(|a| a.value.as_ref().map(|v| v.to_string()).or(a.description.clone()).unwrap_or_default()).collect();
-                    (format!("{:?}", e.params.Type).to_lowercase(), text.join(" "))
-                }
-                Event::RuntimeExceptionThrown(e) => {
-                    let d = &e.params.exception_details;
-                    ("exception".to_string(), format!("{} {}", d.text, d.exception.as_ref().and_then(|x| x.description.clone()).unwrap_or_default()))
-                }
-                Event::LogEntryAdded(e) => (
-                    format!("{:?}", e.params.entry.level).to_lowercase(),
-                    format!("{} {}", e.params.entry.text, e.params.entry.url.clone().unwrap_or_default()),
-                ),
-                _ => return,
-            };
-            log.lock().unwrap().push(format!("[{level}] {text}"));
-            if level == "error" || level == "exception" {
-                errors.lock().unwrap().push(format!("[{level}] {text}"));
-            }
-        }))
-        .unwrap();
-    }
-
-    let t0 = Instant::now();
-    tab.navigate_to(&url).unwrap().wait_until_navigated().unwrap();
-    let page_ready = loop {
-        let state = eval(&tab, "({ ready: !!(window.mvsplat360 && window.mvsplat360.ready), error: document.getElementById('error').hidden ? null : document.getElementById('error').textContent })");
-        if let Some(e) = state["error"].as_str() {
-            panic!("the page reports: {e}\nconsole:\n{}", log.lock().unwrap().join("\n"));
-        }
-        if state["ready"] == true {
-            break t0.elapsed();
-        }
-        assert!(t0.elapsed() < Duration::from_secs(60), "page not ready after 60 s; console:\n{}", log.lock().unwrap().join("\n"));
-        std::thread::sleep(Duration::from_millis(100));
-    };
+    let (errors, log) = watch_console(&tab);
+    let page_ready = open_page(&tab, &url, &log);
     let in_page_ms = eval(&tab, "mvsplat360.loadMs").as_f64().unwrap();
     eprintln!("page ready {:.2} s after navigation (script: {:.0} ms)", page_ready.as_secs_f64(), in_page_ms);
+
+    // The 3D panel's loading line: each state once, in order, and hidden at the end. The download was counted
+    // chunk by chunk against the Content-Length the server sends: all of gaussians.ply.
+    let status: Vec<serde_json::Value> = serde_json::from_value(eval(&tab, "mvsplat360.status")).unwrap();
+    eprintln!("loading states: {status:?}");
+    let states: Vec<&str> = status.iter().map(|s| s["state"].as_str().unwrap()).collect();
+    assert_eq!(states, ["fetching", "decoding", "sorting", "done"], "loading states out of order: {status:?}");
+    let ms: Vec<f64> = status.iter().map(|s| s["ms"].as_f64().unwrap()).collect();
+    assert!(ms.windows(2).all(|w| w[0] <= w[1]), "loading states' times go backwards: {ms:?}");
+    for (s, word) in status.iter().zip(["fetching", "decoding", "sorting"]) {
+        assert!(s["text"].as_str().unwrap().contains(word), "the line shown while {word} says {:?}", s["text"]);
+    }
+    let ply = std::fs::metadata(out.join("gaussians.ply")).unwrap().len();
+    assert_eq!(
+        (status[1]["bytes"].as_u64(), status[1]["total"].as_u64()),
+        (Some(ply), Some(ply)),
+        "bytes received / Content-Length of a {ply}-byte gaussians.ply"
+    );
+    let hidden = eval(&tab, "['status3d', 'no-webgl2', 'view3d', 'frame-3d'].map(id => document.getElementById(id).hidden)");
+    assert_eq!(hidden, serde_json::json!([true, true, false, false]), "hidden: loading line, no-WebGL2 notice, 3D view, its button");
 
     // The camera conversion in the bundle (three.js pose + projection) against the pinhole formula
     // u = fx·x/z + cx, v = fy·y/z + cy on points given in target 0's OpenCV camera frame.
@@ -280,16 +327,59 @@ fn view_page_in_headless_chromium() {
     // Run info: settings, stage times, metrics.
     let info = eval(&tab, "document.getElementById('info').innerText");
     let info = info.as_str().unwrap();
-    for want in ["Settings", "Stage times", "encoder", "Metrics", "PSNR", "12.50"] {
+    for want in ["Settings", "Stage times", "encoder", "Metrics", "PSNR", "12.50", "pytorch-fid"] {
         assert!(info.contains(want), "run panel lacks {want:?}:\n{info}");
     }
+    let rows: Vec<Vec<String>> = serde_json::from_value(eval(&tab, METRICS_ROWS)).unwrap();
+    assert_eq!(
+        rows,
+        [
+            vec!["", "PSNR", "SSIM", "LPIPS", "DISTS", "FID"],
+            vec!["refined vs ground truth", "12.50", "0.4100", "0.2000", "—", "85.50"],
+            vec!["final vs ground truth", "11.25", "0.3750", "0.2500", "—", "91.25"],
+        ]
+    );
     assert_eq!(eval(&tab, "document.getElementById('video-section').hidden"), false);
 
     let page = tab.capture_screenshot(Page::CaptureScreenshotFormatOption::Png, None, None, true).unwrap();
     std::fs::write(shots.join("page.png"), page).unwrap();
     eprintln!("screenshots in {}", shots.display());
+    {
+        let errors = errors.lock().unwrap();
+        assert!(errors.is_empty(), "console errors:\n{}\nfull console:\n{}", errors.join("\n"), log.lock().unwrap().join("\n"));
+    }
+    drop(tab);
+    drop(browser);
+
+    // A browser without WebGL2. Also a metrics.json from before the `frames` key: it scored the final frames.
+    std::fs::write(out.join("metrics.json"), r#"{"psnr": 12.5, "ssim": 0.41, "lpips": null, "dists": null, "fid": null, "per_image": []}"#).unwrap();
+    let (browser, _profile) = launch(&chrome, &["--disable-webgl2"]);
+    let tab = browser.new_tab().unwrap();
+    tab.set_default_timeout(Duration::from_secs(60));
+    let (errors, log) = watch_console(&tab);
+    let page_ready = open_page(&tab, &url, &log);
+    eprintln!("without WebGL2: page ready {:.2} s after navigation", page_ready.as_secs_f64());
+    assert_eq!(eval(&tab, "!!document.createElement('canvas').getContext('webgl2')"), false, "Chromium ignored --disable-webgl2");
+    assert_eq!(eval(&tab, "document.body.dataset.ready"), "1");
+    assert_eq!(eval(&tab, "mvsplat360.status.map(s => s.state)"), serde_json::json!(["no-webgl2"]));
+    let notice = eval(&tab, "document.getElementById('no-webgl2').innerText");
+    let notice = notice.as_str().unwrap();
+    for want in ["WebGL2", "hardware", "Chrome, Firefox or Safari", "frames"] {
+        assert!(notice.contains(want), "the no-WebGL2 notice lacks {want:?}: {notice:?}");
+    }
+    let hidden = eval(&tab, "['no-webgl2', 'status3d', 'view3d', 'frame-3d', 'frames-section', 'video-section'].map(id => document.getElementById(id).hidden)");
+    assert_eq!(hidden, serde_json::json!([false, true, true, true, false, false]), "hidden: notice, loading line, 3D view, its button, frames, video");
+    // The frames load; the Gaussians, which nothing could show, are not downloaded.
+    eval(&tab, wait_images);
+    let widths: Vec<u32> = serde_json::from_value(eval(&tab, "[...document.querySelectorAll('#frames-grid img')].map(i => i.naturalWidth)")).unwrap();
+    assert_eq!(widths, [128, 128, 128]);
+    assert_eq!(eval(&tab, "performance.getEntriesByType('resource').some(e => e.name.endsWith('.ply'))"), false, "fetched the Gaussians without WebGL2");
+    let rows: Vec<Vec<String>> = serde_json::from_value(eval(&tab, METRICS_ROWS)).unwrap();
+    assert_eq!(rows[1..], [vec!["final vs ground truth", "12.50", "0.4100", "—", "—", "—"]]);
+    let page = tab.capture_screenshot(Page::CaptureScreenshotFormatOption::Png, None, None, true).unwrap();
+    std::fs::write(shots.join("page-no-webgl2.png"), page).unwrap();
     let errors = errors.lock().unwrap();
-    assert!(errors.is_empty(), "console errors:\n{}\nfull console:\n{}", errors.join("\n"), log.lock().unwrap().join("\n"));
+    assert!(errors.is_empty(), "console errors without WebGL2:\n{}\nfull console:\n{}", errors.join("\n"), log.lock().unwrap().join("\n"));
 }
 
 #[test]

@@ -88,7 +88,9 @@ fn reply(status: u16, ctype: &str, body: Box<dyn Read + Send>, len: u64, extra: 
         header("Referrer-Policy", "no-referrer"),
     ];
     headers.extend(extra);
-    Response::new(StatusCode(status), headers, body, Some(len as usize), None)
+    // The length is always known: send it as Content-Length (tiny_http would switch bodies over 32 KiB to chunked
+    // transfer), so the page can show how much of the Gaussians has arrived.
+    Response::new(StatusCode(status), headers, body, Some(len as usize), None).with_chunked_threshold(usize::MAX)
 }
 
 fn text(status: u16, msg: &str) -> Reply {

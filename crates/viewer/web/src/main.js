@@ -44,6 +44,55 @@ const mark = (what) => {
   timings[what] = Math.round(performance.now());
 };
 
+// The loading line of the 3D panel. Each state change is logged (state, ms since navigation, text shown) in
+// `mvsplat360.status` so the browser test can check the order; progress updates within a state are not logged.
+const statusLog = [];
+function setStatus(state, text, extra = {}) {
+  const line = $("status3d");
+  line.hidden = state === "done" || state === "failed" || state === "no-webgl2";
+  $("status3d-text").textContent = text;
+  $("status3d-bar").hidden = true;
+  statusLog.push({ state, ms: Math.round(performance.now()), text, ...extra });
+}
+
+const fmtBytes = (n) => (n < 1e6 ? `${Math.round(n / 1e3)} kB` : `${(n / 1e6).toFixed(1)} MB`);
+
+// Reads a response body chunk by chunk to show how much has arrived. The total is Content-Length when the server
+// sends one and the body is not compressed in transit (then the length counts other bytes than the reader's).
+async function readWithProgress(resp, onProgress) {
+  const len = Number(resp.headers.get("Content-Length"));
+  const total = len > 0 && !resp.headers.get("Content-Encoding") ? len : null;
+  if (!resp.body) return { bytes: new Uint8Array(await resp.arrayBuffer()), total };
+  const reader = resp.body.getReader();
+  const chunks = [];
+  let received = 0;
+  for (;;) {
+    const { done, value } = await reader.read();
+    if (done) break;
+    chunks.push(value);
+    received += value.length;
+    onProgress(received, total);
+  }
+  const bytes = new Uint8Array(received);
+  let at = 0;
+  for (const c of chunks) {
+    bytes.set(c, at);
+    at += c.length;
+  }
+  return { bytes, total };
+}
+
+// WebGL2 on the page's own canvas, with the attributes three.js asks for, so that its getContext call returns
+// this very context. Null where the browser has none (too old, hardware acceleration off, GPU blocklisted): that
+// is the answer to trust, not the presence of WebGL2RenderingContext.
+function webgl2(canvas) {
+  try {
+    return canvas.getContext("webgl2", { alpha: true, depth: true, stencil: false, antialias: false });
+  } catch {
+    return null;
+  }
+}
+
 const fmt = (v) => (typeof v === "number" ? (Number.isInteger(v) ? String(v) : v.toPrecision(4)) : JSON.stringify(v));
 
 // ---------------------------------------------------------------------------------------------------- run info
@@ -82,11 +131,24 @@ function showRun(run, metrics) {
 
   const m = metrics ?? run.metrics;
   if (m) {
+    // metrics.json scores the frames named by `frames`: "refined" (the paper's figures) with the histogram-matched
+    // final frames nested under "final", or "final" alone without a refiner. Files from before the `frames` key
+    // scored the final frames.
+    const sets = [[m.frames ?? "final", m]];
+    if (m.final && typeof m.final === "object") sets.push([m.final.frames ?? "final", m.final]);
+    const keys = ["psnr", "ssim", "lpips", "dists", "fid"];
     const t = el("table", { class: "kv", id: "metrics-table" });
-    for (const k of ["psnr", "ssim", "lpips", "dists", "fid"]) {
-      if (k in m) t.append(el("tr", {}, el("th", {}, k.toUpperCase()), el("td", {}, m[k] === null ? "—" : fmt(m[k]))));
+    t.append(el("thead", {}, el("tr", {}, el("th", {}), ...keys.map((k) => el("th", {}, k.toUpperCase())))));
+    const body = el("tbody");
+    for (const [frames, row] of sets) {
+      const cells = keys.map((k) => el("td", {}, row[k] === null || row[k] === undefined ? "—" : fmt(row[k])));
+      body.append(el("tr", {}, el("th", {}, `${frames} vs ground truth`), ...cells));
     }
-    info.append(el("h3", {}, "Metrics (final vs ground truth)"), t);
+    t.append(body);
+    info.append(el("h3", {}, "Metrics"), t);
+    // FID conventions give different numbers (`render --fid-variant`): say whose this is.
+    const fid = sets.find(([, row]) => typeof row.fid === "number" && row.fid_variant);
+    if (fid) info.append(el("div", { class: "hint" }, `FID as ${fid[1].fid_variant} computes it`));
   }
 }
 
@@ -102,6 +164,12 @@ async function show3D(manifest, camerasJson, run) {
 
   const box = $("view3d");
   const canvas = $("canvas3d");
+  // Spark needs WebGL2: without it, say so and leave the rest of the page working (and fetch no Gaussians).
+  if (!webgl2(canvas)) {
+    setStatus("no-webgl2", "");
+    $("no-webgl2").hidden = false;
+    return null;
+  }
   // The canvas keeps the images' aspect so the view from a camera frames exactly what its photo shows.
   const cssW = Math.min(Math.max(box.parentElement.clientWidth - 24, 320), 960);
   const cssH = Math.round((cssW * h) / w);
@@ -132,10 +200,18 @@ async function show3D(manifest, camerasJson, run) {
   const center = lookAtPoint(cams);
 
   const plyUrl = manifest.data + manifest.files.gaussians;
+  setStatus("fetching", "fetching Gaussians…");
   const resp = await fetch(plyUrl);
   if (!resp.ok) throw new Error(`${plyUrl}: HTTP ${resp.status}`);
-  const bytes = new Uint8Array(await resp.arrayBuffer());
+  const bar = $("status3d-bar");
+  const { bytes, total } = await readWithProgress(resp, (received, total) => {
+    $("status3d-text").textContent = `fetching Gaussians… ${fmtBytes(received)}${total ? ` of ${fmtBytes(total)}` : ""}`;
+    bar.hidden = !total;
+    if (total) bar.value = Math.min(received / total, 1);
+  });
   mark("ply fetched");
+  setStatus("decoding", `decoding ${fmtBytes(bytes.length)} of Gaussians…`, { bytes: bytes.length, total });
+  // Spark decodes in a worker, so the line above is painted while it works.
   const splats = new SplatMesh({ fileBytes: bytes, fileType: "ply" });
   await splats.initialized;
   mark("splats decoded");
@@ -222,8 +298,11 @@ async function show3D(manifest, camerasJson, run) {
     }
   };
   $("view3d").hidden = false;
+  const n = splats.numSplats ?? splats.packedSplats?.numSplats;
+  setStatus("sorting", `sorting ${n ? `${n.toLocaleString("en")} ` : ""}splats, drawing the first frames…`);
   await settle();
   mark("settled");
+  setStatus("done", "");
   return {
     setView,
     settle,
@@ -311,7 +390,7 @@ function showFrames(manifest) {
 // ---------------------------------------------------------------------------------------------------------- main
 async function main() {
   const t0 = performance.now();
-  const api = { ready: false, timings, cvToThree: { threeMatrixFromOpenCV, projectWithThree } };
+  const api = { ready: false, timings, status: statusLog, cvToThree: { threeMatrixFromOpenCV, projectWithThree } };
   window.mvsplat360 = api;
   const manifest = await getJSON("manifest.json");
   const [camerasJson, run, metrics] = await Promise.all([
@@ -323,10 +402,12 @@ async function main() {
   showRun(run, metrics);
   showVideo(manifest);
   api.frames = showFrames(manifest);
-  Object.assign(api, await show3D(manifest, camerasJson, run));
+  const view = await show3D(manifest, camerasJson, run);
+  api.webgl2 = view !== null;
+  Object.assign(api, view);
   const targets = camerasJson.cameras.filter((c) => c.role === "target").length;
   const to3D = $("frame-3d");
-  if (api.frames && targets === api.frames.count) {
+  if (view && api.frames && targets === api.frames.count) {
     to3D.addEventListener("click", () => {
       api.setView("target", Number(api.frames.slider.value));
       $("view3d").scrollIntoView({ behavior: "smooth" });
@@ -341,6 +422,7 @@ async function main() {
 }
 
 window.mvsplat360Ready = main().catch((e) => {
+  setStatus("failed", "");
   const box = $("error");
   box.textContent = `Could not show this render: ${e.message ?? e}`;
   box.hidden = false;
