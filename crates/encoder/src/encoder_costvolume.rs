@@ -48,7 +48,8 @@ pub struct EncoderOutput {
 impl EncoderCostVolume {
     /// `vb` = the encoder's root (`root.pp("encoder")`), keys as in the official state dict.
     pub fn new(vb: VarBuilder, cfg: &EncoderCostVolumeCfg) -> Result<Self> {
-        let backbone = BackboneMultiview::with_cnn_dims(vb.pp("backbone"), cfg.cnn_feature_dims, cfg.d_feature, cfg.num_transformer_layers, cfg.ffn_dim_expansion)?;
+        let backbone =
+            BackboneMultiview::with_cnn_dims(vb.pp("backbone"), cfg.cnn_feature_dims, cfg.d_feature, cfg.num_transformer_layers, cfg.ffn_dim_expansion)?;
         let depth_predictor = DepthPredictorMultiView::new(vb.pp("depth_predictor"), cfg)?;
         Ok(Self { cfg: cfg.clone(), backbone, depth_predictor })
     }

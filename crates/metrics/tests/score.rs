@@ -4,8 +4,8 @@
 
 use std::path::{Path, PathBuf};
 
-use mvsplat360_metrics::score::{self, load_rgb, score_dirs, write_report_json, PerImage, Report, ScoreError, ScoreOptions};
 use mvsplat360_metrics::inception::FidVariant;
+use mvsplat360_metrics::score::{self, load_rgb, score_dirs, write_report_json, PerImage, Report, ScoreError, ScoreOptions};
 use mvsplat360_metrics::{psnr, ssim};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
@@ -85,7 +85,10 @@ fn report_json_has_exactly_the_table_fields_and_the_fid_variant() {
         warnings: vec!["not serialised".into()],
     };
     let s = serde_json::to_string(&r).unwrap();
-    assert_eq!(s, r#"{"psnr":25.5,"ssim":0.75,"lpips":null,"dists":0.125,"fid":null,"fid_variant":"pytorch-fid","per_image":[{"name":"a.png","psnr":25.5,"ssim":0.75,"lpips":0.25}]}"#);
+    assert_eq!(
+        s,
+        r#"{"psnr":25.5,"ssim":0.75,"lpips":null,"dists":0.125,"fid":null,"fid_variant":"pytorch-fid","per_image":[{"name":"a.png","psnr":25.5,"ssim":0.75,"lpips":0.25}]}"#
+    );
     // Infinite PSNR (identical images) becomes null.
     let inf = Report { psnr: f64::INFINITY, ..r };
     let v: serde_json::Value = serde_json::to_value(&inf).unwrap();

@@ -982,7 +982,20 @@ pub fn run(req: &EvalRequest, progress: &dyn Progress) -> Result<EvalSummary> {
         // A rank: its scenes' records are on disk; the launcher aggregates.
         let seconds = t_all.elapsed().as_secs_f64();
         let images = records.iter().flatten().map(|r| r.scored.len()).sum();
-        return Ok(EvalSummary { out: out.clone(), selected, null_entries, rendered, rescored, resumed, missing, skipped_fov: Vec::new(), images, methods: Vec::new(), warnings, seconds });
+        return Ok(EvalSummary {
+            out: out.clone(),
+            selected,
+            null_entries,
+            rendered,
+            rescored,
+            resumed,
+            missing,
+            skipped_fov: Vec::new(),
+            images,
+            methods: Vec::new(),
+            warnings,
+            seconds,
+        });
     }
     // Aggregate.
     let done_records: Vec<&SceneRecord> = records.iter().flatten().filter(|r| r.skipped.is_none()).collect();

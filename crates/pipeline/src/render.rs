@@ -190,7 +190,21 @@ pub fn prepare(req: &RenderRequest, progress: &dyn Progress) -> Result<Prepared>
     }
     let device = req.model.compute.open()?;
     let refiner_dtype = req.model.compute.refiner_dtype;
-    Ok(Prepared { scene, spec, choice, pre, transform, scene_scale, context_images, context_cameras, target_cameras, target_photos, device, refiner_dtype, noise: None })
+    Ok(Prepared {
+        scene,
+        spec,
+        choice,
+        pre,
+        transform,
+        scene_scale,
+        context_images,
+        context_cameras,
+        target_cameras,
+        target_photos,
+        device,
+        refiner_dtype,
+        noise: None,
+    })
 }
 
 /// The rasterizer's camera for a project camera.
@@ -435,7 +449,10 @@ pub fn refine_frames_timed(
     // One noise for every window (the official sampler draws it once per video).
     let noise = match &p.noise {
         Some(n) if n.dims() != shape.as_slice() => {
-            return Err(PipelineError::Compute { stage: "refiner", msg: format!("the given initial noise is {:?}, this run needs {shape:?} (window × 4 × latent height × latent width)", n.dims()) })
+            return Err(PipelineError::Compute {
+                stage: "refiner",
+                msg: format!("the given initial noise is {:?}, this run needs {shape:?} (window × 4 × latent height × latent width)", n.dims()),
+            })
         }
         Some(n) => n.to_dtype(DType::F32).and_then(|n| n.to_device(&p.device)).map_err(compute("refiner"))?,
         None => seeded_noise(s.seed, &shape, &p.device).map_err(compute("refiner"))?,

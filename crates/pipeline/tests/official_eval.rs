@@ -27,7 +27,11 @@ fn fixture() -> PathBuf {
     let dir = std::env::var_os("MVSPLAT360_EVAL_FIXTURE")
         .map(PathBuf::from)
         .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/official_eval"));
-    assert!(dir.join("model.ckpt").is_file(), "no official evaluation fixture at {} (set MVSPLAT360_EVAL_FIXTURE or make one with scripts/fixtures/official-eval)", dir.display());
+    assert!(
+        dir.join("model.ckpt").is_file(),
+        "no official evaluation fixture at {} (set MVSPLAT360_EVAL_FIXTURE or make one with scripts/fixtures/official-eval)",
+        dir.display()
+    );
     dir
 }
 
@@ -40,7 +44,8 @@ fn png(p: &Path) -> image::RgbImage {
 }
 
 fn names(dir: &Path) -> Vec<String> {
-    let mut v: Vec<String> = std::fs::read_dir(dir).unwrap().flatten().map(|e| e.file_name().to_string_lossy().into_owned()).filter(|n| n.ends_with(".png")).collect();
+    let mut v: Vec<String> =
+        std::fs::read_dir(dir).unwrap().flatten().map(|e| e.file_name().to_string_lossy().into_owned()).filter(|n| n.ends_with(".png")).collect();
     v.sort();
     v
 }
@@ -68,11 +73,7 @@ fn rel(a: f64, b: f64) -> f64 {
 /// The official run's refiner settings (its `architecture.json`).
 fn refine_settings(arch: &Value) -> RefineSettings {
     let r = &arch["refiner"];
-    RefineSettings {
-        steps: r["svd_num_steps"].as_u64().unwrap() as usize,
-        window: r["svd_num_frames"].as_u64().unwrap() as usize,
-        ..RefineSettings::default()
-    }
+    RefineSettings { steps: r["svd_num_steps"].as_u64().unwrap() as usize, window: r["svd_num_frames"].as_u64().unwrap() as usize, ..RefineSettings::default() }
 }
 
 #[test]
@@ -134,7 +135,8 @@ fn eval_reproduces_the_official_evaluation() {
     let official = json(&fx.join("metrics.json"));
     let mine = json(&out.join("metrics.json"));
     let dev = candle_core::Device::Cpu;
-    let lpips = mvsplat360_metrics::lpips::Lpips::load(None, mvsplat360_metrics::lpips::Net::Vgg, &dev).expect("LPIPS weights: run scripts/metric-weights/fetch");
+    let lpips =
+        mvsplat360_metrics::lpips::Lpips::load(None, mvsplat360_metrics::lpips::Net::Vgg, &dev).expect("LPIPS weights: run scripts/metric-weights/fetch");
     let dists = mvsplat360_metrics::dists::Dists::load(None, &dev).expect("DISTS weights: run scripts/metric-weights/fetch");
     let tensor = |p: &Path| {
         let img = mvsplat360_metrics::score::load_rgb(p).unwrap();
@@ -162,7 +164,14 @@ fn eval_reproduces_the_official_evaluation() {
             }
         }
         // eval's per-image scores (its scene records) of its own PNGs.
-        for scene in official["images"].as_array().unwrap().iter().filter_map(|n| n.as_str()).filter_map(|n| n.rsplit_once('_').map(|(s, _)| s.to_string())).collect::<std::collections::BTreeSet<_>>() {
+        for scene in official["images"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter_map(|n| n.as_str())
+            .filter_map(|n| n.rsplit_once('_').map(|(s, _)| s.to_string()))
+            .collect::<std::collections::BTreeSet<_>>()
+        {
             let rec = json(&out.join("scenes").join(format!("{scene}.json")));
             for img in rec["methods"][key].as_array().unwrap() {
                 let n = img["name"].as_str().unwrap();

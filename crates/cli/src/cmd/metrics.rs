@@ -75,7 +75,13 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<()> {
             pb.set_position(done as u64);
         }) as mvsplat360_metrics::score::ProgressFn
     });
-    let opts = ScoreOptions { weights_dir: args.weights_dir.clone(), batch_size: args.batch_size as usize, fid_variant: args.fid_variant, progress, ..ScoreOptions::default() };
+    let opts = ScoreOptions {
+        weights_dir: args.weights_dir.clone(),
+        batch_size: args.batch_size as usize,
+        fid_variant: args.fid_variant,
+        progress,
+        ..ScoreOptions::default()
+    };
     let result = score_dirs(&args.pred_dir, &args.gt_dir, &opts);
     if let Some(pb) = &bar {
         pb.finish_and_clear();
