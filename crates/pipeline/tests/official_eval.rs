@@ -8,7 +8,8 @@
 //! move GSplat / Refined pixels by one level on < 4e-4 of the values; histogram matching turns a one-level
 //! change of its input into jumps of up to tens of levels on a few pixels):
 //! - `ImagesGT`: identical;
-//! - `ImagesGSplat`, `ImagesRefined0`: within 1 level on ≥ 99.9 % of values, never more than 2;
+//! - `ImagesGSplat`, `ImagesRefined0`: within 1 level on ≥ 99.9 % of values, never more than 2, and equal on
+//!   ≥ 99 % (another 8-bit conversion would change about half of them);
 //! - `ImagesPostprocessed0V2`: our matching of the fixture's own PNGs gives its PNGs exactly; end to end
 //!   within 1 level on ≥ 99 % of values;
 //! - PSNR, SSIM, LPIPS, DISTS of the fixture's own refined PNGs: within 1e-5 relative of the official values;
@@ -50,20 +51,22 @@ fn names(dir: &Path) -> Vec<String> {
     v
 }
 
-/// Level differences of two folders of PNGs: (share of values off by more than 1, largest difference).
-fn level_diff(ours: &Path, official: &Path) -> (f64, u8) {
-    let (mut over1, mut total, mut worst) = (0usize, 0usize, 0u8);
+/// Level differences of two folders of PNGs: (share of values off by more than 1, largest difference, share of
+/// values that differ at all).
+fn level_diff(ours: &Path, official: &Path) -> (f64, u8, f64) {
+    let (mut over1, mut any, mut total, mut worst) = (0usize, 0usize, 0usize, 0u8);
     for n in names(official) {
         let (a, b) = (png(&ours.join(&n)), png(&official.join(&n)));
         assert_eq!(a.dimensions(), b.dimensions(), "{n}");
         for (x, y) in a.as_raw().iter().zip(b.as_raw()) {
             let d = x.abs_diff(*y);
             over1 += (d > 1) as usize;
+            any += (d > 0) as usize;
             worst = worst.max(d);
             total += 1;
         }
     }
-    (over1 as f64 / total as f64, worst)
+    (over1 as f64 / total as f64, worst, any as f64 / total as f64)
 }
 
 fn rel(a: f64, b: f64) -> f64 {
@@ -114,13 +117,15 @@ fn eval_reproduces_the_official_evaluation() {
         assert_eq!(names(&out.join(d)), names(&fx.join(d)), "{d}: file names");
     }
     let gt = level_diff(&out.join("ImagesGT"), &fx.join("ImagesGT"));
-    assert_eq!(gt, (0.0, 0), "ImagesGT: the preprocessed targets must be the official ones");
+    assert_eq!(gt, (0.0, 0, 0.0), "ImagesGT: the preprocessed targets must be the official ones");
     for d in ["ImagesGSplat", "ImagesRefined0"] {
-        let (share, worst) = level_diff(&out.join(d), &fx.join(d));
-        println!("{d}: {:.3e} of values off by more than 1 level, worst {worst}", share);
+        let (share, worst, any) = level_diff(&out.join(d), &fx.join(d));
+        println!("{d}: {any:.3e} of values differ, {share:.3e} by more than 1 level, worst {worst}");
         assert!(share <= 1e-3 && worst <= 2, "{d}: {share:e} of values off by more than 1 level, worst {worst}");
+        // Float noise flips a level on < 4e-4 of the values; another 8-bit rule (rounding) flips about half.
+        assert!(any <= 1e-2, "{d}: {any:e} of values differ from the official PNGs (another 8-bit conversion?)");
     }
-    let (share, worst) = level_diff(&out.join("ImagesPostprocessed0V2"), &fx.join("ImagesPostprocessed0V2"));
+    let (share, worst, _) = level_diff(&out.join("ImagesPostprocessed0V2"), &fx.join("ImagesPostprocessed0V2"));
     println!("ImagesPostprocessed0V2: {share:.3e} of values off by more than 1 level, worst {worst}");
     assert!(share <= 1e-2, "ImagesPostprocessed0V2: {share:e} of values off by more than 1 level (worst {worst})");
 
