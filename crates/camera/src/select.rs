@@ -2,31 +2,56 @@
 
 use crate::Camera;
 
-/// Farthest-point sampling of `n` views over camera centres.
-///
-/// Start rule: index 0 (as pytorch3d's `sample_farthest_points` without random start), then repeatedly the view
-/// whose distance to the chosen set is largest; ties go to the lowest index. Returns indices in selection order.
-pub fn farthest_point_sampling(cameras: &[Camera], n: usize) -> Vec<usize> {
-    let centres: Vec<_> = cameras.iter().map(|c| c.center()).collect();
-    let n = n.min(centres.len());
+/// Where farthest-point sampling starts; every caller names its rule, so a scene's context views depend on the
+/// rule and not on which command picked them.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FpsStart {
+    /// The first view (pytorch3d's `sample_farthest_points` without a random start): `render --num-context`.
+    First,
+    /// The point farthest from the centroid (the official `farthest_point_sample`): the evaluation index and the
+    /// training sampler.
+    FarthestFromCentroid,
+}
+
+/// Farthest-point sampling of `n` of `points` (at most all of them): the start of `start`, then repeatedly the
+/// point whose squared distance to the chosen set is largest; ties go to the lowest index (`torch.max`).
+/// Returns indices in selection order.
+pub fn farthest_points(points: &[[f64; 3]], n: usize, start: FpsStart) -> Vec<usize> {
+    let n = n.min(points.len());
     if n == 0 {
         return vec![];
     }
-    let mut chosen = vec![0usize];
-    let mut min_d: Vec<f64> = centres.iter().map(|p| (p - centres[0]).norm()).collect();
-    while chosen.len() < n {
-        let mut best = 0;
-        for i in 1..centres.len() {
-            if min_d[i] > min_d[best] {
-                best = i;
+    let d2 = |a: &[f64; 3], b: &[f64; 3]| (0..3).map(|k| (a[k] - b[k]) * (a[k] - b[k])).sum::<f64>();
+    let argmax = |v: &[f64]| (1..v.len()).fold(0, |best, i| if v[i] > v[best] { i } else { best });
+    let first = match start {
+        FpsStart::First => 0,
+        FpsStart::FarthestFromCentroid => {
+            let mut c = [0.0; 3];
+            for p in points {
+                for k in 0..3 {
+                    c[k] += p[k];
+                }
             }
+            let c = c.map(|x| x / points.len() as f64);
+            argmax(&points.iter().map(|p| d2(p, &c)).collect::<Vec<_>>())
         }
+    };
+    let mut chosen = vec![first];
+    let mut dist: Vec<f64> = points.iter().map(|p| d2(p, &points[first])).collect();
+    while chosen.len() < n {
+        let best = argmax(&dist);
         chosen.push(best);
-        for (i, d) in min_d.iter_mut().enumerate() {
-            *d = d.min((centres[i] - centres[best]).norm());
+        for (d, p) in dist.iter_mut().zip(points) {
+            *d = d.min(d2(p, &points[best]));
         }
     }
     chosen
+}
+
+/// [`farthest_points`] over camera centres.
+pub fn farthest_views(cameras: &[Camera], n: usize, start: FpsStart) -> Vec<usize> {
+    let centres: Vec<[f64; 3]> = cameras.iter().map(|c| c.center()).map(|p| [p.x, p.y, p.z]).collect();
+    farthest_points(&centres, n, start)
 }
 
 /// For every view, itself followed by its `k` nearest other views by centre distance (stable on ties),
@@ -91,7 +116,7 @@ mod tests {
     fn fps_matches_brute_force_greedy_rule() {
         for seed in 0..5 {
             let cams = pseudo_random_cams(30, seed);
-            let sel = farthest_point_sampling(&cams, 8);
+            let sel = farthest_views(&cams, 8, FpsStart::First);
             assert_eq!(sel[0], 0);
             assert_eq!(sel.len(), 8);
             // Brute force: each pick maximises the min distance to all earlier picks over all views.
@@ -110,9 +135,13 @@ mod tests {
     #[test]
     fn fps_on_a_line_picks_ends_then_middle() {
         let cams: Vec<_> = (0..5).map(|i| cam_at(i as f64, 0.0, 0.0)).collect();
-        assert_eq!(farthest_point_sampling(&cams, 3), vec![0, 4, 2]);
-        assert_eq!(farthest_point_sampling(&cams, 10).len(), 5);
-        assert!(farthest_point_sampling(&[], 3).is_empty());
+        assert_eq!(farthest_views(&cams, 3, FpsStart::First), vec![0, 4, 2]);
+        assert_eq!(farthest_views(&cams, 10, FpsStart::First).len(), 5);
+        assert!(farthest_views(&[], 3, FpsStart::First).is_empty());
+        // From the centroid (x = 2): the ends are equally far, the lowest index wins, then the other end.
+        assert_eq!(farthest_views(&cams, 3, FpsStart::FarthestFromCentroid), vec![0, 4, 2]);
+        let shifted: Vec<_> = [0.0, 1.0, 2.0, 10.0].iter().map(|&x| cam_at(x, 0.0, 0.0)).collect();
+        assert_eq!(farthest_views(&shifted, 2, FpsStart::FarthestFromCentroid), vec![3, 0]);
     }
 
     #[test]

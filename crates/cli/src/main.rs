@@ -29,6 +29,9 @@ enum Command {
     /// The official evaluation: render every scene of an evaluation index, save the official image folders,
     /// score PSNR, SSIM, LPIPS, DISTS, FID (resumable).
     Eval(cmd::eval::Args),
+    /// A model on posed scene folders by the held-out protocol (farthest-point context views, every other view a
+    /// target) against copying the nearest context photo: PSNR, SSIM, LPIPS per scene and on average.
+    EvalScenes(cmd::eval_scenes::Args),
     /// Generate an evaluation index as the official DL3DV generator (5 farthest-point context views, 56 targets).
     EvalIndex(cmd::eval::IndexArgs),
     /// Score predicted images against ground truth by file name: PSNR, SSIM, LPIPS, DISTS, FID.
@@ -53,6 +56,11 @@ fn main() {
     // Every command is one heavy job (allocator tuning; see the function's docs).
     mvsplat360_pipeline::setup::init_process();
     let cli = Cli::parse();
+    // A typo in the GPU kernel selection stops the run instead of silently measuring the default path.
+    if let Err(e) = mvsplat360_nn::gpu_ops::from_env() {
+        eprintln!("error: {e}");
+        std::process::exit(2);
+    }
     let result = match cli.command {
         Command::Demo(a) => cmd::demo::run(a, cli.quiet),
         Command::Train(a) => cmd::train::run(a, cli.quiet),
@@ -62,6 +70,7 @@ fn main() {
         Command::Export(a) => cmd::export::run(a, cli.quiet),
         Command::Convert(a) => cmd::convert::run(a),
         Command::Eval(a) => cmd::eval::run(a, cli.quiet),
+        Command::EvalScenes(a) => cmd::eval_scenes::run(a, cli.quiet),
         Command::EvalIndex(a) => cmd::eval::run_index(a, cli.quiet),
         Command::Metrics(a) => cmd::metrics::run(a, cli.quiet),
         Command::Weights(a) => cmd::weights::run(a, cli.quiet),

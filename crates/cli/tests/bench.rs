@@ -144,14 +144,14 @@ fn scene_runs_the_whole_pipeline() {
     assert!(stages.keys().any(|k| k.contains("refin")), "no refiner stage in {v}");
     assert!(v["peak_rss_mib"].as_f64().is_some_and(|m| m > 0.0), "{v}");
     assert!(v["gpu_peak_mib"].is_null(), "no GPU memory on the CPU: {v}");
-    assert!(v.get("refiner_profile").is_none(), "profile without MVSPLAT360_PROFILE: {v}");
-    // Profiled: per-module totals of the refiner (one 2-frame window, 1 guided step: UNet, VAE, CLIP scopes).
+    assert!(v.get("profile").is_none(), "profile without MVSPLAT360_PROFILE: {v}");
+    // Profiled: the encoder's stages and the refiner's modules (one 2-frame window, 1 guided step: UNet, VAE, CLIP).
     let p = bench_env(
         &["scene", "--tiny", "--views", "3", "--height", "64", "--width", "128", "--frames", "2", "--steps", "1", "--threads", "1"],
         &[("MVSPLAT360_PROFILE", "1")],
     );
-    let prof = p["refiner_profile"].as_object().unwrap_or_else(|| panic!("no refiner_profile in {p}"));
-    for k in ["unet.conv", "group_norm", "attention_core", "vae.decoder_total", "clip.block"] {
+    let prof = p["profile"].as_object().unwrap_or_else(|| panic!("no profile in {p}"));
+    for k in ["encoder.cnn", "encoder.gaussian_adapter", "unet.conv", "group_norm", "attention_core", "vae.decoder_total", "clip.block"] {
         let e = &prof.get(k).unwrap_or_else(|| panic!("no `{k}` in {p}"));
         assert!(e["calls"].as_u64().is_some_and(|n| n > 0), "{k}: {e}");
         time_field(e, "ms");
@@ -163,7 +163,7 @@ fn scene_runs_the_whole_pipeline() {
     );
     assert_eq!((w["warmup"].as_u64(), w["runs"].as_u64()), (Some(1), Some(1)), "{w}");
     for (k, e) in prof {
-        assert_eq!(w["refiner_profile"][k]["calls"], e["calls"], "{k}: warm-up counted in {w}");
+        assert_eq!(w["profile"][k]["calls"], e["calls"], "{k}: warm-up counted in {w}");
     }
     // 3DGS only: no refiner stage.
     let v = bench(&["scene", "--tiny", "--no-refiner", "--views", "2", "--height", "64", "--width", "64", "--frames", "1", "--threads", "1"]);

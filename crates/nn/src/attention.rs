@@ -556,7 +556,32 @@ pub fn multi_head_attention(q: &Tensor, k: &Tensor, v: &Tensor, heads: usize, ma
     if is_cpu_f32(q) {
         return attention_tensors(q, k, v, heads);
     }
+    #[cfg(feature = "flash-attn")]
+    if crate::flash_attn::applies(q, k, v) {
+        match flash_multi_head_attention(q, k, v, heads) {
+            Ok(Some(o)) => return Ok(o),
+            Ok(None) => {}
+            Err(e) => crate::flash_attn::note_fallback(&e),
+        }
+    }
     multi_head_attention_composed(q, k, v, heads, max_score_elems)
+}
+
+/// [`multi_head_attention`] on FlashAttention-2 ([`crate::flash_attn`]; CUDA f16/bf16, head dim 64), whatever
+/// `MVSPLAT360_GPU_OPS` selects: the `(N, L, H·64)` operands are `(N, L, H, 64)` as they lie (a reshape, no copy
+/// when contiguous). `Ok(None)` where the shapes do not fit that form; an error where the kernel cannot take the
+/// operands (no CUDA, another dtype, past its limits). Records no backward.
+#[cfg(feature = "flash-attn")]
+pub fn flash_multi_head_attention(q: &Tensor, k: &Tensor, v: &Tensor, heads: usize) -> Result<Option<Tensor>> {
+    use crate::flash_attn::{flash_attention, HEAD_DIM};
+    let (n, lq, inner) = q.dims3()?;
+    let (nk, lk, ik) = k.dims3()?;
+    if heads == 0 || inner != heads * HEAD_DIM || (nk, ik) != (n, inner) || v.dims3()? != (n, lk, inner) {
+        return Ok(None);
+    }
+    let split = |t: &Tensor, l: usize| t.reshape((n, l, heads, HEAD_DIM));
+    let o = flash_attention(&split(q, lq)?, &split(k, lk)?, &split(v, lk)?, 1.0 / (HEAD_DIM as f32).sqrt())?;
+    Ok(Some(o.reshape((n, lq, inner))?))
 }
 
 /// [`multi_head_attention`] from matmul + softmax in score blocks of at most `max_score_elems`.
@@ -618,6 +643,14 @@ pub(crate) fn multi_head_attention_composed(q: &Tensor, k: &Tensor, v: &Tensor, 
 /// (rows, H·d), rows not in any sequence are zero.
 pub fn multi_head_attention_seqs(q: &Tensor, k: &Tensor, v: &Tensor, layout: SeqLayout, heads: usize, max_score_elems: usize) -> Result<Tensor> {
     if !is_cpu_f32(q) {
+        #[cfg(feature = "flash-attn")]
+        if crate::flash_attn::applies(q, k, v) {
+            match flash_multi_head_attention_seqs(q, k, v, layout, heads) {
+                Ok(Some(o)) => return Ok(o),
+                Ok(None) => {}
+                Err(e) => crate::flash_attn::note_fallback(&e),
+            }
+        }
         return multi_head_attention_seqs_composed(q, k, v, layout, heads, max_score_elems);
     }
     let inner = *q.dims().last().unwrap_or(&1);
@@ -633,6 +666,40 @@ pub fn multi_head_attention_seqs(q: &Tensor, k: &Tensor, v: &Tensor, layout: Seq
         })
     })???;
     Tensor::from_vec(out, (rows, inner), q.device())
+}
+
+/// [`multi_head_attention_seqs`] on FlashAttention-2 ([`crate::flash_attn`]; CUDA f16/bf16, head dim 64), whatever
+/// `MVSPLAT360_GPU_OPS` selects, for the layouts that are a `(batch, seq, heads, 64)` view of the (rows, H·64)
+/// operands (a reshape, no copy when contiguous), covering every row:
+/// - contiguous sequences (spatial attention, windows of a frame's tokens): `(count, len, H, 64)`;
+/// - temporal, frame-major (`inner == 1`, `pos == inner_count`, `outer == len·inner_count`: row
+///   `(w·len + t)·s + p` for window w, frame t, pixel p, s = inner_count): `(count / s, len, s·H, 64)`, the
+///   pixels folded into the heads (head stride 64 throughout).
+///
+/// `Ok(None)` for other layouts (the composed path gathers them); an error where the kernel cannot take the
+/// operands. Output `(rows, H·64)` as [`multi_head_attention_seqs`]. Records no backward.
+#[cfg(feature = "flash-attn")]
+pub fn flash_multi_head_attention_seqs(q: &Tensor, k: &Tensor, v: &Tensor, layout: SeqLayout, heads: usize) -> Result<Option<Tensor>> {
+    use crate::flash_attn::{flash_attention, HEAD_DIM};
+    let inner = *q.dims().last().unwrap_or(&0);
+    if heads == 0 || inner != heads * HEAD_DIM || k.dims() != q.dims() || v.dims() != q.dims() {
+        return Ok(None);
+    }
+    let rows = q.elem_count() / inner;
+    let SeqLayout { count, len, inner_count: ic, outer, inner: step, pos } = layout;
+    if count * len != rows || rows == 0 {
+        return Ok(None);
+    }
+    let (b, h) = if ic == 1 && outer == len && pos == 1 {
+        (count, heads)
+    } else if ic > 0 && count % ic == 0 && step == 1 && pos == ic && outer == len * ic {
+        (count / ic, ic * heads)
+    } else {
+        return Ok(None);
+    };
+    let four = |t: &Tensor| t.reshape((b, len, h, HEAD_DIM));
+    let o = flash_attention(&four(q)?, &four(k)?, &four(v)?, 1.0 / (HEAD_DIM as f32).sqrt())?;
+    Ok(Some(o.reshape((rows, inner))?))
 }
 
 /// [`multi_head_attention_seqs`] for other devices: gather the sequences, attend, gather back. The way back is a

@@ -5,18 +5,19 @@
 //!
 //! | module | functions | CPU | CUDA (today) |
 //! |---|---|---|---|
-//! | [`conv`] | `conv2d`, `conv2d_fused`, `conv2d_epilogue`, `temporal_conv`, `Conv2d`, `add_bias` | shifted gemm, im2col + gemm (bias: custom op + backward) | candle `conv2d`, matmuls |
-//! | [`attention`] | `fused_attention`, `multi_head_attention`, `multi_head_attention_seqs` | blocked, no score tensor | matmul + softmax + matmul |
+//! | [`conv`] | `conv2d`, `conv2d_fused`, `conv2d_epilogue`, `temporal_conv`, `Conv2d`, `add_bias` | shifted gemm, im2col + gemm (bias: custom op + backward) | candle `conv2d`, matmuls; with `cudnn`: cuDNN with cached plans ([`conv::cudnn`]: tensor-op math in f16/bf16, no TF32 in f32; bias + residual in the call; temporal conv as a (kt, 1) conv on a strided view) |
+//! | [`attention`] | `fused_attention`, `multi_head_attention`, `multi_head_attention_seqs` | blocked, no score tensor | matmul + softmax + matmul; `multi_head_attention[_seqs]` with feature `flash-attn` and `flash`: FlashAttention-2 forward (`flash_attn`; f16/bf16, head dim 64, inference only; scripts/build-flash-attn) |
 //! | [`softmax`] | `softmax_last`, `masked_softmax` | fused masked kernel | candle softmax / composed |
-//! | [`norm`] | `layer_norm`, `group_norm`, `group_norm_act`, `instance_norm` | f64 statistics, fused act (`group_norm_act`, `instance_norm`: custom op + backward when tracked) | composed |
+//! | [`norm`] | `layer_norm`, `group_norm`, `group_norm_act`, `instance_norm` | f64 statistics, fused act (`group_norm_act`, `instance_norm`: custom op + backward when tracked) | composed; `group_norm` with `fused`: cuda/fused.cu (chunk statistics, f64 merge, apply + SiLU) |
 //! | [`activation`] | `gelu`, `gelu_inference`, `axpby` | vectorised (gelu: with backward) | candle `gelu_erf`, affine |
-//! | [`linear`] | `linear_fused`, `geglu_ff`, `linear_from_channels_first`, `linear_to_channels_first` | gemm, fused epilogue | matmuls |
+//! | [`linear`] | `linear_fused`, `geglu_ff`, `linear_from_channels_first`, `linear_to_channels_first` | gemm, fused epilogue | matmuls; `geglu_ff` with `fused`: bias + split + GELU + product in one kernel (cuda/fused.cu) |
 //! | [`grid_sample`] | `grid_sample` | custom op + backward | 4-tap `gather` (composed) |
 //! | [`warp_correlation`] | `warp_correlation` | custom op + backward | `grid_sample` · sum over channels |
 //! | [`layout`] | `channels_last` | blocked multi-threaded transpose | candle permute + copy |
 //! | [`upsample`] | `upsample_bilinear`, `upsample_nearest` | custom op + backward / candle | `index_select` lerp / candle |
 //!
-//! The CUDA column is a composition, not a kernel of ours: it materialises what the CPU kernels avoid (the
+//! The CUDA column is a composition, not a kernel of ours, unless `MVSPLAT360_GPU_OPS` selects one ([`gpu_ops`];
+//! `fused`: GroupNorm and GEGLU, inference only, checked on the CPU by `tests/cuda_emulated.rs`): it materialises what the CPU kernels avoid (the
 //! attention scores — in slices of at most 2^26, by batch and then by query rows —, the warped
 //! `[N, C, D, h, w]` features). `conv2d_shift` and `conv2d_gemm` (the CPU algorithms by name, for tests and
 //! benchmarks) answer [`NotBuilt`] on other devices. On an H200 (2026-11-26) the compositions matched the CPU
@@ -26,12 +27,18 @@ pub mod activation;
 pub mod attention;
 pub mod bench;
 pub mod conv;
+#[cfg(feature = "flash-attn")]
+pub mod flash_attn;
+#[cfg(feature = "cuda")]
+mod fused_cuda;
+pub mod gpu_ops;
 pub mod grid_sample;
 pub mod layout;
 pub mod linear;
 mod math;
 pub mod mode;
 pub mod norm;
+pub mod prof;
 pub mod softmax;
 pub mod upsample;
 pub mod warp_correlation;

@@ -211,15 +211,33 @@ pub(crate) fn geglu_ff_composed(x: &Tensor, w1: &Tensor, b1: &Tensor, w2: &Tenso
     if let Some(l) = od.last_mut() {
         *l = w2.dim(0)?;
     }
-    let h = x.reshape((rows, c))?.matmul(&w1.t()?)?.broadcast_add(b1)?;
-    let a = h.narrow(1, 0, inner)?;
-    let g = h.narrow(1, inner, inner)?.gelu_erf()?;
-    let y = (a * g)?.matmul(&w2.t()?)?.broadcast_add(b2)?.reshape(od)?;
+    let h = x.reshape((rows, c))?.matmul(&w1.t()?)?;
+    let gated = match geglu_gate_fused(&h, b1)? {
+        Some(g) => g,
+        None => {
+            let h = h.broadcast_add(b1)?;
+            let a = h.narrow(1, 0, inner)?;
+            let g = h.narrow(1, inner, inner)?.gelu_erf()?;
+            (a * g)?
+        }
+    };
+    let y = gated.matmul(&w2.t()?)?.broadcast_add(b2)?.reshape(od)?;
     let mut y = (y * scale as f64)?;
     for (a, cf) in adds {
         y = (y + (*a * *cf as f64)?)?;
     }
     Ok(y)
+}
+
+/// `(h₁ + b₁)·gelu_erf(h₂ + b₂)` of the first projection h (rows, 2·inner) in one kernel (bias add, split,
+/// GELU and product fused) where [`crate::fused_cuda`] applies; `None` otherwise.
+fn geglu_gate_fused(h: &Tensor, b1: &Tensor) -> Result<Option<Tensor>> {
+    #[cfg(feature = "cuda")]
+    if crate::fused_cuda::applies(h, &[b1]) {
+        return crate::fused_cuda::geglu(h, b1);
+    }
+    let _ = (h, b1);
+    Ok(None)
 }
 
 /// Per item of x (N, C, S) (channels-first): tokens (N, S, O) = xᵢᵀ·Wᵀ + b, reading the channels-first

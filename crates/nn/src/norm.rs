@@ -49,7 +49,8 @@ pub(crate) fn layer_norm_composed(x: &Tensor, weight: &Tensor, bias: &Tensor, ep
 
 /// GroupNorm on (N, C, ...) with statistics pooled over `frames` consecutive items (frames > 1: a GroupNorm
 /// of the (B, C, T, H, W) tensor of a temporal ResBlock), optionally followed by SiLU. CPU f32 fast path (one stats pass, one write pass);
-/// in differentiable mode on the CPU one op with an analytic backward; composed ops on other devices.
+/// in differentiable mode on the CPU one op with an analytic backward; on CUDA with `MVSPLAT360_GPU_OPS=fused`
+/// the kernels of cuda/fused.cu; composed ops on other devices.
 pub fn group_norm(x: &Tensor, groups: usize, frames: usize, weight: &Tensor, bias: &Tensor, eps: f64, silu: bool) -> Result<Tensor> {
     let dims = x.dims().to_vec();
     let (n, c) = (dims[0], dims[1]);
@@ -69,6 +70,12 @@ pub fn group_norm(x: &Tensor, groups: usize, frames: usize, weight: &Tensor, bia
     if cpu_f32(x) && cpu_f32(weight) && cpu_f32(bias) {
         let y = group_norm_trainable(x, weight, bias, groups, frames, eps)?;
         return if silu { y.silu() } else { Ok(y) };
+    }
+    #[cfg(feature = "cuda")]
+    if crate::fused_cuda::applies(x, &[weight, bias]) {
+        if let Some(y) = crate::fused_cuda::group_norm(x, groups, frames, weight, bias, eps, silu)? {
+            return Ok(y);
+        }
     }
     if fused_half(x) {
         return group_norm_fused_half(x, groups, frames, weight, bias, eps, silu);

@@ -70,14 +70,14 @@ pub fn run_scene_bench(o: &SceneBenchOpts) -> Result<serde_json::Value> {
     let mut totals = Vec::new();
     let mut gaussians = 0;
     gpu_peak_mib(&device, true);
-    let profile = mvsplat360_refiner::prof::is_enabled();
+    let profile = mvsplat360_nn::prof::is_enabled();
     if profile {
-        mvsplat360_refiner::prof::sync_with(&device);
+        mvsplat360_nn::prof::sync_with(&device);
     }
     for r in 0..o.warmup + o.runs {
         if r == o.warmup && profile {
             // Only the timed runs are profiled.
-            let _ = mvsplat360_refiner::prof::take_report();
+            let _ = mvsplat360_nn::prof::take_report();
         }
         let req = RenderRequest {
             scene: scene.clone(),
@@ -134,10 +134,10 @@ pub fn run_scene_bench(o: &SceneBenchOpts) -> Result<serde_json::Value> {
         "gpu_peak_mib": gpu_peak_mib(&device, false),
     });
     if profile {
-        // Totals over all runs, inclusive of nested scopes (see mvsplat360_refiner::prof).
+        // Totals over all runs (encoder stages and refiner modules), inclusive of nested scopes (see mvsplat360_nn::prof).
         let p: serde_json::Map<String, serde_json::Value> =
-            mvsplat360_refiner::prof::take_report().into_iter().map(|(n, ms, calls)| (n.to_string(), json!({ "ms": ms, "calls": calls }))).collect();
-        out["refiner_profile"] = serde_json::Value::Object(p);
+            mvsplat360_nn::prof::take_report().into_iter().map(|(n, ms, calls)| (n.to_string(), json!({ "ms": ms, "calls": calls }))).collect();
+        out["profile"] = serde_json::Value::Object(p);
     }
     Ok(out)
 }

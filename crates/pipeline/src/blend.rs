@@ -32,15 +32,14 @@ pub struct BlendSettings {
     pub views: usize,
     /// Channels of the CNN.
     pub width: usize,
-    /// Per candidate also ln(z / z_view): the candidate point's depth in its context view against that view's
-    /// fitted render's depth there, so the CNN can tell occluded and inconsistent candidates apart.
-    #[serde(skip_serializing_if = "std::ops::Not::not")]
-    pub visibility: bool,
 }
+
+/// Keys that `blend` once had, measured and not adopted (see [`crate::fit::REMOVED_KEYS`]).
+pub const REMOVED_KEYS: &[(&str, &str)] = &[("visibility", "visibility-blender.md")];
 
 impl Default for BlendSettings {
     fn default() -> Self {
-        Self { planes: 7, span: 1.6, views: 2, width: 16, visibility: false }
+        Self { planes: 7, span: 1.6, views: 2, width: 16 }
     }
 }
 
@@ -55,10 +54,9 @@ impl BlendSettings {
         Ok(())
     }
 
-    /// Input channels of the CNN: render (3), opacity (1), 3 per candidate, then (with `visibility`) 1 per
-    /// candidate.
+    /// Input channels of the CNN: render (3), opacity (1), 3 per candidate.
     pub fn channels(&self) -> usize {
-        4 + (3 + usize::from(self.visibility)) * self.views * self.planes
+        4 + 3 * self.views * self.planes
     }
 }
 
@@ -79,16 +77,11 @@ pub fn bilinear(img: &[f32], w: usize, h: usize, x: f64, y: f64) -> [f32; 3] {
 }
 
 /// Colours of the photo `img` (3,H,W at `v`'s size) of camera `v` at the points that target pixels reach at
-/// z-depths `z`; `fallback` where a point is behind `v` or outside its image. With `vis` = (v's depth map at its
-/// size, NaN where unknown; the output), also ln(point's z in v / the map at the nearest pixel), clamped to
-/// [−1, 1]: +1 where the point is not seen by v, 0 where the map is unknown.
-fn sample_view(t: &Camera, z: &[f64], v: &Camera, img: &[f32], fallback: &[f32], out: &mut [f32], mut vis: Option<(&[f32], &mut [f32])>) {
+/// z-depths `z`; `fallback` where a point is behind `v` or outside its image.
+fn sample_view(t: &Camera, z: &[f64], v: &Camera, img: &[f32], fallback: &[f32], out: &mut [f32]) {
     let (w, h) = (t.width as usize, t.height as usize);
     let (vw, vh) = (v.width as usize, v.height as usize);
     out.copy_from_slice(fallback);
-    if let Some((_, o)) = vis.as_mut() {
-        o.fill(1.0);
-    }
     let (rot, c, m) = (t.rotation(), t.center(), v.w2c_matrix());
     for py in 0..h {
         for px in 0..w {
@@ -106,20 +99,13 @@ fn sample_view(t: &Camera, z: &[f64], v: &Camera, img: &[f32], fallback: &[f32],
             for (k, c) in col.iter().enumerate() {
                 out[k * w * h + i] = *c;
             }
-            if let Some((map, o)) = vis.as_mut() {
-                let zv = map[(vv as usize).min(vh - 1) * vw + (u as usize).min(vw - 1)];
-                o[i] = if zv.is_finite() && zv > 0.0 { ((p.z / zv as f64).ln() as f32).clamp(-1.0, 1.0) } else { 0.0 };
-            }
         }
     }
 }
 
 /// The CNN's input for one target, (C,H,W) flattened: the render `rgb` (3,H,W, clamped to [0, 1]), its opacity
-/// `alpha` (H,W), then per context view (nearest camera centre first) and per plane the sampled colours, then
-/// (with `visibility`) in the same order each candidate's ln(z / z_view) of [`sample_view`].
-/// `depth` is the rasterizer's Σ w·z (not divided by alpha); each context photo is (3,H,W) at its camera's size;
-/// `context_depths` are the context views' z-depth maps ([`depth_map`] of their renders; used only with
-/// `visibility`, which needs one per context view).
+/// `alpha` (H,W), then per context view (nearest camera centre first) and per plane the sampled colours.
+/// `depth` is the rasterizer's Σ w·z (not divided by alpha); each context photo is (3,H,W) at its camera's size.
 #[allow(clippy::too_many_arguments)]
 pub fn candidates(
     s: &BlendSettings,
@@ -129,11 +115,9 @@ pub fn candidates(
     depth: &[f32],
     context: &[Camera],
     photos: &[&[f32]],
-    context_depths: &[Vec<f32>],
     near: f64,
     far: f64,
 ) -> Vec<f32> {
-    assert!(!s.visibility || context_depths.len() == context.len(), "blend visibility needs one depth map per context view");
     let n = (target.width * target.height) as usize;
     let mut order: Vec<usize> = (0..context.len()).collect();
     order.sort_by(|&i, &j| (context[i].center() - target.center()).norm().total_cmp(&(context[j].center() - target.center()).norm()));
@@ -141,7 +125,6 @@ pub fn candidates(
     out[..3 * n].copy_from_slice(rgb);
     out[3 * n..4 * n].copy_from_slice(alpha);
     let mut at = 4 * n;
-    let mut vis_at = 4 * n + 3 * n * s.views * s.planes;
     let mut z = vec![0f64; n];
     for &vi in order.iter().cycle().take(s.views) {
         for k in 0..s.planes {
@@ -149,21 +132,11 @@ pub fn candidates(
             for (i, zi) in z.iter_mut().enumerate() {
                 *zi = if alpha[i] >= 0.5 { (depth[i] / alpha[i]) as f64 * s.span.powf(2.0 * f - 1.0) } else { near * (far / near).powf(f) };
             }
-            let (cols, rest) = out[at..].split_at_mut(3 * n);
-            let vis = s.visibility.then(|| (context_depths[vi].as_slice(), &mut rest[vis_at - at - 3 * n..vis_at - at - 2 * n]));
-            sample_view(target, &z, &context[vi], photos[vi], rgb, cols, vis);
+            sample_view(target, &z, &context[vi], photos[vi], rgb, &mut out[at..at + 3 * n]);
             at += 3 * n;
-            if s.visibility {
-                vis_at += n;
-            }
         }
     }
     out
-}
-
-/// A render's z-depth map from the rasterizer's Σ w·z and opacity: NaN where the opacity is below 0.5.
-pub fn depth_map(depth: &[f32], alpha: &[f32]) -> Vec<f32> {
-    depth.iter().zip(alpha).map(|(&d, &a)| if a >= 0.5 { d / a } else { f32::NAN }).collect()
 }
 
 /// Two full-resolution convs, one level at half resolution, a skip; heads: one logit per candidate (the render
@@ -207,7 +180,7 @@ impl BlendNet {
 
     /// The two heads for a batch of [`candidates`]: the softmax weights of the candidates (N,1+views·planes,H,W;
     /// the render first, then the candidates in their input order) and the RGB residual (N,3,H,W).
-    pub fn heads(&self, x: &Tensor) -> candle_core::Result<(Tensor, Tensor)> {
+    fn heads(&self, x: &Tensor) -> candle_core::Result<(Tensor, Tensor)> {
         let (_, _, h, w) = x.dims4()?;
         let y0 = self.inp.forward(&(x - 0.5)?)?.gelu()?;
         let y0 = self.a.forward(&y0)?.gelu()?;

@@ -37,3 +37,13 @@ pub(crate) fn flag(flag: &'static str, msg: impl Into<String>) -> PipelineError 
 pub(crate) fn compute<E: std::fmt::Display>(stage: &'static str) -> impl Fn(E) -> PipelineError {
     move |e| PipelineError::Compute { stage, msg: e.to_string() }
 }
+
+/// Fail instead of writing NaN/inf.
+pub fn check_finite(stage: &'static str, t: &candle_core::Tensor) -> Result<()> {
+    let v = t.to_dtype(candle_core::DType::F32).and_then(|t| t.flatten_all()).and_then(|t| t.to_vec1::<f32>()).map_err(compute(stage))?;
+    let bad = v.iter().filter(|x| !x.is_finite()).count();
+    if bad > 0 {
+        return Err(PipelineError::NonFinite { stage, count: bad, total: v.len() });
+    }
+    Ok(())
+}

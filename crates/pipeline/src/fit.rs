@@ -7,9 +7,6 @@
 //! leave-one-out renders say whether the geometry agrees across views. Optimised, with Adam: each Gaussian's
 //! distance along its pixel ray (a log scale; its covariance is scaled with it, so its footprint in its own
 //! view is unchanged) and its opacity (a logit). Colours, shapes and features stay as the encoder made them.
-//! With `copies`, each Gaussian first gets faint copies nearer and farther along its ray (depth hypotheses: a
-//! gradient step moves a distance only locally, the copies let the other views' evidence pick another one).
-//! With `sweep`, the distances first come from plane-sweep stereo where other views confirm it ([`crate::sweep`]).
 
 use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::{AdamW, Optimizer, ParamsAdamW};
@@ -19,8 +16,9 @@ use mvsplat360_splat::op::{render as rasterize, RenderOptions};
 use mvsplat360_splat::Gaussians;
 use serde::{Deserialize, Serialize};
 
-use crate::error::{compute, flag, PipelineError, Result};
-use crate::render::{raster_camera, Progress};
+use crate::error::{check_finite, compute, flag, PipelineError, Result};
+use crate::progress::Progress;
+use mvsplat360_splat::camera::RasterCamera;
 
 /// How the Gaussians are fitted (a model folder's `config.json` key `fit`; `render --fit-steps` overrides the
 /// step count).
@@ -37,72 +35,26 @@ pub struct FitSettings {
     /// Weight of a second term: each context view rendered from all the Gaussians against its photo (keeps a
     /// view's own Gaussians from fading where the other views disagree with them).
     pub self_weight: f64,
-    /// Rate of a per-Gaussian size factor (on the covariance, apart from the distance's) relative to `lr`;
-    /// 0 = sizes stay the encoder's.
-    pub size_lr_scale: f64,
-    /// Adam's ε: a Gaussian whose gradients stay well below it hardly moves (Adam alone would step every
-    /// Gaussian at the full rate, however little it shows in the photos). Written out only when not the default,
-    /// so that eval folders of earlier runs still resume.
-    #[serde(skip_serializing_if = "is_default_eps")]
-    pub adam_eps: f64,
-    /// Cosine decay of the rates to 0 over the steps (false: constant). Absent from a file: false, as before
-    /// it existed.
+    /// Cosine decay of the rates to 0 over the steps (false: constant). Absent from a file: false.
     #[serde(default)]
     pub cosine: bool,
-    /// Depth hypotheses: before fitting, every Gaussian gets this many copies on each side along its pixel ray,
-    /// at distances × `copy_ratio`^±1…±copies, with `copy_opacity` × its opacity (the fit then raises the copies
-    /// that the other views confirm). 0 = none. Written out only when set, so that eval folders of earlier runs
-    /// still resume.
-    #[serde(skip_serializing_if = "is_zero")]
-    pub copies: usize,
-    #[serde(skip_serializing_if = "is_default_ratio")]
-    pub copy_ratio: f64,
-    #[serde(skip_serializing_if = "is_default_copy_opacity")]
-    pub copy_opacity: f64,
-    /// Plane-sweep stereo on the context photos before the fit (see [`crate::sweep`]); absent: none.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub sweep: Option<crate::sweep::SweepSettings>,
 }
 
-const DEFAULT_ADAM_EPS: f64 = 1e-8;
+/// Keys that `fit` once had, measured and not adopted; a model folder that still carries one gets an error
+/// naming the study. (key, study in docs/research/)
+pub const REMOVED_KEYS: &[(&str, &str)] = &[
+    ("size_lr_scale", "fit-size-factor.md"),
+    ("adam_eps", "fit-adam-eps.md"),
+    ("copies", "fit-depth-copies.md"),
+    ("copy_ratio", "fit-depth-copies.md"),
+    ("copy_opacity", "fit-depth-copies.md"),
+    ("sweep", "plane-sweep.md"),
+];
 
-fn is_default_eps(e: &f64) -> bool {
-    *e == DEFAULT_ADAM_EPS
-}
-
-const DEFAULT_COPY_RATIO: f64 = 1.33;
-const DEFAULT_COPY_OPACITY: f64 = 0.1;
-
-fn is_zero(n: &usize) -> bool {
-    *n == 0
-}
-
-fn is_default_ratio(r: &f64) -> bool {
-    *r == DEFAULT_COPY_RATIO
-}
-
-fn is_default_copy_opacity(o: &f64) -> bool {
-    *o == DEFAULT_COPY_OPACITY
-}
-
-/// Off, with the shipped model's validated recipe for `--fit-steps N` on a model folder without `fit`
-/// (since the 15th session lr 0.03 with cosine decay; 0.02 constant before).
+/// Off, with the shipped model's validated recipe for `--fit-steps N` on a model folder without `fit`.
 impl Default for FitSettings {
     fn default() -> Self {
-        Self {
-            steps: 0,
-            lr: 0.03,
-            opacity_lr_scale: 5.0,
-            min_alpha: 0.5,
-            self_weight: 1.0,
-            size_lr_scale: 0.0,
-            adam_eps: DEFAULT_ADAM_EPS,
-            cosine: true,
-            copies: 0,
-            copy_ratio: DEFAULT_COPY_RATIO,
-            copy_opacity: DEFAULT_COPY_OPACITY,
-            sweep: None,
-        }
+        Self { steps: 0, lr: 0.03, opacity_lr_scale: 5.0, min_alpha: 0.5, self_weight: 1.0, cosine: true }
     }
 }
 
@@ -114,29 +66,11 @@ impl FitSettings {
         if !(self.opacity_lr_scale.is_finite() && self.opacity_lr_scale >= 0.0) {
             return Err(flag("fit.opacity_lr_scale", format!("must be ≥ 0, got {}", self.opacity_lr_scale)));
         }
-        if !(self.size_lr_scale.is_finite() && self.size_lr_scale >= 0.0) {
-            return Err(flag("fit.size_lr_scale", format!("must be ≥ 0, got {}", self.size_lr_scale)));
-        }
         if !(self.self_weight.is_finite() && self.self_weight >= 0.0) {
             return Err(flag("fit.self_weight", format!("must be ≥ 0, got {}", self.self_weight)));
         }
-        if !(self.adam_eps.is_finite() && self.adam_eps > 0.0) {
-            return Err(flag("fit.adam_eps", format!("must be a positive number, got {}", self.adam_eps)));
-        }
-        if self.copies > 0 && !(self.copy_ratio.is_finite() && self.copy_ratio > 1.0) {
-            return Err(flag("fit.copy_ratio", format!("must be > 1, got {}", self.copy_ratio)));
-        }
-        if self.copies > 0 && !(self.copy_opacity > 0.0 && self.copy_opacity <= 1.0) {
-            return Err(flag("fit.copy_opacity", format!("must be in (0, 1], got {}", self.copy_opacity)));
-        }
-        if self.copies > 8 {
-            return Err(flag("fit.copies", format!("at most 8 on each side, got {}", self.copies)));
-        }
         if !(0.0..1.0).contains(&self.min_alpha) {
             return Err(flag("fit.min_alpha", format!("must be in [0, 1), got {}", self.min_alpha)));
-        }
-        if let Some(sw) = &self.sweep {
-            sw.validate()?;
         }
         Ok(())
     }
@@ -176,9 +110,6 @@ impl Part {
 /// The per-Gaussian variables of a fit.
 struct Vars {
     log_scale: Var,
-    log_size: Var,
-    /// Whether `log_size` takes part (off: the covariance is exactly the distance factor's).
-    fit_size: bool,
     logit: Var,
 }
 
@@ -191,11 +122,7 @@ impl Vars {
         };
         let s = take(&self.log_scale)?.exp()?;
         let means = (&part.origins + part.offsets.broadcast_mul(&s)?)?;
-        let mut k = s.sqr()?;
-        if self.fit_size {
-            k = (k * take(&self.log_size)?.affine(2.0, 0.0)?.exp()?)?;
-        }
-        let covariances = part.covariances.broadcast_mul(&k.unsqueeze(2)?)?;
+        let covariances = part.covariances.broadcast_mul(&s.sqr()?.unsqueeze(2)?)?;
         let opacities = candle_nn::ops::sigmoid(&take(&self.logit)?)?;
         Ok(Gaussians { means, covariances, opacities, harmonics: part.harmonics.clone(), feature_harmonics: part.features.clone() })
     }
@@ -210,8 +137,9 @@ impl Vars {
 /// The fitting loss: mean over context views of the leave-one-out render's masked MSE, plus `self_weight` × the
 /// MSE of the render from all Gaussians.
 fn fit_loss(x: &Vars, all: &Part, others: &[Part], cams: &[Camera], photos: &[Tensor], near: f32, far: f32, s: &FitSettings) -> candle_core::Result<Tensor> {
-    let render =
-        |g: &Gaussians, c: &Camera| rasterize(g, &raster_camera(c, near, far), &RenderOptions::default()).map_err(|e| candle_core::Error::Msg(e.to_string()));
+    let render = |g: &Gaussians, c: &Camera| {
+        rasterize(g, &RasterCamera::from_camera(c, near, far), &RenderOptions::default()).map_err(|e| candle_core::Error::Msg(e.to_string()))
+    };
     let whole = if s.self_weight > 0.0 { Some(x.gaussians(all)?) } else { None };
     let mut total = Tensor::zeros((), DType::F32, all.origins.device())?;
     for ((part, c), photo) in others.iter().zip(cams).zip(photos) {
@@ -226,90 +154,8 @@ fn fit_loss(x: &Vars, all: &Part, others: &[Part], cams: &[Camera], photos: &[Te
     total / cams.len() as f64
 }
 
-/// `g` (view-major, `views` views) with `s.copies` copies of each Gaussian on each side along its ray from
-/// `origins` (the expanded set's: (N·slots,3), view-major): per view, its Gaussians, then the copies at factor
-/// ratio^−1, ratio^1, ratio^−2, … on their distance (covariance × factor², so their footprint in their own view
-/// stays) with `copy_opacity` × their opacity.
-fn depth_copies(g: &Gaussians, origins: &Tensor, views: usize, s: &FitSettings) -> candle_core::Result<Gaussians> {
-    let per = g.means.dim(0)? / views;
-    let mut factors = vec![1.0f64];
-    for j in 1..=s.copies as i32 {
-        factors.extend([s.copy_ratio.powi(-j), s.copy_ratio.powi(j)]);
-    }
-    let (mut idx, mut f, mut op) = (Vec::new(), Vec::new(), Vec::new());
-    for k in 0..views {
-        for (m, &fm) in factors.iter().enumerate() {
-            for i in 0..per {
-                idx.push((k * per + i) as u32);
-                f.push(fm as f32);
-                op.push(if m == 0 { 1.0 } else { s.copy_opacity as f32 });
-            }
-        }
-    }
-    let dev = g.means.device();
-    let count = idx.len();
-    let e = g.select(&Tensor::from_vec(idx, count, dev)?)?;
-    let f = Tensor::from_vec(f, (count, 1), dev)?;
-    let means = (origins + e.means.sub(origins)?.broadcast_mul(&f)?)?;
-    let covariances = e.covariances.broadcast_mul(&f.sqr()?.unsqueeze(2)?)?;
-    let opacities = (e.opacities * Tensor::from_vec(op, count, dev)?)?;
-    Ok(Gaussians { means, covariances, opacities, ..e })
-}
-
-/// `g` with each pixel's distance along its ray replaced by the plane sweep's where other views confirm it
-/// (covariance scaled with it, so its footprint in its own view stays).
-fn sweep_distances(
-    g: &Gaussians,
-    cams: &[Camera],
-    photos: &[ImageF32],
-    near: f32,
-    far: f32,
-    sw: &crate::sweep::SweepSettings,
-    progress: &dyn Progress,
-) -> Result<Gaussians> {
-    let stage = "plane sweep";
-    let (v, n) = (cams.len(), g.means.dim(0).map_err(compute(stage))?);
-    let (w, h) = (photos[0].width as usize, photos[0].height as usize);
-    if n != v * w * h || photos.iter().any(|p| p.width as usize != w || p.height as usize != h) {
-        return Err(PipelineError::Compute {
-            stage,
-            msg: format!("`fit.sweep` needs one Gaussian per context pixel (gaussians_per_pixel 1): {n} Gaussians for {v} views of {w}×{h}"),
-        });
-    }
-    let means: Vec<f32> = g.means.flatten_all().and_then(|t| t.to_vec1()).map_err(compute(stage))?;
-    let mut prior = Vec::with_capacity(n);
-    let mut dirs = Vec::with_capacity(n);
-    for (i, m) in means.chunks_exact(3).enumerate() {
-        let o = cams[i / (w * h)].center();
-        let off = [m[0] as f64 - o.x, m[1] as f64 - o.y, m[2] as f64 - o.z];
-        let len = (off[0] * off[0] + off[1] * off[1] + off[2] * off[2]).sqrt().max(1e-12);
-        prior.push(len as f32);
-        dirs.push(off.map(|x| x / len));
-    }
-    let r = crate::sweep::sweep(photos, cams, &prior, &dirs, near as f64, far as f64, sw);
-    let factor: Vec<f32> = (0..n).map(|i| if r.accepted(i, sw) { r.distance[i] / prior[i] } else { 1.0 }).collect();
-    let taken = (0..n).filter(|&i| r.accepted(i, sw)).count();
-    progress.note(&format!("plane sweep: {taken} of {n} context pixels ({:.0} %) take its distance", 100.0 * taken as f64 / n as f64));
-    let origins: Vec<f32> = (0..n)
-        .flat_map(|i| {
-            let o = cams[i / (w * h)].center();
-            [o.x as f32, o.y as f32, o.z as f32]
-        })
-        .collect();
-    let run = || -> candle_core::Result<Gaussians> {
-        let dev = g.means.device();
-        let f = Tensor::from_vec(factor, (n, 1), dev)?;
-        let origins = Tensor::from_vec(origins, (n, 3), dev)?;
-        let means = (&origins + g.means.sub(&origins)?.broadcast_mul(&f)?)?;
-        let covariances = g.covariances.broadcast_mul(&f.sqr()?.unsqueeze(2)?)?;
-        Ok(Gaussians { means, covariances, ..g.clone() })
-    };
-    run().map_err(compute(stage))
-}
-
 /// Fit `g` (the encoder's Gaussians of `cams.len()` views, view-major, the same number per view) to the
-/// context photos; returns the fitted Gaussians (with `copies`, 1 + 2·copies times as many, view-major, each
-/// view's own Gaussians first) and the loss before and after.
+/// context photos; returns the fitted Gaussians and the loss before and after.
 pub fn fit(
     g: &Gaussians,
     cams: &[Camera],
@@ -333,17 +179,7 @@ pub fn fit(
             ),
         });
     }
-    let swept;
-    let g = match &s.sweep {
-        Some(sw) => {
-            swept = sweep_distances(g, cams, photos, near, far, sw, progress)?;
-            &swept
-        }
-        None => g,
-    };
     let per = n / v;
-    let slots = 1 + 2 * s.copies;
-    let (n, per) = (n * slots, per * slots);
     let mut origins = Vec::with_capacity(3 * n);
     for c in cams {
         let o = c.center();
@@ -353,7 +189,7 @@ pub fn fit(
     }
     let run = || -> candle_core::Result<(Gaussians, [f64; 2])> {
         let origins = Tensor::from_vec(origins.clone(), (n, 3), &dev)?;
-        let detached = if s.copies > 0 { depth_copies(&g.detach(), &origins, v, s)? } else { g.detach() };
+        let detached = g.detach();
         let all = Part::new(&detached, &origins, None)?;
         let others: Vec<Part> = (0..v)
             .map(|j| {
@@ -366,19 +202,16 @@ pub fn fit(
         let op = detached.opacities.clamp(1e-4f32, 1.0 - 1e-4)?;
         let logit = Var::from_tensor(&(op.log()? - (op.neg()? + 1.0)?.log()?)?)?;
         let log_scale = Var::zeros((n, 1), DType::F32, &dev)?;
-        let log_size = Var::zeros((n, 1), DType::F32, &dev)?;
-        let params = |lr: f64| ParamsAdamW { lr, weight_decay: 0.0, eps: s.adam_eps, ..ParamsAdamW::default() };
+        let params = |lr: f64| ParamsAdamW { lr, weight_decay: 0.0, ..ParamsAdamW::default() };
         let mut opt_s = AdamW::new(vec![log_scale.clone()], params(s.lr))?;
         let mut opt_o = AdamW::new(vec![logit.clone()], params(s.lr * s.opacity_lr_scale))?;
-        let mut opt_z = AdamW::new(vec![log_size.clone()], params(s.lr * s.size_lr_scale))?;
-        let x = Vars { log_scale, log_size, fit_size: s.size_lr_scale > 0.0, logit };
+        let x = Vars { log_scale, logit };
         let mut first = f64::NAN;
         for step in 0..s.steps {
             if s.cosine {
                 let f = 0.5 * (1.0 + (std::f64::consts::PI * step as f64 / s.steps as f64).cos());
                 opt_s.set_learning_rate(s.lr * f);
                 opt_o.set_learning_rate(s.lr * s.opacity_lr_scale * f);
-                opt_z.set_learning_rate(s.lr * s.size_lr_scale * f);
             }
             let loss = fit_loss(&x, &all, &others, cams, &photos, near, far, s)?;
             let lv = loss.to_scalar::<f32>()? as f64;
@@ -392,9 +225,6 @@ pub fn fit(
             let grads = loss.backward()?;
             opt_s.step(&grads)?;
             opt_o.step(&grads)?;
-            if s.size_lr_scale > 0.0 {
-                opt_z.step(&grads)?;
-            }
             progress.advance(1);
         }
         let last = fit_loss(&x, &all, &others, cams, &photos, near, far, s)?.to_scalar::<f32>()? as f64;
@@ -405,6 +235,6 @@ pub fn fit(
     let r = run().map_err(compute(stage));
     progress.end();
     let (out, losses) = r?;
-    crate::render::check_finite("fitting (Gaussian means)", &out.means)?;
+    check_finite("fitting (Gaussian means)", &out.means)?;
     Ok((out, losses))
 }

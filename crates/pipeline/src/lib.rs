@@ -10,15 +10,16 @@ pub mod blend;
 pub mod compute;
 pub mod error;
 pub mod eval;
+pub mod eval_scenes;
 pub mod fit;
 pub mod launch;
 pub mod model;
 pub mod output;
 pub mod preprocess;
+pub mod progress;
 pub mod render;
 pub mod scale;
 pub mod setup;
-pub mod sweep;
 pub mod video;
 pub mod views;
 

@@ -275,13 +275,30 @@ fn official_ckpt(path: &Path, experiment: Option<&str>) -> Result<ModelSpec> {
     })
 }
 
+/// A model folder's `config.json` text; a key that was measured and not adopted (and then removed) gets an error
+/// naming it, its study and the fix instead of serde's list of the keys there are.
+pub fn parse_model_config(text: &str) -> std::result::Result<ModelConfig, String> {
+    let removed: [(&str, &[(&str, &str)]); 2] = [("fit", crate::fit::REMOVED_KEYS), ("blend", crate::blend::REMOVED_KEYS)];
+    if let Ok(v) = serde_json::from_str::<serde_json::Value>(text) {
+        for (section, keys) in removed {
+            for (key, study) in keys {
+                if v.get(section).and_then(|s| s.get(key)).is_some() {
+                    return Err(format!(
+                        "`{section}.{key}` is no longer a setting (measured and not adopted: docs/research/{study}); delete the key from config.json — the model then runs as it did with the key at its default"
+                    ));
+                }
+            }
+        }
+    }
+    serde_json::from_str(text).map_err(|e| format!("invalid model config: {e}"))
+}
+
 /// Read a model folder (`config.json` + `model.safetensors`, or + an official `model.ckpt`).
 pub fn read_model_dir(dir: &Path) -> Result<ModelSpec> {
     let cfg_path = dir.join(MODEL_CONFIG);
     let text =
         std::fs::read_to_string(&cfg_path).map_err(|e| PipelineError::Model { path: cfg_path.clone(), msg: format!("cannot read the model config: {e}") })?;
-    let cfg: ModelConfig =
-        serde_json::from_str(&text).map_err(|e| PipelineError::Model { path: cfg_path.clone(), msg: format!("invalid model config: {e}") })?;
+    let cfg = parse_model_config(&text).map_err(|msg| PipelineError::Model { path: cfg_path.clone(), msg })?;
     if cfg.format != MODEL_FORMAT {
         return Err(PipelineError::Model { path: cfg_path, msg: format!("format is `{}`, expected `{MODEL_FORMAT}`", cfg.format) });
     }

@@ -2,20 +2,13 @@
 //! so an interrupted run leaves only complete files; `.partial` leftovers of a killed run are removed by the
 //! next run (and by the Ctrl-C handler of the CLI).
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use mvsplat360_dataset::ImageF32;
 
 use crate::error::{PipelineError, Result};
 
-/// Suffix of files being written.
-pub const PARTIAL_SUFFIX: &str = ".partial";
-
-fn partial_name(path: &Path) -> PathBuf {
-    let mut s = path.as_os_str().to_owned();
-    s.push(PARTIAL_SUFFIX);
-    PathBuf::from(s)
-}
+pub use mvsplat360_dataset::atomic::PARTIAL_SUFFIX;
 
 /// Held (shared) by every write in progress; an interrupt handler takes it exclusively, so that once it holds
 /// it no temporary file is being written or can appear (see [`stop_writes`]).
@@ -36,15 +29,8 @@ pub fn atomic_write(path: &Path, write: impl FnOnce(&Path) -> std::result::Resul
 /// [`atomic_write`] outside the interrupt gate, for long writes outside the output folder (the converted-weights
 /// cache) that Ctrl-C should not wait for; a leftover `.partial` there is overwritten by the next conversion.
 pub fn atomic_write_ungated(path: &Path, write: impl FnOnce(&Path) -> std::result::Result<(), String>) -> Result<()> {
-    let tmp = partial_name(path);
-    if let Err(msg) = write(&tmp) {
-        let _ = std::fs::remove_file(&tmp);
-        return Err(PipelineError::Write { path: path.to_path_buf(), msg });
-    }
-    std::fs::rename(&tmp, path).map_err(|e| {
-        let _ = std::fs::remove_file(&tmp);
-        PipelineError::Write { path: path.to_path_buf(), msg: e.to_string() }
-    })
+    mvsplat360_dataset::atomic::write_atomic(path, |tmp| write(tmp).map_err(std::io::Error::other))
+        .map_err(|e| PipelineError::Write { path: path.to_path_buf(), msg: e.to_string() })
 }
 
 /// Write bytes atomically.

@@ -18,31 +18,14 @@ use mvsplat360_splat::op::{render as rasterize, RenderOptions};
 use mvsplat360_splat::Gaussians;
 use serde_json::json;
 
-use crate::error::{compute, flag, PipelineError, Result};
+use crate::error::{check_finite, compute, flag, PipelineError, Result};
 use crate::model::{ModelArgs, ModelSpec};
 use crate::output::{self, write_json, write_png};
 use crate::preprocess::{InputSize, Preprocess};
 use crate::scale::SceneTransform;
 use crate::views::{ContextSpec, TargetSpec, ViewChoice};
 
-/// Progress of a long run (the CLI draws bars; tests use [`Silent`]).
-pub trait Progress: Sync {
-    /// A stage starts with `total` units of work (0 = unknown).
-    fn begin(&self, stage: &str, total: u64);
-    fn advance(&self, n: u64);
-    fn end(&self);
-    /// A one-line note (e.g. which weights are loaded).
-    fn note(&self, msg: &str);
-}
-
-/// No progress output.
-pub struct Silent;
-impl Progress for Silent {
-    fn begin(&self, _: &str, _: u64) {}
-    fn advance(&self, _: u64) {}
-    fn end(&self) {}
-    fn note(&self, _: &str) {}
-}
+pub use crate::progress::{Progress, Silent};
 
 /// Refiner sampling settings; defaults = the official DL3DV evaluation.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
@@ -207,28 +190,6 @@ pub fn prepare(req: &RenderRequest, progress: &dyn Progress) -> Result<Prepared>
     })
 }
 
-/// The rasterizer's camera for a project camera.
-pub fn raster_camera(c: &Camera, near: f32, far: f32) -> RasterCamera {
-    let w2c = c.w2c_matrix();
-    let mut v = [[0f32; 4]; 4];
-    for (r, row) in v.iter_mut().enumerate() {
-        for (k, x) in row.iter_mut().enumerate() {
-            *x = w2c[(r, k)] as f32;
-        }
-    }
-    RasterCamera {
-        viewmatrix: v,
-        fx: c.fx as f32,
-        fy: c.fy as f32,
-        cx: c.cx as f32,
-        cy: c.cy as f32,
-        width: c.width as usize,
-        height: c.height as usize,
-        near,
-        far,
-    }
-}
-
 /// Run the encoder on the preprocessed context → one scene's Gaussians (model space).
 pub fn encode(p: &Prepared, progress: &dyn Progress) -> Result<Gaussians> {
     let dev = p.device.clone();
@@ -270,22 +231,12 @@ pub fn fit_to_context(p: &Prepared, g: Gaussians, progress: &dyn Progress) -> Re
     Ok((f, Some(losses)))
 }
 
-/// Fail instead of writing NaN/inf.
-pub fn check_finite(stage: &'static str, t: &Tensor) -> Result<()> {
-    let v = t.to_dtype(DType::F32).and_then(|t| t.flatten_all()).and_then(|t| t.to_vec1::<f32>()).map_err(compute(stage))?;
-    let bad = v.iter().filter(|x| !x.is_finite()).count();
-    if bad > 0 {
-        return Err(PipelineError::NonFinite { stage, count: bad, total: v.len() });
-    }
-    Ok(())
-}
-
 /// Rasterize RGB and the latent features at every camera: (rgb (3,H,W), features (C,H,W)) per target.
 pub fn rasterize_targets(g: &Gaussians, cams: &[Camera], near: f32, far: f32, progress: &dyn Progress) -> Result<Vec<(Tensor, Tensor)>> {
     progress.begin("rasterizing", cams.len() as u64);
     let mut out = Vec::with_capacity(cams.len());
     for c in cams {
-        let r = rasterize(g, &raster_camera(c, near, far), &RenderOptions::default()).map_err(compute("rasterizer"))?;
+        let r = rasterize(g, &RasterCamera::from_camera(c, near, far), &RenderOptions::default()).map_err(compute("rasterizer"))?;
         check_finite("rasterizer", &r.rgb)?;
         out.push((r.rgb, r.features));
         progress.advance(1);
@@ -319,11 +270,10 @@ pub fn frames_3dgs(p: &Prepared, g: &Gaussians, progress: &dyn Progress) -> Resu
         return Ok(r.into_iter().map(|(rgb, features)| StageFrame { rgb, features, blended: None }).collect());
     };
     let net = crate::blend::BlendNet::load(weights, s, &p.device)?;
-    let ctx = blend_context_depths(p, g, s)?;
     progress.begin("rasterizing and blending", p.target_cameras.len() as u64);
     let mut out = Vec::with_capacity(p.target_cameras.len());
     for c in &p.target_cameras {
-        let (r, x) = blend_input(p, g, s, &ctx, c)?;
+        let (r, x) = blend_input(p, g, s, c)?;
         let (h, w) = (c.height as usize, c.width as usize);
         let y = net.blend_all(&[x], s, h, w, &p.device, 1)?.remove(0);
         check_finite("blend", &y)?;
@@ -338,42 +288,16 @@ fn host_vec(t: &Tensor) -> Result<Vec<f32>> {
     t.flatten_all().and_then(|t| t.to_vec1()).map_err(compute("rasterizer"))
 }
 
-/// The z-depth maps of `g` rendered at `cameras` (`crate::blend::depth_map`: NaN where the opacity is below 0.5).
-pub fn depth_maps(g: &Gaussians, cameras: &[Camera], near: f32, far: f32) -> Result<Vec<Vec<f32>>> {
-    cameras
-        .iter()
-        .map(|c| {
-            let r = rasterize(g, &raster_camera(c, near, far), &RenderOptions::default()).map_err(compute("rasterizer"))?;
-            Ok(crate::blend::depth_map(&host_vec(&r.depth)?, &host_vec(&r.alpha)?))
-        })
-        .collect()
-}
-
-/// The context views' depth maps that a blender with `visibility` reads ([`depth_maps`] at the context
-/// cameras); empty without it.
-pub fn blend_context_depths(p: &Prepared, g: &Gaussians, s: &crate::blend::BlendSettings) -> Result<Vec<Vec<f32>>> {
-    if !s.visibility {
-        return Ok(Vec::new());
-    }
-    depth_maps(g, &p.context_cameras, p.spec.encoder.near, p.spec.encoder.far)
-}
-
 /// The rasterized Gaussians at `c` and the learned blender's input for them (`crate::blend::candidates`, layout
-/// `s`, context depth maps `ctx` of [`blend_context_depths`]): what `frames_3dgs` blends, and what `mvsplat360
+/// `s`): what `frames_3dgs` blends, and what `mvsplat360
 /// train-blend` stores to train a blender on.
-pub fn blend_input(
-    p: &Prepared,
-    g: &Gaussians,
-    s: &crate::blend::BlendSettings,
-    ctx: &[Vec<f32>],
-    c: &Camera,
-) -> Result<(mvsplat360_splat::RenderOutput, Vec<f32>)> {
+pub fn blend_input(p: &Prepared, g: &Gaussians, s: &crate::blend::BlendSettings, c: &Camera) -> Result<(mvsplat360_splat::RenderOutput, Vec<f32>)> {
     let (near, far) = (p.spec.encoder.near, p.spec.encoder.far);
-    let r = rasterize(g, &raster_camera(c, near, far), &RenderOptions::default()).map_err(compute("rasterizer"))?;
+    let r = rasterize(g, &RasterCamera::from_camera(c, near, far), &RenderOptions::default()).map_err(compute("rasterizer"))?;
     check_finite("rasterizer", &r.rgb)?;
     let rgb = host_vec(&r.rgb.clamp(0f32, 1f32).map_err(compute("rasterizer"))?)?;
     let photos: Vec<&[f32]> = p.context_images.iter().map(|im| im.data.as_slice()).collect();
-    let x = crate::blend::candidates(s, c, &rgb, &host_vec(&r.alpha)?, &host_vec(&r.depth)?, &p.context_cameras, &photos, ctx, near as f64, far as f64);
+    let x = crate::blend::candidates(s, c, &rgb, &host_vec(&r.alpha)?, &host_vec(&r.depth)?, &p.context_cameras, &photos, near as f64, far as f64);
     Ok((r, x))
 }
 

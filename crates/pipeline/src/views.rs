@@ -113,7 +113,7 @@ pub fn choose(scene: &Scene, context: &ContextSpec, targets: &TargetSpec) -> Res
             if *n > scene.len() {
                 return Err(flag("--num-context", format!("scene {} has {} views, fewer than {n}", scene.name, scene.len())));
             }
-            mvsplat360_camera::select::farthest_point_sampling(&scene.cameras, *n)
+            mvsplat360_camera::select::farthest_views(&scene.cameras, *n, mvsplat360_camera::select::FpsStart::First)
         }
         ContextSpec::Index { file, scene_key } => {
             let e = index_entry(file, scene_key.as_deref(), scene)?;

@@ -5,7 +5,8 @@
 use std::path::{Path, PathBuf};
 use std::time::SystemTime;
 
-use mvsplat360_pipeline::eval::{self, EvalRequest, IndexOptions, Method};
+use mvsplat360_dataset::index::IndexOptions;
+use mvsplat360_pipeline::eval::{self, EvalRequest, Method};
 use mvsplat360_pipeline::model::{self, ModelArgs};
 use mvsplat360_pipeline::preprocess::{InputSize, Preprocess};
 use mvsplat360_pipeline::render::{RefineSettings, Silent};
@@ -197,9 +198,12 @@ fn line(n: usize) -> Vec<[f64; 3]> {
 /// 149, then 224 (gap 75 beats 74), then 74. Targets: every `len(rest) // 56`-th non-context view.
 #[test]
 fn index_entry_closed_form_on_a_line() {
-    let e = eval::index_entry(&line(300), &IndexOptions::default()).unwrap();
+    let e = mvsplat360_dataset::index::index_entry(&line(300), &IndexOptions::default()).unwrap();
     assert_eq!(e.context, vec![0, 74, 149, 224, 299]);
-    assert_eq!(eval::farthest_point_sample(&line(300), 5), vec![0, 299, 149, 224, 74]);
+    assert_eq!(
+        mvsplat360_camera::select::farthest_points(&line(300), 5, mvsplat360_camera::select::FpsStart::FarthestFromCentroid),
+        vec![0, 299, 149, 224, 74]
+    );
     let rest: Vec<usize> = (0..300).filter(|x| !e.context.contains(x)).collect();
     assert_eq!(rest.len(), 295);
     let expect: Vec<usize> = (0..56).map(|i| rest[i * (295 / 56)]).collect();
@@ -212,14 +216,14 @@ fn index_entry_closed_form_on_a_line() {
     let o = IndexOptions { view_selection_ratio: 0.5, ..IndexOptions::default() };
     assert_eq!(o.official_file_name(), "dl3dv_ctx_5v_tgt_56v_n150.json");
     assert_eq!(IndexOptions::default().official_file_name(), "dl3dv_ctx_5v_tgt_56v.json");
-    let e = eval::index_entry(&line(300), &o).unwrap();
+    let e = mvsplat360_dataset::index::index_entry(&line(300), &o).unwrap();
     assert_eq!(e.context, vec![0, 37, 74, 111, 149]);
     assert_eq!((e.target[0], e.target[1], e.target[18], e.target[55]), (1, 3, 38, 114));
     assert!(e.target.iter().all(|&t| t < 150));
 
     // Too few views: no entry (the official script stops with an error).
-    assert!(eval::index_entry(&line(40), &IndexOptions::default()).unwrap_err().contains("fewer than the 56 target views"));
-    assert!(eval::index_entry(&line(4), &IndexOptions::default()).unwrap_err().contains("context"));
+    assert!(mvsplat360_dataset::index::index_entry(&line(40), &IndexOptions::default()).unwrap_err().contains("fewer than the 56 target views"));
+    assert!(mvsplat360_dataset::index::index_entry(&line(4), &IndexOptions::default()).unwrap_err().contains("context"));
 }
 
 /// On the committed chunk: scene order is chunk order, views come from the decoded cameras.
@@ -235,8 +239,8 @@ fn generate_index_from_chunks() {
     assert!(g.warnings.iter().any(|w| w.contains("woodbox_b")), "{:?}", g.warnings);
     let a = g.entries[0].1.as_ref().unwrap();
     let chunk = mvsplat360_dataset::torch_chunk::read_chunk(&chunk_dir().join("000000.torch")).unwrap();
-    let centres = eval::chunk_centres(&chunk[0]);
-    assert_eq!(a, &eval::index_entry(&centres, &o).unwrap());
+    let centres = mvsplat360_dataset::index::chunk_centres(&chunk[0]);
+    assert_eq!(a, &mvsplat360_dataset::index::index_entry(&centres, &o).unwrap());
     // The centres are the scene's camera centres.
     let scene = mvsplat360_dataset::read_scene_with(&chunk_dir().join("000000.torch"), Some("woodbox_a")).unwrap();
     for (c, cam) in centres.iter().zip(&scene.cameras) {

@@ -155,13 +155,19 @@ fn tiny_model_render_writes_every_output() {
     let g = eg.to_gaussians(4, &Device::Cpu).unwrap();
     let spec = model::read_model_dir(&m).unwrap();
     let cam0 = pre.camera(&scene.cameras[sorted[0]]).unwrap();
-    let from_ply = mvsplat360_splat::op::render(&g, &render::raster_camera(&cam0, spec.encoder.near, spec.encoder.far), &Default::default()).unwrap();
+    let from_ply =
+        mvsplat360_splat::op::render(&g, &mvsplat360_splat::camera::RasterCamera::from_camera(&cam0, spec.encoder.near, spec.encoder.far), &Default::default())
+            .unwrap();
     // Re-run the encoder in memory for the reference render.
     let req = request(&m, &out, TargetSpec::Views(vec![sorted[0]]));
     let p = render::prepare(&req, &Silent).unwrap();
     let gm = render::encode(&p, &Silent).unwrap();
-    let mem =
-        mvsplat360_splat::op::render(&gm, &render::raster_camera(&p.target_cameras[0], spec.encoder.near, spec.encoder.far), &Default::default()).unwrap();
+    let mem = mvsplat360_splat::op::render(
+        &gm,
+        &mvsplat360_splat::camera::RasterCamera::from_camera(&p.target_cameras[0], spec.encoder.near, spec.encoder.far),
+        &Default::default(),
+    )
+    .unwrap();
     let d = (&from_ply.rgb - &mem.rgb).unwrap().abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap();
     assert!(d <= 1e-5, ".ply render differs from the in-memory render by {d}");
     let any: f32 = mem.rgb.abs().unwrap().max_all().unwrap().to_scalar().unwrap();
@@ -269,10 +275,10 @@ fn model_fit_settings_default_override_and_validation() {
     std::fs::write(fitted.join("config.json"), cfg.to_string()).unwrap();
     let e = model::read_model_dir(&fitted).unwrap_err().to_string();
     assert!(e.contains("config.json") && e.contains("fit.lr"), "{e}");
-    cfg["fit"] = serde_json::json!({"steps": 3, "adam_eps": 0.0});
+    cfg["fit"] = serde_json::json!({"steps": 3, "min_alpha": 1.5});
     std::fs::write(fitted.join("config.json"), cfg.to_string()).unwrap();
     let e = model::read_model_dir(&fitted).unwrap_err().to_string();
-    assert!(e.contains("config.json") && e.contains("fit.adam_eps"), "{e}");
+    assert!(e.contains("config.json") && e.contains("fit.min_alpha"), "{e}");
     cfg["fit"] = serde_json::json!({"step": 3});
     std::fs::write(fitted.join("config.json"), cfg.to_string()).unwrap();
     let e = model::read_model_dir(&fitted).unwrap_err().to_string();

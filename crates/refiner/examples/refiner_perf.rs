@@ -6,9 +6,9 @@
 use std::time::Instant;
 
 use candle_core::{Device, Tensor};
+use mvsplat360_nn::prof;
 use mvsplat360_refiner::bench::{peak_rss_mib, run_refiner_bench_with};
 use mvsplat360_refiner::clip::{ClipImageEmbedder, ClipVisionConfig};
-use mvsplat360_refiner::prof;
 use mvsplat360_refiner::refiner::seeded_noise;
 use mvsplat360_refiner::unet::VideoUNetConfig;
 use mvsplat360_refiner::vae::{AutoencoderConfig, AutoencoderKL};
@@ -89,9 +89,9 @@ fn main() -> anyhow::Result<()> {
     };
     if unet {
         let r = if vae {
-            mvsplat360_refiner::bench::run_refiner_bench(frames, h, w, threads, runs)?
+            mvsplat360_refiner::bench::run_refiner_bench(&mvsplat360_refiner::bench::RefinerBench::new(frames, h, w, threads, runs))?
         } else {
-            run_refiner_bench_with(&VideoUNetConfig::default(), frames, h, w, threads, runs, None)?
+            run_refiner_bench_with(&VideoUNetConfig::default(), &mvsplat360_refiner::bench::RefinerBench::new(frames, h, w, threads, runs), None)?
         };
         println!("{r}");
         print_prof("unet");

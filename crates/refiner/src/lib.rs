@@ -6,12 +6,12 @@ pub mod clip;
 pub mod histogram;
 pub mod kernels;
 pub mod keymap;
-pub mod prof;
 pub mod refiner;
 pub mod sampling;
 pub mod state_dict;
 pub mod unet;
 pub mod vae;
+pub mod weights;
 
 /// A diffusers component folder's weights (`unet/`, `vae/`): the full-precision file first, else the fp16 one.
 pub const DIFFUSERS_WEIGHTS: [&str; 2] = ["diffusion_pytorch_model.safetensors", "diffusion_pytorch_model.fp16.safetensors"];

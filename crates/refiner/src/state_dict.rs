@@ -5,8 +5,8 @@ use candle_core::{Device, Tensor};
 
 use crate::clip::ClipVisionConfig;
 use crate::unet::{VideoUNet, VideoUNetConfig, Weights};
-use crate::vae::weights::StrictWeights;
 use crate::vae::AutoencoderConfig;
+use crate::weights::StrictWeights;
 
 /// Key prefixes of the refiner's parts in an official MVSplat360 checkpoint.
 pub const UNET_PREFIX: &str = "refiner.model.diffusion_model.";

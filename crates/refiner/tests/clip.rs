@@ -11,7 +11,7 @@ use std::path::PathBuf;
 use candle_core::{DType, Device, Tensor};
 use mvsplat360_refiner::clip::{clip_preprocess, ClipError, ClipImageEmbedder, ClipLayout, ClipVisionConfig};
 use mvsplat360_refiner::keymap::clip::transformers_to_open_clip;
-use mvsplat360_refiner::vae::Piece;
+use mvsplat360_refiner::weights::Piece;
 use mvsplat360_testkit::{self as tk, fixture, get, load, max_abs_diff, Tol};
 
 fn cfg() -> ClipVisionConfig {

@@ -9,7 +9,7 @@
 use std::collections::HashMap;
 
 use candle_core::{DType, Device, Tensor};
-use mvsplat360_refiner::keymap::unet::diffusers_to_sgm;
+use mvsplat360_refiner::unet::keymap::diffusers_to_sgm;
 use mvsplat360_refiner::unet::util::timestep_embedding;
 use mvsplat360_refiner::unet::{UNetError, UNetInputs, UNetLayout, VideoUNet, VideoUNetConfig};
 use mvsplat360_testkit::{self as tk, assert_close, fixture, get, load, max_abs_diff, Tol};

@@ -9,7 +9,8 @@ use std::collections::HashMap;
 
 use candle_core::{DType, Device, Tensor};
 use mvsplat360_refiner::keymap::vae::diffusers_to_sgm;
-use mvsplat360_refiner::vae::{frames_from_decoded, prepare_encoder_input, AutoencoderConfig, AutoencoderKL, Piece, VaeError, VaeLayout};
+use mvsplat360_refiner::vae::{frames_from_decoded, prepare_encoder_input, AutoencoderConfig, AutoencoderKL, VaeError, VaeLayout};
+use mvsplat360_refiner::weights::Piece;
 use mvsplat360_testkit::{self as tk, fixture, get, load, max_abs_diff, Tol};
 
 const CALL: f64 = 1e-5;

@@ -1,4 +1,4 @@
-//! The camera as the rasterizer sees it (the lead converts from `mvsplat360_camera::Camera`).
+//! The camera as the rasterizer sees it ([`RasterCamera::from_camera`] converts a `mvsplat360_camera::Camera`).
 
 use crate::error::{input_err, Result};
 
@@ -19,6 +19,29 @@ pub struct RasterCamera {
 }
 
 impl RasterCamera {
+    /// The rasterizer's camera for a project camera (intrinsics in pixels, OpenCV axes), with the model's
+    /// near/far planes.
+    pub fn from_camera(c: &mvsplat360_camera::Camera, near: f32, far: f32) -> Self {
+        let w2c = c.w2c_matrix();
+        let mut v = [[0f32; 4]; 4];
+        for (r, row) in v.iter_mut().enumerate() {
+            for (k, x) in row.iter_mut().enumerate() {
+                *x = w2c[(r, k)] as f32;
+            }
+        }
+        RasterCamera {
+            viewmatrix: v,
+            fx: c.fx as f32,
+            fy: c.fy as f32,
+            cx: c.cx as f32,
+            cy: c.cy as f32,
+            width: c.width as usize,
+            height: c.height as usize,
+            near,
+            far,
+        }
+    }
+
     /// `tan(fov/2)` per axis, as the official wrapper derives it from the intrinsics.
     pub fn tanfov(&self) -> [f32; 2] {
         [self.width as f32 / (2.0 * self.fx), self.height as f32 / (2.0 * self.fy)]

@@ -193,13 +193,12 @@ pub fn scene_inputs(req: &BlendRequest, scene: &Path, progress: &dyn Progress) -
         compute: req.compute.clone(),
         ..Default::default()
     };
-    let p = crate::scenes::protocol_prepared(scene, model)?;
+    let p = mvsplat360_pipeline::eval_scenes::protocol_prepared(scene, model, 5, None)?;
     let g = render::encode(&p, progress)?;
     let (g, _) = render::fit_to_context(&p, g, progress)?;
-    let ctx = render::blend_context_depths(&p, &g, &req.layout)?;
     let (mut xs, mut ts) = (Vec::new(), Vec::new());
     for (c, photo) in p.target_cameras.iter().zip(&p.target_photos) {
-        let (_, x) = render::blend_input(&p, &g, &req.layout, &ctx, c)?;
+        let (_, x) = render::blend_input(&p, &g, &req.layout, c)?;
         let (h, w) = (c.height as usize, c.width as usize);
         xs.push(Tensor::from_vec(x, (req.layout.channels(), h, w), &Device::Cpu)?);
         let photo = photo.as_ref().ok_or_else(|| data_err(format!("{}: a target without a photo", scene.display())))?;
@@ -222,11 +221,7 @@ fn cache_settings(req: &BlendRequest) -> Result<serde_json::Value> {
     if let Some(o) = cfg.as_object_mut() {
         o.remove("blend");
     }
-    let mut layout = serde_json::json!({ "planes": req.layout.planes, "views": req.layout.views, "span": req.layout.span });
-    // Only when set, so caches made before the setting existed stay valid.
-    if req.layout.visibility {
-        layout["visibility"] = true.into();
-    }
+    let layout = serde_json::json!({ "planes": req.layout.planes, "views": req.layout.views, "span": req.layout.span });
     Ok(serde_json::json!({
         "model_config": cfg,
         "model_weights_fnv1a": format!("{hash:016x}"),
@@ -536,7 +531,7 @@ fn append_line(path: &Path, rec: &BlendLogRecord) -> Result<()> {
 /// A copy of the model folder `src` with the blender's weights and settings; loaded back as `render` does.
 fn write_model(src: &Path, vars: &[(String, Var)], layout: &BlendSettings, out: &Path) -> Result<()> {
     let cfg_path = src.join(model::MODEL_CONFIG);
-    let mut cfg: model::ModelConfig = serde_json::from_str(&std::fs::read_to_string(&cfg_path).map_err(|e| data_err(format!("{}: {e}", cfg_path.display())))?)
+    let mut cfg = model::parse_model_config(&std::fs::read_to_string(&cfg_path).map_err(|e| data_err(format!("{}: {e}", cfg_path.display())))?)
         .map_err(|e| data_err(format!("{}: {e}", cfg_path.display())))?;
     cfg.blend = Some(*layout);
     let mut tensors: Vec<(String, Tensor)> = candle_core::safetensors::load(src.join(model::MODEL_WEIGHTS), &Device::Cpu)?

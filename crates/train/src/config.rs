@@ -408,46 +408,133 @@ out = "out/x"
         assert!(e.contains("bogus"), "{e}");
     }
 
-    /// Every committed recipe parses and validates; a bad curriculum window names its field.
-    #[test]
-    fn committed_configs_parse() {
-        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/train");
-        let mut n = 0;
-        for e in std::fs::read_dir(&dir).unwrap() {
+    /// `configs/train/` of the repository: the shipped encoder's stages in `recipe/`, the attempts in `attempts/`, the
+    /// tiny refiner's in `refiner/`.
+    fn committed_dir() -> PathBuf {
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/train")
+    }
+
+    /// Every `.toml` under `dir`, subfolders included, sorted by path.
+    fn tomls(dir: &Path) -> Vec<PathBuf> {
+        let mut found = Vec::new();
+        for e in std::fs::read_dir(dir).unwrap_or_else(|e| panic!("{}: {e}", dir.display())) {
             let p = e.unwrap().path();
-            if p.extension().is_some_and(|x| x == "toml") {
-                TrainConfig::from_file(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
-                n += 1;
+            if p.is_dir() {
+                found.extend(tomls(&p));
+            } else if p.extension().is_some_and(|x| x == "toml") {
+                found.push(p);
             }
         }
-        assert!(n >= 2, "expected the shipped and curriculum recipes in {}", dir.display());
+        found.sort();
+        found
+    }
+
+    /// Every committed config (recipe, attempts, tiny refiner) parses and validates; a bad curriculum window names
+    /// its field.
+    #[test]
+    fn committed_configs_parse() {
+        let dir = committed_dir();
+        let all = tomls(&dir);
+        for p in &all {
+            TrainConfig::from_file(p).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
+        }
+        let recipe = all.iter().filter(|p| p.parent().is_some_and(|d| d.ends_with("recipe"))).count();
+        assert!(recipe >= 2 && all.len() > recipe, "expected the recipe's stages and other configs under {}", dir.display());
         let e = TrainConfig::from_toml(&MIN.replace("count = 10 }]", "count = 10 }]\ngap_initial = [6, 3]"), Path::new("c.toml")).unwrap_err().to_string();
         assert!(e.contains("data.gap_initial"), "{e}");
     }
 
-    /// t16.toml written out in full equals stage 8's t15.toml as a base with t16's changes on top.
+    /// The shipped encoder's recipe, `configs/train/recipe/NN-name.toml` in stage order, is a chain that reproduces:
+    /// stage 01 starts from scratch, and every later stage's `init` is a model folder of the stage before it — its
+    /// final `<out>/model`, or `<out>/model-STEP` (`train --export STEP`) where an earlier checkpoint was shipped, a
+    /// checkpoint still on disk when that stage has run all its steps. Each stage writes to `out/train/<file stem>`.
+    #[test]
+    fn recipe_stages_chain() {
+        let dir = committed_dir().join("recipe");
+        let stages = tomls(&dir);
+        assert!(stages.len() >= 2, "expected the recipe's stages in {}", dir.display());
+        let mut prev: Option<(u32, TrainConfig)> = None;
+        for p in &stages {
+            let stem = p.file_stem().and_then(|s| s.to_str()).unwrap();
+            let n: u32 = stem
+                .split_once('-')
+                .filter(|(n, _)| n.len() == 2)
+                .and_then(|(n, _)| n.parse().ok())
+                .unwrap_or_else(|| panic!("{}: a stage is named NN-name.toml", p.display()));
+            let c = TrainConfig::from_file(p).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
+            assert_eq!(c.train.out, Path::new("out/train").join(stem), "{}: `out` is out/train/{stem}", p.display());
+            match &prev {
+                None => assert!(n == 1 && c.train.init.is_none(), "{}: the first stage is 01 and starts from scratch (no `init`)", p.display()),
+                Some((m, before)) => {
+                    assert!(n > *m, "{}: stage numbers increase", p.display());
+                    check_init_is_output_of(p, &c, *m, before);
+                }
+            }
+            prev = Some((n, c));
+        }
+    }
+
+    /// `c`'s (file `p`) `init` is `<out>/model` of stage `m` (`before`) or `<out>/model-STEP` for a checkpoint that a
+    /// full run of that stage keeps.
+    fn check_init_is_output_of(p: &Path, c: &TrainConfig, m: u32, before: &TrainConfig) {
+        let init = c.train.init.as_deref().unwrap_or_else(|| panic!("{}: no `init`; it continues stage {m:02}", p.display()));
+        let t = &before.train;
+        assert_eq!(
+            init.parent(),
+            Some(t.out.as_path()),
+            "{}: `init` {} is not a model folder of stage {m:02} ({})",
+            p.display(),
+            init.display(),
+            t.out.display()
+        );
+        let name = init.file_name().and_then(|s| s.to_str()).unwrap_or_default();
+        if name == "model" {
+            return;
+        }
+        let step: u64 = name
+            .strip_prefix("model-")
+            .and_then(|s| s.parse().ok())
+            .unwrap_or_else(|| panic!("{}: `init` {} is neither <out>/model nor <out>/model-STEP", p.display(), init.display()));
+        // The checkpoints a full run leaves: one every `checkpoint_every` steps and the last, the newest kept.
+        let mut saved: Vec<u64> = (1..=t.steps / t.checkpoint_every).map(|k| k * t.checkpoint_every).collect();
+        if saved.last() != Some(&t.steps) {
+            saved.push(t.steps);
+        }
+        let kept = &saved[saved.len().saturating_sub(t.keep_checkpoints)..];
+        assert!(
+            kept.contains(&step),
+            "{}: `init` {} needs stage {m:02}'s step {step}, not among the checkpoints its run keeps ({kept:?})",
+            p.display(),
+            init.display()
+        );
+    }
+
+    /// Stage 10 written out in full equals stage 8 as a base with stage 10's changes on top.
     #[test]
     fn base_config_with_overrides_equals_the_full_config() {
-        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/train");
-        let full = TrainConfig::from_file(&dir.join("t16.toml")).unwrap();
+        let dir = committed_dir().join("recipe");
+        let full = TrainConfig::from_file(&dir.join("10-povray-share.toml")).unwrap();
         let text = r#"
-base = "t15.toml"
+base = "08-repaired-povray.toml"
 [data]
 sources = [
-    { kind = "procedural", count = 100000, seed = 500000, views = 32 },
+    { kind = "procedural", count = 100000, seed = 600000, views = 32 },
     { kind = "folder", path = "data/povray-train" },
     { kind = "folder", path = "data/povray-train2" },
+    { kind = "folder", path = "data/povray-train3" },
 ]
+weights = [0.55, 0.12, 0.18, 0.15]
 [train]
-steps = 1400
-seed = 20261230
-out = "out/train/t16"
+seed = 20261231
+init = "out/train/08-repaired-povray/model-1100"
+keep_checkpoints = 4
+out = "out/train/10-povray-share"
 "#;
         let derived = TrainConfig::from_toml(text, &dir.join("derived.toml")).unwrap();
         assert_eq!(derived, full);
         // Without the override of one key the base's value stays: the merge is per key, not per table.
-        let e = TrainConfig::from_toml(&text.replace("steps = 1400\n", ""), &dir.join("derived.toml")).unwrap();
-        assert_eq!((e.train.steps, e.train.lr, e.model.width), (1200, 1e-4, 128));
+        let e = TrainConfig::from_toml(&text.replace("seed = 20261231\n", ""), &dir.join("derived.toml")).unwrap();
+        assert_eq!((e.train.seed, e.train.lr, e.model.width), (20261229, 1e-4, 128));
     }
 
     #[test]

@@ -20,4 +20,5 @@ pub mod vae_stage;
 
 pub use config::TrainConfig;
 pub use error::{Result, TrainError};
-pub use trainer::{export_checkpoint, run, Monitor, Quiet, RunOptions, StepRecord, Summary};
+pub use log::StepRecord;
+pub use trainer::{export_checkpoint, run, Monitor, Quiet, RunOptions, Summary};

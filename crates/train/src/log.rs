@@ -1,10 +1,10 @@
 //! `log.jsonl` (one [`StepRecord`] per optimizer step) and the loss-curve plot `loss.png`.
 
-use std::io::{BufRead, Write};
+use std::io::BufRead;
 use std::path::Path;
 
 use crate::error::{Result, TrainError};
-use crate::trainer::StepRecord;
+use serde::{Deserialize, Serialize};
 
 /// Records of a log file (missing file: none). A torn last line from a kill is skipped.
 pub fn read(path: &Path) -> Result<Vec<StepRecord>> {
@@ -14,14 +14,12 @@ pub fn read(path: &Path) -> Result<Vec<StepRecord>> {
 
 /// Replace the log with `records` (atomically).
 pub fn rewrite(path: &Path, records: &[StepRecord]) -> Result<()> {
-    let tmp = path.with_extension("jsonl.tmp");
-    let werr = |e: std::io::Error| TrainError::Write { path: path.to_path_buf(), msg: e.to_string() };
-    let mut f = std::fs::File::create(&tmp).map_err(werr)?;
+    let mut text = String::new();
     for r in records {
-        writeln!(f, "{}", serde_json::to_string(r).unwrap_or_default()).map_err(werr)?;
+        text.push_str(&serde_json::to_string(r).unwrap_or_default());
+        text.push('\n');
     }
-    f.sync_all().map_err(werr)?;
-    std::fs::rename(&tmp, path).map_err(werr)
+    mvsplat360_dataset::atomic::write_bytes_synced(path, text.as_bytes()).map_err(|e| TrainError::Write { path: path.to_path_buf(), msg: e.to_string() })
 }
 
 const FONT_PATHS: &[&str] = &["/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf", "/usr/share/fonts/TTF/DejaVuSans.ttf", "/Library/Fonts/Arial.ttf"];
@@ -50,9 +48,10 @@ pub fn plot(records: &[StepRecord], path: &Path) -> Result<()> {
     }
     let perr = |e: &dyn std::fmt::Display| TrainError::Write { path: path.to_path_buf(), msg: e.to_string() };
     let labels = register_font();
-    let tmp = path.with_extension("tmp.png");
+    let (w, h) = (900u32, 500u32);
+    let mut pixels = vec![0u8; 3 * (w * h) as usize];
     {
-        let root = BitMapBackend::new(&tmp, (900, 500)).into_drawing_area();
+        let root = BitMapBackend::with_buffer(&mut pixels, (w, h)).into_drawing_area();
         root.fill(&WHITE).map_err(|e| perr(&e))?;
         let max_step = records.iter().map(|r| r.step).max().unwrap_or(1).max(2) as f64;
         let vals: Vec<f64> = records.iter().flat_map(|r| [r.loss, r.mse]).filter(|v| *v > 0.0 && v.is_finite()).collect();
@@ -96,5 +95,36 @@ pub fn plot(records: &[StepRecord], path: &Path) -> Result<()> {
         }
         root.present().map_err(|e| perr(&e))?;
     }
-    std::fs::rename(&tmp, path).map_err(|e| perr(&e))
+    let img = image::RgbImage::from_raw(w, h, pixels).ok_or_else(|| perr(&"plot buffer size"))?;
+    mvsplat360_dataset::atomic::write_atomic(path, |tmp| img.save_with_format(tmp, image::ImageFormat::Png).map_err(std::io::Error::other))
+        .map_err(|e| perr(&e))
+}
+
+/// One line of `log.jsonl`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StepRecord {
+    /// Optimizer steps done (1-based).
+    pub step: u64,
+    pub loss: f64,
+    pub mse: f64,
+    #[serde(default)]
+    pub lpips: Option<f64>,
+    /// Depth-supervision loss (unweighted), on steps whose examples have ground-truth depth.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub depth: Option<f64>,
+    /// Refiner losses (unweighted): v-prediction diffusion loss and 0.01·latent alignment.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub diffusion: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub alignment: Option<f64>,
+    /// Stage `vae`: reconstruction L1 (in [−1, 1]) and KL terms (unweighted); `mse` is then the
+    /// reconstruction's MSE in [0, 1].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub l1: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub kl: Option<f64>,
+    pub lr: f64,
+    pub grad_norm: f64,
+    /// Wall seconds of this step.
+    pub seconds: f64,
 }

@@ -20,7 +20,8 @@ use mvsplat360_refiner::clip::{ClipImageEmbedder, ClipLayout};
 use mvsplat360_refiner::keymap;
 use mvsplat360_refiner::state_dict::{random_refiner_state_dict, CLIP_PREFIX, UNET_PREFIX, VAE_PREFIX};
 use mvsplat360_refiner::unet::{UNetLayout, VideoUNet, Weights};
-use mvsplat360_refiner::vae::{AutoencoderKL, Piece, VaeLayout};
+use mvsplat360_refiner::vae::{AutoencoderKL, VaeLayout};
+use mvsplat360_refiner::weights::Piece;
 use rand::Rng;
 use rand_distr::StandardNormal;
 

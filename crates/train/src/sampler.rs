@@ -7,6 +7,7 @@
 //! closed loops of 32 views around the scene, so with `gap` omitted the window is the whole loop: the context
 //! then spreads around the scene as at evaluation (5 views on a 32-view loop, the other 27 as targets).
 
+use mvsplat360_camera::select::{farthest_views, FpsStart};
 use mvsplat360_camera::Camera;
 use rand::seq::SliceRandom;
 use rand::Rng;
@@ -68,7 +69,7 @@ pub fn sample(cameras: &[Camera], s: &SamplerSettings, rng: &mut impl Rng) -> Op
         }
     };
     let cams: Vec<Camera> = window.iter().map(|&i| cameras[i].clone()).collect();
-    let mut context: Vec<usize> = fps(&cams, s.num_context).into_iter().map(|k| window[k]).collect();
+    let mut context: Vec<usize> = farthest_views(&cams, s.num_context, FpsStart::FarthestFromCentroid).into_iter().map(|k| window[k]).collect();
     // Targets: without replacement from the whole window (they may coincide with context views, as official).
     let mut target = window.clone();
     target.shuffle(rng);
@@ -77,28 +78,6 @@ pub fn sample(cameras: &[Camera], s: &SamplerSettings, rng: &mut impl Rng) -> Op
     target.sort_unstable();
     let flip = s.flip && rng.gen_bool(0.5);
     Some(ViewSample { context, target, flip })
-}
-
-/// Farthest-point sampling over camera centres as the official sampler: the first pick is the view farthest from
-/// the centroid, then greedy max-min distance (ties to the lowest index).
-pub fn fps(cameras: &[Camera], n: usize) -> Vec<usize> {
-    let c: Vec<_> = cameras.iter().map(|c| c.center()).collect();
-    let n = n.min(c.len());
-    if n == 0 {
-        return vec![];
-    }
-    let centroid = c.iter().fold(nalgebra::Vector3::zeros(), |a, p| a + p) / c.len() as f64;
-    let first = (0..c.len()).fold(0, |b, i| if (c[i] - centroid).norm() > (c[b] - centroid).norm() { i } else { b });
-    let mut chosen = vec![first];
-    let mut d: Vec<f64> = c.iter().map(|p| (p - c[first]).norm()).collect();
-    while chosen.len() < n {
-        let best = (0..c.len()).fold(first, |b, i| if d[i] > d[b] { i } else { b });
-        chosen.push(best);
-        for (i, x) in d.iter_mut().enumerate() {
-            *x = x.min((c[i] - c[best]).norm());
-        }
-    }
-    chosen
 }
 
 /// The camera of a horizontally flipped image: mirror the world by x → −x (conjugating c2w with

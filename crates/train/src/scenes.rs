@@ -228,37 +228,3 @@ pub fn protocol_scene(arg: &str, width: u32, height: u32, multiple: u32) -> Resu
     v.target = (0..scene.cameras.len()).filter(|i| !v.context.contains(i)).collect();
     Ok((scene, v, label))
 }
-
-/// A scene folder on the held-out protocol through `render`'s own path: `render::prepare` with 5 context views by
-/// farthest-point sampling (the model's scene scale) and every other view a target, with its photo. What `heldout`
-/// scores and `train-blend` trains on.
-pub fn protocol_prepared(scene: &Path, model: mvsplat360_pipeline::model::ModelArgs) -> Result<mvsplat360_pipeline::render::Prepared> {
-    use mvsplat360_pipeline::render::{self, RenderRequest};
-    use mvsplat360_pipeline::views::{ContextSpec, TargetSpec};
-    let n = mvsplat360_dataset::read_scene(scene).map_err(|e| TrainError::Data(format!("{}: {e}", scene.display())))?.len();
-    let req = RenderRequest {
-        scene: scene.to_path_buf(),
-        scene_key: None,
-        context: ContextSpec::Count(5),
-        targets: TargetSpec::Views((0..n).collect()),
-        model,
-        size: None,
-        scene_scale: None,
-        refine: Default::default(),
-        splat: false,
-        metrics: false,
-        fid_variant: Default::default(),
-        weights_dir: None,
-        video: false,
-        fps: 8,
-        out: std::env::temp_dir(),
-    };
-    let mut p = render::prepare(&req, &render::Silent)?;
-    let keep: Vec<usize> = (0..n).filter(|i| !p.choice.context.contains(i)).collect();
-    if keep.is_empty() {
-        return Err(TrainError::Data(format!("{}: {n} views leave no target after 5 context views", scene.display())));
-    }
-    p.target_cameras = keep.iter().map(|&i| p.target_cameras[i].clone()).collect();
-    p.target_photos = keep.iter().map(|&i| p.target_photos[i].clone()).collect();
-    Ok(p)
-}

@@ -25,7 +25,7 @@ fn request(model: &Path, out: &Path, steps: u64) -> BlendRequest {
         compute: Default::default(),
         train: vec![SceneSource::Procedural { first: 5, last: 5 }],
         val: vec![],
-        layout: BlendSettings { planes: 3, views: 2, span: 1.6, width: 4, visibility: false },
+        layout: BlendSettings { planes: 3, views: 2, span: 1.6, width: 4 },
         steps,
         lr: 1e-2,
         batch: 2,
@@ -61,7 +61,7 @@ fn cached_inputs_are_what_render_blends() {
     // `render`'s path on the written scene with the written folder, at the protocol's targets.
     let scene = out.join("procedural/proc-5");
     let model = ModelArgs { ckpt: Some(folder.clone()), refiner: Some(RefinerArg::None), fit_steps: Some(1), ..Default::default() };
-    let p = mvsplat360_train::scenes::protocol_prepared(&scene, model).unwrap();
+    let p = mvsplat360_pipeline::eval_scenes::protocol_prepared(&scene, model, 5, None).unwrap();
     let g = render::encode(&p, &Silent).unwrap();
     let (g, _) = render::fit_to_context(&p, g, &Silent).unwrap();
     let frames = render::frames_3dgs(&p, &g, &Silent).unwrap();

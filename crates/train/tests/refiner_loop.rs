@@ -129,7 +129,7 @@ fn diffusers_svd_folder_initialises_the_refiner() {
     let step0 = load(&out.join("model-step0/model.safetensors"));
     let unet_file = load(&svd.join("unet/diffusion_pytorch_model.safetensors"));
     for (k, t) in &unet_file {
-        let sgm = mvsplat360_refiner::keymap::unet::diffusers_to_sgm(k, &rcfg.unet).unwrap_or_else(|| panic!("{k} has no sgm name"));
+        let sgm = mvsplat360_refiner::unet::keymap::diffusers_to_sgm(k, &rcfg.unet).unwrap_or_else(|| panic!("{k} has no sgm name"));
         assert_eq!(max_abs_diff(&step0[&format!("refiner.model.diffusion_model.{sgm}")], t), 0.0, "{k}");
     }
     assert_eq!(step0.keys().filter(|k| k.starts_with("refiner.model.")).count(), unet_file.len());

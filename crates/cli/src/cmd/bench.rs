@@ -79,8 +79,18 @@ enum What {
         #[command(flatten)]
         common: Common,
     },
-    /// Refiner (real SVD img2vid configuration, random weights): one guided UNet step and one VAE frame decode.
+    /// Refiner (real SVD img2vid configuration, random weights): one guided UNet step and the VAE's decode of
+    /// --vae-frames latent frames, one per call (as MVSplat360 and scripts/bench-reference/bench_refiner.py).
     Refiner {
+        /// Where it runs: `cpu`, `cuda` or `cuda:N` (CUDA needs a `--features cuda` build).
+        #[arg(long, default_value = "cpu")]
+        device: mvsplat360_pipeline::compute::DeviceSpec,
+        /// Precision: `f32`, `f16` or `bf16` (GPU only).
+        #[arg(long, default_value = "f32", value_parser = mvsplat360_pipeline::compute::parse_dtype)]
+        dtype: candle_core::DType,
+        /// Latent frames the VAE decodes (one per call).
+        #[arg(long, default_value_t = 1)]
+        vae_frames: usize,
         /// Frames denoised together in one UNet call (a temporal window).
         #[arg(long, default_value_t = 14)]
         frames: usize,
@@ -97,7 +107,7 @@ enum What {
     /// with random weights: per-stage times (median over --runs, after --warmup untimed runs) and peak memory
     /// (warm-up runs included). Defaults are the
     /// paper's setting (official DL3DV configs) — hours on a CPU; `--tiny` uses the tests' tiny model. With
-    /// MVSPLAT360_PROFILE=1 the line also has `refiner_profile`: per-module totals (ms, calls) over all runs,
+    /// MVSPLAT360_PROFILE=1 the line also has `profile`: encoder-stage and refiner-module totals (ms, calls) over the timed runs,
     /// nested scopes counted in each; on a GPU every scope waits for the device, so runs get slower.
     Scene {
         /// Where the pipeline runs: `cpu`, `cuda` or `cuda:N` (CUDA needs a `--features cuda` build).
@@ -140,7 +150,7 @@ enum What {
     /// `train` loop in a throw-away output folder: median and fastest seconds per step after --warmup untimed
     /// steps, and peak memory. The config's data, model, losses and `init` are used as they are.
     Train {
-        /// Training config (TOML), e.g. configs/train/povdepth.toml.
+        /// Training config (TOML), e.g. configs/train/recipe/05-povray-depth.toml (its `init`, stage 4's model folder, must exist).
         #[arg(long)]
         config: std::path::PathBuf,
         /// Timed steps.
@@ -219,11 +229,20 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 mvsplat360_encoder::bench::run_encoder_bench(views, height, width, common.threads.count(), common.runs)?
             }
         }
-        What::Refiner { frames, latent_h, latent_w, common } => {
+        What::Refiner { device, dtype, vae_frames, frames, latent_h, latent_w, common } => {
             if frames == 0 || latent_h == 0 || latent_w == 0 || latent_h % 8 != 0 || latent_w % 8 != 0 {
                 anyhow::bail!("bench refiner: need --frames ≥ 1 and latent sizes that are positive multiples of 8 (three 2× downsamplings) (got {frames}, {latent_h}x{latent_w})");
             }
-            mvsplat360_refiner::bench::run_refiner_bench(frames, latent_h, latent_w, common.threads.count(), common.runs)?
+            if device == mvsplat360_pipeline::compute::DeviceSpec::Cpu && dtype != candle_core::DType::F32 {
+                anyhow::bail!("bench refiner: --dtype {dtype:?} needs --device cuda (the CPU kernels are f32)");
+            }
+            let device = device.open()?;
+            mvsplat360_refiner::bench::run_refiner_bench(&mvsplat360_refiner::bench::RefinerBench {
+                device,
+                dtype,
+                vae_frames,
+                ..mvsplat360_refiner::bench::RefinerBench::new(frames, latent_h, latent_w, common.threads.count(), common.runs)
+            })?
         }
         What::Scene { device, dtype, views, height, width, frames, steps, runs, warmup, tiny, no_refiner, threads } => {
             mvsplat360_pipeline::bench::run_scene_bench(&mvsplat360_pipeline::bench::SceneBenchOpts {

@@ -7,8 +7,9 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
 use anyhow::Context;
+use mvsplat360_dataset::index::IndexOptions;
 use mvsplat360_pipeline::compute::DeviceSpec;
-use mvsplat360_pipeline::eval::{EvalRequest, IndexOptions};
+use mvsplat360_pipeline::eval::EvalRequest;
 use mvsplat360_pipeline::launch::{LaunchError, Place};
 
 use super::views::{ModelFlags, RefineFlags};

@@ -2,6 +2,7 @@ pub mod bench;
 pub mod convert;
 pub mod demo;
 pub mod eval;
+pub mod eval_scenes;
 pub mod export;
 pub mod inspect;
 pub mod metrics;

@@ -12,9 +12,16 @@ use mvsplat360_train::{Monitor, RunOptions, StepRecord, TrainConfig, TrainError}
 #[derive(clap::Args)]
 pub struct Args {
     /// Training config (TOML): `[model]` size and encoder, `[data]` sources and views, `[train]` steps, lr,
-    /// checkpoints; see `configs/train/*.toml`.
-    #[arg(long)]
-    pub config: PathBuf,
+    /// checkpoints; see `configs/train/README.md` (the shipped model's stages in `configs/train/recipe/`).
+    #[arg(long, required_unless_present = "plot")]
+    pub config: Option<PathBuf>,
+    /// Instead of training, draw the loss curve of a `log.jsonl` (e.g. one brought back from another machine) as
+    /// `loss.png` beside it (or `--plot-to FILE`), then exit.
+    #[arg(long, value_name = "LOG.jsonl", conflicts_with_all = ["config", "export"])]
+    pub plot: Option<PathBuf>,
+    /// Where `--plot` writes the PNG.
+    #[arg(long, value_name = "FILE", requires = "plot")]
+    pub plot_to: Option<PathBuf>,
     /// Continue from the newest checkpoint in the config's `train.out` (the same config is required).
     #[arg(long)]
     pub resume: bool,
@@ -87,7 +94,16 @@ impl Monitor for Bar {
 }
 
 pub fn run(a: Args, quiet: bool) -> anyhow::Result<()> {
-    let mut cfg = TrainConfig::from_file(&a.config)?;
+    if let Some(log) = &a.plot {
+        let records = mvsplat360_train::log::read(log)?;
+        anyhow::ensure!(!records.is_empty(), "{}: no log records (a `log.jsonl` that `train` writes)", log.display());
+        let to = a.plot_to.clone().unwrap_or_else(|| log.with_file_name("loss.png"));
+        mvsplat360_train::log::plot(&records, &to)?;
+        eprintln!("{} steps plotted → {}", records.len(), to.display());
+        return Ok(());
+    }
+    let config = a.config.as_deref().context("--config is required (or --plot LOG)")?;
+    let mut cfg = TrainConfig::from_file(config)?;
     if let Some(o) = a.out {
         cfg.train.out = o;
     }
@@ -121,7 +137,7 @@ pub fn run(a: Args, quiet: bool) -> anyhow::Result<()> {
                 eprintln!("stopped; continue with --resume");
                 std::process::exit(130);
             }
-            Err(e) => Err(e).with_context(|| format!("training with {} on {} ranks", a.config.display(), a.world_size)),
+            Err(e) => Err(e).with_context(|| format!("training with {} on {} ranks", config.display(), a.world_size)),
         };
     }
     let rank_no = rank.as_ref().map_or(0, |r| r.rank);
@@ -159,8 +175,8 @@ pub fn run(a: Args, quiet: bool) -> anyhow::Result<()> {
             }
             std::process::exit(130);
         }
-        Err(e) if rank_no > 0 => Err(e).with_context(|| format!("rank {rank_no}: training with {}", a.config.display())),
-        Err(e) => Err(e).with_context(|| format!("training with {}", a.config.display())),
+        Err(e) if rank_no > 0 => Err(e).with_context(|| format!("rank {rank_no}: training with {}", config.display())),
+        Err(e) => Err(e).with_context(|| format!("training with {}", config.display())),
     }
 }
 

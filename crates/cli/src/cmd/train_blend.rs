@@ -32,10 +32,6 @@ pub struct Args {
     /// Channels of the blender's CNN.
     #[arg(long, default_value_t = 16)]
     pub width: usize,
-    /// Also give the blender, per candidate, how its depth in the context view compares with that view's fitted
-    /// render there (ln ratio; tells occluded candidates apart). Off as the shipped blender.
-    #[arg(long)]
-    pub visibility: bool,
     /// Optimizer steps.
     #[arg(long, default_value_t = 800)]
     pub steps: u64,
@@ -83,7 +79,7 @@ pub fn run(a: Args, quiet: bool) -> anyhow::Result<()> {
         compute: mvsplat360_pipeline::compute::Compute { device: a.device, ..Default::default() },
         train: a.train,
         val: a.val,
-        layout: BlendSettings { planes, views, span, width: a.width, visibility: a.visibility },
+        layout: BlendSettings { planes, views, span, width: a.width },
         steps: a.steps,
         lr: a.lr,
         batch: a.batch,

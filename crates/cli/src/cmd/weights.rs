@@ -34,7 +34,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<()> {
                 .or_else(|| std::env::var_os(mvsplat360_metrics::weights::ENV_VAR).map(PathBuf::from))
                 .unwrap_or_else(mvsplat360_metrics::weights::default_dir);
             let written =
-                mvsplat360_metrics::weights::convert_all(&from, &out).with_context(|| format!("converting metric weights from {}", from.display()))?;
+                mvsplat360_metrics::convert::convert_all(&from, &out).with_context(|| format!("converting metric weights from {}", from.display()))?;
             if !quiet {
                 for p in written {
                     eprintln!("wrote {}", p.display());

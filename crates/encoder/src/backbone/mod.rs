@@ -71,13 +71,13 @@ impl BackboneMultiview {
         let mut t = std::time::Instant::now();
         let x = normalize_images(images)?.reshape((b * v, 3, hh, ww))?;
         let f = self.backbone.forward(&x)?;
-        crate::prof("cnn", &mut t);
+        mvsplat360_nn::prof::lap("encoder.cnn", &mut t);
         let (_, c, h, w) = f.dims4()?;
         let cnn_features = f.reshape((b, v, c, h, w))?;
         let pos = windowed_position_embedding(self.feature_channels, h, w, splits, images.device())?;
         let input = cnn_features.broadcast_add(&pos)?;
         let (trans_features, block_outputs) = self.transformer.forward(&input, splits, nn, intermediates)?;
-        crate::prof("transformer", &mut t);
+        mvsplat360_nn::prof::lap("encoder.transformer", &mut t);
         Ok(BackboneOutput { trans_features, cnn_features, transformer_input: if intermediates { Some(input) } else { None }, block_outputs })
     }
 }

@@ -187,14 +187,14 @@ impl DepthPredictorMultiView {
         let cost_volume = cost_volume(&feat01, inp.features_trans, &geo)?;
         let disp_candidates = Tensor::from_vec(geo.disparities.clone(), (n, geo.d), feat01.device())?;
         let corr_in = Tensor::cat(&[&cost_volume, &feat01], 1)?;
-        crate::prof("cost volume", &mut t);
+        mvsplat360_nn::prof::lap("encoder.cost_volume", &mut t);
 
         // Cost-volume refinement (UNet branch + 1×1 residual).
         let x = self.corr_norm.forward_act(&self.corr_conv.forward(&corr_in)?, Act::Gelu)?;
         let x = self.corr_unet.forward_frames(&x, v)?;
         let corr_refine_out = self.corr_out.forward(&x)?;
         let refined = (&corr_refine_out + self.regressor_residual.forward(&corr_in)?)?;
-        crate::prof("corr unet", &mut t);
+        mvsplat360_nn::prof::lap("encoder.corr_unet", &mut t);
 
         // Softmax over candidates → coarse disparity and peak probability.
         let logits = self.depth_head.1.forward(&gelu(&self.depth_head.0.forward(&refined)?)?)?;
@@ -203,22 +203,22 @@ impl DepthPredictorMultiView {
         let pdf_max = pdf.max_keepdim(1)?;
         let pdf_max_full = upsample_nearest(&pdf_max, (hh, ww))?;
         let fullres = upsample_bilinear(&coarse, (hh, ww))?;
-        crate::prof("depth head", &mut t);
+        mvsplat360_nn::prof::lap("encoder.depth_head", &mut t);
 
         // Depth refinement.
         let upsampled = gelu(&upsample_bilinear(&self.upsampler.forward(&Tensor::cat(&[&feat01, &cnn], 1)?)?, (hh, ww))?)?;
         let proj = self.proj_feature.forward(&upsampled)?;
         let refine_in = Tensor::cat(&[&images, &proj, &fullres, &pdf_max_full], 1)?;
-        crate::prof("upsampler+proj", &mut t);
+        mvsplat360_nn::prof::lap("encoder.upsampler+proj", &mut t);
         let x = self.refine_norm.forward_act(&self.refine_conv.forward(&refine_in)?, Act::Gelu)?;
         let refine_out = self.refine_unet.forward_frames(&x, v)?;
-        crate::prof("refine unet", &mut t);
+        mvsplat360_nn::prof::lap("encoder.refine_unet", &mut t);
 
         let gin = Tensor::cat(&[&refine_out, &images, &upsampled], 1)?;
         let raw = self.to_gaussians.1.forward(&gelu(&self.to_gaussians.0.forward(&gin)?)?)?;
-        crate::prof("to_gaussians", &mut t);
+        mvsplat360_nn::prof::lap("encoder.to_gaussians", &mut t);
         let disp_dens = self.to_disparity.1.forward(&gelu(&self.to_disparity.0.forward(&refine_out)?)?)?;
-        crate::prof("to_disparity", &mut t);
+        mvsplat360_nn::prof::lap("encoder.to_disparity", &mut t);
         let gpp = self.cfg.gaussians_per_pixel;
         let delta = disp_dens.narrow(1, 0, gpp)?;
         let densities = candle_nn::ops::sigmoid(&disp_dens.narrow(1, gpp, gpp)?)?;

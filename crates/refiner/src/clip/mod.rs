@@ -16,7 +16,7 @@ use serde::{Deserialize, Serialize};
 pub use preprocess::{clip_preprocess, resize_with_antialiasing, CLIP_MEAN, CLIP_STD};
 pub use transformer::VisionTransformer;
 
-use crate::vae::weights::{self, StrictWeights, WeightsError};
+use crate::weights::{self, StrictWeights, WeightsError};
 
 #[derive(Debug, thiserror::Error)]
 pub enum ClipError {

@@ -5,7 +5,7 @@ use candle_core::{Result, Tensor, D};
 
 use super::{ClipAct, ClipVisionConfig};
 use crate::unet::util::{attention, Linear, Norm};
-use crate::vae::weights::StrictWeights;
+use crate::weights::StrictWeights;
 
 fn linear(w: &StrictWeights, p: &str, i: usize, o: usize) -> Result<Linear> {
     Ok(Linear { weight: w.get(&format!("{p}.weight"), &[o, i])?, bias: Some(w.get(&format!("{p}.bias"), &[o])?) })
@@ -43,13 +43,13 @@ impl ResidualAttentionBlock {
     }
 
     fn forward(&self, x: &Tensor, cfg: &ClipVisionConfig) -> Result<Tensor> {
-        let _p = crate::prof::scope("clip.block");
+        let _p = mvsplat360_nn::prof::scope("clip.block");
         let d = cfg.width;
         let qkv = self.in_proj.forward(&self.ln_1.layer_norm(x)?)?;
         let (q, k, v) = (qkv.narrow(D::Minus1, 0, d)?, qkv.narrow(D::Minus1, d, d)?, qkv.narrow(D::Minus1, 2 * d, d)?);
         let a = attention(&q.contiguous()?, &k.contiguous()?, &v.contiguous()?, cfg.heads, cfg.attn_max_score_elems)?;
         let x = mvsplat360_nn::linear::linear_fused(&a, &self.out_proj.weight, self.out_proj.bias.as_ref(), 1.0, &[(x, 1.0)])?;
-        let _m = crate::prof::scope("clip.mlp");
+        let _m = mvsplat360_nn::prof::scope("clip.mlp");
         let h = self.c_fc.forward(&self.ln_2.layer_norm(&x)?)?;
         let h = match cfg.act {
             ClipAct::Gelu => mvsplat360_nn::activation::gelu_inference(&h)?,

@@ -16,7 +16,7 @@
 //! transformers-layout fixture (`svd_clip_vision.safetensors`: every key maps, every model key is found,
 //! embeddings match) and against open_clip `transformer.py` module names for the official layout.
 
-use crate::vae::Piece;
+use crate::weights::Piece;
 
 /// `Some(Some((open_clip name, piece)))`, `Some(None)` for a buffer to ignore, `None` if unknown.
 pub fn transformers_to_open_clip(name: &str) -> Option<Option<(String, Piece)>> {

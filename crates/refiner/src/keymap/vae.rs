@@ -20,7 +20,7 @@
 //! found, decoded/encoded outputs match). The sgm side follows sgm `model.py` / `temporal_ae.py` module names
 //! (what `first_stage_model.*` in svd.safetensors and the MVSplat360 checkpoint hold).
 
-use crate::vae::Piece;
+use crate::weights::Piece;
 
 fn resnet_leaf(module: &str) -> Option<&'static str> {
     Some(match module {

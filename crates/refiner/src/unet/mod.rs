@@ -3,8 +3,9 @@
 //!
 //! The model code uses sgm key names only. Official checkpoints (`refiner.model.diffusion_model.*`,
 //! Stability's `model.diffusion_model.*`) load directly; diffusers folders load through the single
-//! name table in [`crate::keymap::unet`].
+//! name table in [`keymap`].
 
+pub mod keymap;
 pub mod util;
 pub mod video_attention;
 pub mod video_model;

@@ -67,20 +67,20 @@ impl Norm {
 
 /// LayerNorm over the last dim (see `mvsplat360_nn::norm::layer_norm`).
 pub fn layer_norm(x: &Tensor, weight: &Tensor, bias: &Tensor, eps: f64) -> Result<Tensor> {
-    let _p = crate::prof::scope("layer_norm");
+    let _p = mvsplat360_nn::prof::scope("layer_norm");
     mvsplat360_nn::norm::layer_norm(x, weight, bias, eps)
 }
 
 /// See [`Norm::group_norm`] and `mvsplat360_nn::norm::group_norm`.
 pub fn group_norm(x: &Tensor, groups: usize, frames: usize, weight: &Tensor, bias: &Tensor, eps: f64, silu: bool) -> Result<Tensor> {
-    let _p = crate::prof::scope("group_norm");
+    let _p = mvsplat360_nn::prof::scope("group_norm");
     mvsplat360_nn::norm::group_norm(x, groups, frames, weight, bias, eps, silu)
 }
 
 /// Scaled dot-product attention, heads folded: q (N, Lq, H·d), k/v (N, Lk, H·d); off the fast path the
 /// score buffer stays below `max_score_elems` floats (see `mvsplat360_nn::attention::multi_head_attention`).
 pub fn attention(q: &Tensor, k: &Tensor, v: &Tensor, heads: usize, max_score_elems: usize) -> Result<Tensor> {
-    let _p = crate::prof::scope("attention_core");
+    let _p = mvsplat360_nn::prof::scope("attention_core");
     mvsplat360_nn::attention::multi_head_attention(q, k, v, heads, max_score_elems)
 }
 

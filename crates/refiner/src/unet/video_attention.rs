@@ -128,7 +128,7 @@ impl FeedForward {
 
     /// `scale·ff(x) + Σ cᵢ·addᵢ` (rows processed in chunks; the residual/blend is folded into the output gemm).
     fn forward_fused(&self, x: &Tensor, scale: f32, adds: &[(&Tensor, f32)]) -> Result<Tensor> {
-        let _p = crate::prof::scope("ff");
+        let _p = mvsplat360_nn::prof::scope("ff");
         let (Some(b1), Some(b2)) = (&self.proj.bias, &self.out.bias) else { candle_core::bail!("feed-forward without bias") };
         geglu_ff(x, &self.proj.weight, b1, &self.out.weight, b2, scale, adds)
     }
@@ -159,10 +159,10 @@ impl BasicTransformerBlock {
 
     /// x: (N, L, C) tokens of N frames.
     fn forward(&self, x: &Tensor, context: &Tensor, max_elems: usize) -> Result<Tensor> {
-        let _p = crate::prof::scope("transformer.spatial_block");
+        let _p = mvsplat360_nn::prof::scope("transformer.spatial_block");
         let (n, l, _) = x.dims3()?;
         let x = {
-            let _a = crate::prof::scope("attn.self_spatial");
+            let _a = mvsplat360_nn::prof::scope("attn.self_spatial");
             self.attn1.self_attention(&self.norm1.layer_norm(x)?, x, SeqLayout::contiguous(n, l), max_elems)?
         };
         let x = cross(&self.attn2, &self.norm2, &x, context, max_elems)?;
@@ -172,7 +172,7 @@ impl BasicTransformerBlock {
 
 /// `x + attn(norm(x), ctx)`, skipping the norm when the context is a single token.
 fn cross(attn: &CrossAttention, norm: &Norm, x: &Tensor, ctx: &Tensor, max_elems: usize) -> Result<Tensor> {
-    let _a = crate::prof::scope("attn.cross");
+    let _a = mvsplat360_nn::prof::scope("attn.cross");
     if ctx.dim(1)? == 1 {
         attn.cross_attention(None, x, ctx, max_elems)
     } else {
@@ -212,7 +212,7 @@ impl VideoTransformerBlock {
     /// over the frames through strides, so no (b t) s c ↔ (b s) t c transposes are made. Returns
     /// `keep_coef·keep + (1 − keep_coef)·block(x)` (the AlphaBlender folded into the last gemm).
     fn forward(&self, x: &Tensor, time_context: &Tensor, frames: usize, splits: usize, max_elems: usize, keep: (&Tensor, f32)) -> Result<Tensor> {
-        let _p = crate::prof::scope("transformer.temporal_block");
+        let _p = mvsplat360_nn::prof::scope("transformer.temporal_block");
         let (n, s, _) = x.dims3()?;
         let b = n / frames;
         let splits = splits.max(1);
@@ -223,7 +223,7 @@ impl VideoTransformerBlock {
         let h = self.ff_in.forward_fused(&self.norm_in.layer_norm(x)?, 1.0, &[(x, 1.0)])?;
         let layout = SeqLayout { count: b * splits * s, len: tw, inner_count: s, outer: tw * s, inner: 1, pos: s };
         let h = {
-            let _a = crate::prof::scope("attn.self_temporal");
+            let _a = mvsplat360_nn::prof::scope("attn.self_temporal");
             self.attn1.self_attention(&self.norm1.layer_norm(&h)?, &h, layout, max_elems)?
         };
         let h = cross(&self.attn2, &self.norm2, &h, time_context, max_elems)?;
@@ -283,7 +283,7 @@ impl SpatialVideoTransformer {
 
     /// x: (B·T, C, H, W); context: (B·T, Lc, D).
     pub fn forward(&self, x: &Tensor, context: &Tensor, frames: usize, splits: usize, max_elems: usize) -> Result<Tensor> {
-        let _p = crate::prof::scope("transformer.total");
+        let _p = mvsplat360_nn::prof::scope("transformer.total");
         let (n, c, hh, ww) = x.dims4()?;
         let b = n / frames;
         let (_, lc, dc) = context.dims3()?;

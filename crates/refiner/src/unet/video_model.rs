@@ -32,7 +32,7 @@ impl Conv {
     }
 
     fn forward_fused(&self, x: &Tensor, epi: ConvEpilogue) -> Result<Tensor> {
-        let _p = crate::prof::scope(if self.cfg.stride == 1 { "unet.conv" } else { "unet.conv_stride2" });
+        let _p = mvsplat360_nn::prof::scope(if self.cfg.stride == 1 { "unet.conv" } else { "unet.conv_stride2" });
         conv2d_epilogue(x, &self.w, Some(&self.b), self.cfg, epi)
     }
 }
@@ -61,7 +61,7 @@ impl TemporalConv {
     }
 
     fn forward(&self, x: &Tensor, frames: usize, epi: ConvEpilogue) -> Result<Tensor> {
-        let _p = crate::prof::scope("unet.temporal_conv");
+        let _p = mvsplat360_nn::prof::scope("unet.temporal_conv");
         let w = if self.trainable {
             let (o, i) = (self.w.dim(0)?, self.w.dim(1)?);
             tap_major(&self.w, o, i, self.kt)?
@@ -121,7 +121,7 @@ impl ResBlock {
     /// `emb_act` = SiLU(emb), shared by every block. Returns `skip(x) + out_scale·h` (out_scale folds the
     /// AlphaBlender of a `time_stack` into the last conv).
     fn forward(&self, x: &Tensor, emb_act: &Tensor, frames: usize, out_scale: Option<f32>) -> Result<Tensor> {
-        let _p = crate::prof::scope(if self.temporal { "unet.resblock_temporal" } else { "unet.resblock_spatial" });
+        let _p = mvsplat360_nn::prof::scope(if self.temporal { "unet.resblock_temporal" } else { "unet.resblock_spatial" });
         let f = if self.temporal { frames } else { 1 };
         let e = self.emb.forward(emb_act)?;
         let epi1 = ConvEpilogue { item_bias: Some(&e), ..Default::default() };

@@ -10,7 +10,7 @@ use candle_core::{DType, Device, Result, Tensor, Var};
 use rayon::prelude::*;
 
 use super::{UNetError, VideoUNetConfig};
-use crate::keymap::unet::diffusers_to_sgm;
+use crate::unet::keymap::diffusers_to_sgm;
 
 /// How the UNet keys are spelled in a file.
 #[derive(Debug, Clone, PartialEq, Eq)]

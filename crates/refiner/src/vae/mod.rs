@@ -7,16 +7,16 @@
 
 pub mod model;
 pub mod temporal_ae;
-pub mod weights;
 
 use std::path::{Path, PathBuf};
 
 use candle_core::{DType, Device, Tensor};
 use serde::{Deserialize, Serialize};
 
+use crate::weights::{self, StrictWeights, WeightsError};
+
 pub use model::Encoder;
 pub use temporal_ae::VideoDecoder;
-pub use weights::{Piece, StrictWeights, WeightsError};
 
 #[derive(Debug, thiserror::Error)]
 pub enum VaeError {

@@ -4,9 +4,9 @@
 use candle_core::{Result, Tensor};
 use mvsplat360_nn::conv::{Conv2dConfig, ConvEpilogue};
 
-use super::weights::StrictWeights;
 use super::AutoencoderConfig;
 use crate::unet::util::{attention, group_norm};
+use crate::weights::StrictWeights;
 
 /// sgm `Normalize`: GroupNorm(32, eps 1e-6).
 pub(crate) const NORM_EPS: f64 = 1e-6;
@@ -28,7 +28,7 @@ impl Conv {
     }
 
     pub fn forward_fused(&self, x: &Tensor, epi: ConvEpilogue) -> Result<Tensor> {
-        let _p = crate::prof::scope(if self.cfg.stride == 1 { "vae.conv" } else { "vae.conv_stride2" });
+        let _p = mvsplat360_nn::prof::scope(if self.cfg.stride == 1 { "vae.conv" } else { "vae.conv_stride2" });
         mvsplat360_nn::conv::conv2d_epilogue(x, &self.w, Some(&self.b), self.cfg, epi)
     }
 }
@@ -113,7 +113,7 @@ impl AttnBlock {
     }
 
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        let _p = crate::prof::scope("vae.attn");
+        let _p = mvsplat360_nn::prof::scope("vae.attn");
         let (n, c, h, w) = x.dims4()?;
         let tokens = self.norm.forward(x, 1, false)?.reshape((n, c, h * w))?.transpose(1, 2)?.contiguous()?;
         let lin = |t: &Tensor, (wt, b): &(Tensor, Tensor)| -> Result<Tensor> {

@@ -4,9 +4,9 @@
 use candle_core::{Result, Tensor};
 
 use super::model::{AttnBlock, Conv, GroupNorm, ResnetBlock, Upsample, NORM_EPS};
-use super::weights::StrictWeights;
 use super::AutoencoderConfig;
 use crate::unet::util::{blend_learned, sigmoid_scalar};
+use crate::weights::StrictWeights;
 
 /// GroupNorm eps of the temporal `time_stack` (openaimodel `normalization` = GroupNorm32 default 1e-5).
 const TIME_NORM_EPS: f64 = 1e-5;
@@ -46,7 +46,7 @@ impl TemporalConv {
 
     /// `residual + scale·conv(x)`.
     pub fn forward_fused(&self, x: &Tensor, frames: usize, residual: Option<&Tensor>, scale: f32) -> Result<Tensor> {
-        let _p = crate::prof::scope("vae.temporal_conv");
+        let _p = mvsplat360_nn::prof::scope("vae.temporal_conv");
         let (_, c, _, _) = x.dims4()?;
         if c != self.cin {
             candle_core::bail!("temporal conv: input {:?}, expected {} channels", x.dims(), self.cin);
@@ -109,10 +109,10 @@ impl VideoResBlock {
 
     pub fn forward(&self, x: &Tensor, frames: usize) -> Result<Tensor> {
         let spatial = {
-            let _p = crate::prof::scope("vae.resblock_spatial");
+            let _p = mvsplat360_nn::prof::scope("vae.resblock_spatial");
             self.spatial.forward(x)?
         };
-        let _p = crate::prof::scope("vae.resblock_temporal+blend");
+        let _p = mvsplat360_nn::prof::scope("vae.resblock_temporal+blend");
         if let Some(mix) = &self.mix {
             let temporal = self.time_stack.forward(&spatial, frames, 1.0)?;
             return blend_learned(&temporal, &spatial, mix);
@@ -172,7 +172,7 @@ impl VideoDecoder {
 
     /// z (B·T, z, h, w), frames = T (the `timesteps` of one decode call) → (B·T, out_ch, 8h, 8w).
     pub fn forward(&self, z: &Tensor, frames: usize) -> Result<Tensor> {
-        let _p = crate::prof::scope("vae.decoder_total");
+        let _p = mvsplat360_nn::prof::scope("vae.decoder_total");
         let mut h = self.conv_in.forward(z)?;
         h = self.mid_block_1.forward(&h, frames)?;
         if let Some(b2) = &self.mid_block_2 {
@@ -187,7 +187,7 @@ impl VideoDecoder {
                 h = u.forward(&h)?;
             }
         }
-        let _u = crate::prof::scope("vae.out");
+        let _u = mvsplat360_nn::prof::scope("vae.out");
         let h = self.conv_out.forward(&self.norm_out.forward(&h, 1, true)?)?;
         self.time_mix_conv.forward(&h, frames)
     }
