@@ -18,6 +18,9 @@ struct Cli {
 enum Command {
     /// Render the bundled scene with the shipped model: a 360° video, frames and Gaussians in out/demo.
     Demo(cmd::demo::Args),
+    /// Pose a video or a folder of overlapping photos with COLMAP: a scene folder (undistorted images, a PINHOLE
+    /// COLMAP model, pose.json) that render, inspect, export and eval-scenes read.
+    Pose(cmd::pose::Args),
     /// Summarise a scene: views, image size, intrinsics, camera centres, baseline, suggested context views.
     Inspect(cmd::inspect::Args),
     /// Posed photos in → Gaussians, 3DGS and refined novel views, videos, cameras (the main job).
@@ -66,6 +69,7 @@ fn main() {
         Command::Train(a) => cmd::train::run(a, cli.quiet),
         Command::TrainBlend(a) => cmd::train_blend::run(a, cli.quiet),
         Command::Inspect(a) => cmd::inspect::run(a),
+        Command::Pose(a) => cmd::pose::run(a, cli.quiet),
         Command::Render(a) => cmd::render::run(a, cli.quiet),
         Command::Export(a) => cmd::export::run(a, cli.quiet),
         Command::Convert(a) => cmd::convert::run(a),

@@ -1,5 +1,7 @@
 //! COLMAP sparse models (`cameras` + `images`, binary or text). Poses are world-to-camera (qvec wxyz, tvec) in
-//! OpenCV axes already. Distorted models are accepted by ignoring distortion (with a warning).
+//! OpenCV axes already. Perspective models with distortion (SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV) keep
+//! every parameter; their views carry the [`Distortion`] and load undistorted ([`crate::lens`]). Fisheye,
+//! division, EUCM and spherical models are refused.
 
 use std::collections::HashMap;
 use std::io::Read;
@@ -9,7 +11,7 @@ use mvsplat360_camera::convert::{colmap_to_c2w, to_array};
 use mvsplat360_camera::Camera;
 
 use crate::error::io;
-use crate::{DatasetError, ImageSource, Scene};
+use crate::{DatasetError, Distortion, ImageSource, Scene};
 
 /// The folder holding `cameras.{bin,txt}`: `<root>/sparse/0`, `<root>/sparse` or `<root>` itself.
 pub fn find_model_dir(root: &Path) -> Option<PathBuf> {
@@ -21,9 +23,14 @@ pub struct ColmapCamera {
     pub model: String,
     pub width: u32,
     pub height: u32,
-    /// fx, fy, cx, cy (distortion dropped).
+    /// Every parameter, in COLMAP's order for the model.
+    pub params: Vec<f64>,
+    /// fx, fy, cx, cy.
     pub pinhole: [f64; 4],
+    /// The model has distortion terms (zero or not).
     pub distorted: bool,
+    /// The distortion, when some coefficient is not zero.
+    pub distortion: Option<Distortion>,
 }
 
 #[derive(Debug, Clone, PartialEq)]
@@ -38,7 +45,7 @@ fn malformed(path: &Path, msg: impl Into<String>) -> DatasetError {
     DatasetError::Colmap { path: path.to_path_buf(), msg: msg.into() }
 }
 
-/// Model id → (name, parameter count).
+/// Model id → (name, parameter count), as `src/colmap/sensor/models.h` numbers them.
 fn model_by_id(id: i32) -> Option<(&'static str, usize)> {
     Some(match id {
         0 => ("SIMPLE_PINHOLE", 3),
@@ -52,43 +59,69 @@ fn model_by_id(id: i32) -> Option<(&'static str, usize)> {
         8 => ("SIMPLE_RADIAL_FISHEYE", 4),
         9 => ("RADIAL_FISHEYE", 5),
         10 => ("THIN_PRISM_FISHEYE", 12),
+        11 => ("RAD_TAN_THIN_PRISM_FISHEYE", 16),
+        12 => ("SIMPLE_DIVISION", 4),
+        13 => ("DIVISION", 5),
+        14 => ("SIMPLE_FISHEYE", 3),
+        15 => ("FISHEYE", 4),
+        16 => ("EUCM", 6),
+        17 => ("EQUIRECTANGULAR", 2),
         _ => return None,
     })
 }
 
-fn make_camera(path: &Path, model: &str, width: u32, height: u32, p: &[f64]) -> Result<ColmapCamera, DatasetError> {
-    let need = |n: usize| {
-        if p.len() < n {
-            Err(malformed(path, format!("camera model {model} needs {n} parameters, found {}", p.len())))
-        } else {
-            Ok(())
-        }
+/// Why a model cannot be read as a pinhole camera (None: it can, possibly after undistortion).
+fn refusal(model: &str) -> Option<&'static str> {
+    Some(match model {
+        "SIMPLE_PINHOLE" | "PINHOLE" | "SIMPLE_RADIAL" | "RADIAL" | "OPENCV" | "FULL_OPENCV" => return None,
+        "OPENCV_FISHEYE"
+        | "FOV"
+        | "SIMPLE_RADIAL_FISHEYE"
+        | "RADIAL_FISHEYE"
+        | "THIN_PRISM_FISHEYE"
+        | "RAD_TAN_THIN_PRISM_FISHEYE"
+        | "SIMPLE_FISHEYE"
+        | "FISHEYE" => "a fisheye lens, which this reader does not undistort (read as a pinhole, every ray would be wrong)",
+        "EQUIRECTANGULAR" => "a 360° panorama, not a perspective image",
+        "SIMPLE_DIVISION" | "DIVISION" | "EUCM" => "a lens model this reader does not undistort",
+        _ => "which is not a COLMAP camera model this reader knows",
+    })
+}
+
+fn make_camera(path: &Path, id: u32, model: &str, width: u32, height: u32, p: &[f64]) -> Result<ColmapCamera, DatasetError> {
+    if let Some(why) = refusal(model) {
+        return Err(DatasetError::UnsupportedLens { path: path.to_path_buf(), what: format!("camera {id}"), model: model.to_string(), why: why.to_string() });
+    }
+    let need = match model {
+        "SIMPLE_PINHOLE" => 3,
+        "PINHOLE" | "SIMPLE_RADIAL" => 4,
+        "RADIAL" => 5,
+        "OPENCV" => 8,
+        _ => 12,
     };
-    let (pinhole, distorted) = match model {
-        "SIMPLE_PINHOLE" => {
-            need(3)?;
-            ([p[0], p[0], p[1], p[2]], false)
-        }
-        "PINHOLE" => {
-            need(4)?;
-            ([p[0], p[1], p[2], p[3]], false)
-        }
-        "SIMPLE_RADIAL" | "RADIAL" => {
-            need(4)?;
-            ([p[0], p[0], p[1], p[2]], true)
-        }
-        "OPENCV" | "FULL_OPENCV" => {
-            need(8)?;
-            ([p[0], p[1], p[2], p[3]], true)
-        }
-        other => {
-            return Err(malformed(
-                path,
-                format!("camera model {other} is not supported (use PINHOLE/SIMPLE_PINHOLE, or undistort with `colmap image_undistorter`)"),
-            ))
-        }
+    if p.len() != need {
+        return Err(malformed(path, format!("camera {id}: model {model} has {need} parameters, found {}", p.len())));
+    }
+    if let Some(v) = p.iter().find(|v| !v.is_finite()) {
+        return Err(malformed(path, format!("camera {id}: parameter {v} is not finite")));
+    }
+    let (pinhole, distortion) = match model {
+        "SIMPLE_PINHOLE" => ([p[0], p[0], p[1], p[2]], None),
+        "PINHOLE" => ([p[0], p[1], p[2], p[3]], None),
+        "SIMPLE_RADIAL" => ([p[0], p[0], p[1], p[2]], Some(Distortion::SimpleRadial { k: p[3] })),
+        "RADIAL" => ([p[0], p[0], p[1], p[2]], Some(Distortion::Radial { k1: p[3], k2: p[4] })),
+        "OPENCV" => ([p[0], p[1], p[2], p[3]], Some(Distortion::OpenCv { k1: p[4], k2: p[5], p1: p[6], p2: p[7] })),
+        _ => ([p[0], p[1], p[2], p[3]], Some(Distortion::FullOpenCv { k1: p[4], k2: p[5], p1: p[6], p2: p[7], k3: p[8], k4: p[9], k5: p[10], k6: p[11] })),
     };
-    Ok(ColmapCamera { model: model.to_string(), width, height, pinhole, distorted })
+    Ok(ColmapCamera {
+        model: model.to_string(),
+        width,
+        height,
+        params: p.to_vec(),
+        pinhole,
+        distorted: distortion.is_some(),
+        distortion: distortion.and_then(Distortion::nonzero),
+    })
 }
 
 struct Bin<'a> {
@@ -141,7 +174,7 @@ pub fn read_cameras_bin(path: &Path) -> Result<HashMap<u32, ColmapCamera>, Datas
         let (model, np) = model_by_id(model_id).ok_or_else(|| malformed(path, format!("camera {id}: unknown model id {model_id}")))?;
         let (w, h) = (b.u64()?, b.u64()?);
         let params = (0..np).map(|_| b.f64()).collect::<Result<Vec<_>, _>>()?;
-        out.insert(id as u32, make_camera(path, model, w as u32, h as u32, &params)?);
+        out.insert(id as u32, make_camera(path, id as u32, model, w as u32, h as u32, &params)?);
     }
     Ok(out)
 }
@@ -182,7 +215,7 @@ pub fn read_cameras_txt(path: &Path) -> Result<HashMap<u32, ColmapCamera>, Datas
         }
         let ids: Vec<u32> = parse_nums(path, ln, &[t[0], t[2], t[3]])?;
         let params: Vec<f64> = parse_nums(path, ln, &t[4..])?;
-        out.insert(ids[0], make_camera(path, t[1], ids[1], ids[2], &params)?);
+        out.insert(ids[0], make_camera(path, ids[0], t[1], ids[1], ids[2], &params)?);
     }
     Ok(out)
 }
@@ -222,21 +255,11 @@ pub fn read(root: &Path) -> Result<Scene, DatasetError> {
     };
     imgs.sort_by(|a, b| a.name.cmp(&b.name));
     let image_dir = root.join("images");
-    let mut scene = Scene {
-        name: root.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "scene".into()),
-        view_names: vec![],
-        cameras: vec![],
-        images: vec![],
-    };
-    let mut warned = false;
+    let mut scene = Scene { name: root.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "scene".into()), ..Scene::default() };
     for im in imgs {
         let c = cams
             .get(&im.camera_id)
             .ok_or_else(|| malformed(&model, format!("image {} refers to camera {} which is not in the cameras file", im.name, im.camera_id)))?;
-        if c.distorted && !warned {
-            tracing::warn!("{}: camera model {} has distortion; it is ignored (undistort for best results)", model.display(), c.model);
-            warned = true;
-        }
         let [fx, fy, cx, cy] = c.pinhole;
         scene.cameras.push(Camera { fx, fy, cx, cy, width: c.width, height: c.height, c2w: to_array(&colmap_to_c2w(im.qvec, im.tvec)) });
         let p = image_dir.join(&im.name);
@@ -244,6 +267,7 @@ pub fn read(root: &Path) -> Result<Scene, DatasetError> {
             return Err(DatasetError::Colmap { path: model.clone(), msg: format!("image {} not found at {}", im.name, p.display()) });
         }
         scene.images.push(ImageSource::File(p));
+        scene.distortion.push(c.distortion);
         scene.view_names.push(im.name);
     }
     Ok(scene)

@@ -23,8 +23,9 @@ pub enum DatasetError {
     Image { what: String, msg: String },
     #[error("view {view}: image is {}x{} but its camera says {}x{}", found.0, found.1, expected.0, expected.1)]
     ImageSize { view: String, expected: (u32, u32), found: (u32, u32) },
-    #[error("view {view}: image size {}x{} differs from the first view's {}x{} (all views must share one size)", found.0, found.1, first.0, first.1)]
-    InconsistentSize { view: String, first: (u32, u32), found: (u32, u32) },
+    /// A lens this program cannot turn into a pinhole camera; never read as if it were one.
+    #[error("{path}: {what} uses the {model} camera model, {why}; re-run `mvsplat360 pose` on the original photos, or undistort them to PINHOLE with `colmap image_undistorter` and read the folder it writes")]
+    UnsupportedLens { path: PathBuf, what: String, model: String, why: String },
     #[error("scene {scene} has no views")]
     EmptyScene { scene: String },
     #[error(transparent)]

@@ -1,5 +1,6 @@
 //! Images: decoding (PNG/JPEG) to f32 CHW in [0,1], and the sources a scene's views come from.
 
+use std::io::Read;
 use std::path::PathBuf;
 use std::sync::Arc;
 
@@ -131,6 +132,59 @@ impl ImageSource {
         // Alpha is dropped: scenes are composited photos, not masked objects.
         Ok(ImageF32::from_rgb8(&dynimg.to_rgb8()))
     }
+}
+
+impl ImageSource {
+    /// The EXIF orientation (1–8) of a JPEG, from its header only (the first 128 KiB of a file: the EXIF
+    /// segment sits before the image data and holds at most 64 KiB). `None`: not a JPEG, no EXIF or no tag.
+    pub fn exif_orientation(&self) -> Option<u16> {
+        match self {
+            ImageSource::File(p) => {
+                let mut f = std::fs::File::open(p).ok()?.take(128 << 10);
+                let mut head = vec![0u8; 2];
+                f.read_exact(&mut head).ok()?;
+                // Only a JPEG is read further (PNGs cost two bytes).
+                if head != [0xFF, 0xD8] {
+                    return None;
+                }
+                f.read_to_end(&mut head).ok()?;
+                jpeg_exif_orientation(&head)
+            }
+            ImageSource::Encoded { bytes, .. } => jpeg_exif_orientation(bytes),
+        }
+    }
+}
+
+/// The orientation tag of a JPEG's EXIF segment (APP1 `Exif\0\0`), walking the marker segments up to the
+/// first scan; the TIFF structure inside is parsed by `image`'s own EXIF reader.
+pub fn jpeg_exif_orientation(b: &[u8]) -> Option<u16> {
+    if !b.starts_with(&[0xFF, 0xD8]) {
+        return None;
+    }
+    let mut i = 2;
+    while i + 4 <= b.len() {
+        if b[i] != 0xFF {
+            return None;
+        }
+        let marker = b[i + 1];
+        match marker {
+            0xFF => i += 1,
+            0x01 | 0xD0..=0xD8 => i += 2,
+            0xD9 | 0xDA => return None,
+            _ => {
+                let len = u16::from_be_bytes([b[i + 2], b[i + 3]]) as usize;
+                if len < 2 {
+                    return None;
+                }
+                let seg = b.get(i + 4..i + 2 + len)?;
+                if marker == 0xE1 && seg.starts_with(b"Exif\0\0") {
+                    return ::image::metadata::Orientation::from_exif_chunk(&seg[6..]).map(|o| o.to_exif() as u16);
+                }
+                i += 2 + len;
+            }
+        }
+    }
+    None
 }
 
 /// Whether a JPEG stream ends its last scan with an end-of-image marker. Inside entropy-coded data 0xFF is

@@ -1,13 +1,15 @@
 //! Scene readers: nerfstudio/instant-ngp `transforms.json`, COLMAP `sparse/0` (binary or text), the
 //! pixelSplat/MVSplat `.torch` chunks, and the evaluation index. Every reader returns the same [`Scene`]
-//! with cameras already in the project convention (c2w, OpenCV axes, pixel intrinsics). Images are decoded
-//! to f32 ([`image`]) and resized as the official loader resizes them ([`resize`]).
+//! with cameras already in the project convention (c2w, OpenCV axes, pixel intrinsics, pinhole: a lens that
+//! distorts is removed from the pixels as they are decoded, [`lens`]). Images are decoded to f32 ([`image`])
+//! and resized as the official loader resizes them ([`resize`]).
 
 pub mod atomic;
 pub mod colmap;
 pub mod error;
 pub mod image;
 pub mod index;
+pub mod lens;
 pub mod resize;
 pub mod torch_chunk;
 pub mod transforms;
@@ -19,15 +21,19 @@ use mvsplat360_camera::Camera;
 pub use error::DatasetError;
 pub use image::{ImageF32, ImageSource};
 pub use index::{read_evaluation_index, EvaluationEntry};
+pub use lens::Distortion;
 pub use resize::resize_pil_lanczos;
 
-/// One scene: per view a name, a camera and where its image comes from (decoded on demand).
-#[derive(Debug, Clone)]
+/// One scene: per view a name, a pinhole camera, where its image comes from (decoded on demand) and the lens
+/// distortion its photo still has (`None`: a pinhole photo; a missing entry counts as `None`). Views may differ
+/// in size: preprocessing brings each to the model's size on its own.
+#[derive(Debug, Clone, Default)]
 pub struct Scene {
     pub name: String,
     pub view_names: Vec<String>,
     pub cameras: Vec<Camera>,
     pub images: Vec<ImageSource>,
+    pub distortion: Vec<Option<Distortion>>,
 }
 
 impl Scene {
@@ -39,8 +45,28 @@ impl Scene {
         self.cameras.is_empty()
     }
 
-    /// Decode view `i` as f32 CHW in [0,1]; checks it has the size its camera says.
+    /// The lens distortion of view `i`'s photo, if any.
+    pub fn lens(&self, i: usize) -> Option<&Distortion> {
+        self.distortion.get(i).and_then(Option::as_ref)
+    }
+
+    /// Decode view `i` as f32 CHW in [0,1], the pixels its pinhole camera sees: checks the photo has the size
+    /// its camera says and removes its lens distortion ([`lens::undistort`]). Every reader of pixels comes here.
     pub fn image(&self, i: usize) -> Result<ImageF32, DatasetError> {
+        let img = self.decode_checked(i)?;
+        Ok(match self.lens(i) {
+            Some(d) => lens::undistort(&img, &self.cameras[i], d),
+            None => img,
+        })
+    }
+
+    /// Whether view `i` decodes and has the size its camera says (the pixels are not kept, so the
+    /// undistortion is skipped).
+    pub fn check_image(&self, i: usize) -> Result<(), DatasetError> {
+        self.decode_checked(i).map(|_| ())
+    }
+
+    fn decode_checked(&self, i: usize) -> Result<ImageF32, DatasetError> {
         let img = self.images[i].decode()?;
         let cam = &self.cameras[i];
         if img.width != cam.width || img.height != cam.height {
@@ -49,19 +75,47 @@ impl Scene {
         Ok(img)
     }
 
-    /// Validate every camera and that all views share one image size (the model needs a uniform batch).
+    /// Validate every camera. Views of different sizes are fine (each is preprocessed on its own).
     pub fn validate(&self) -> Result<(), DatasetError> {
         if self.cameras.is_empty() {
             return Err(DatasetError::EmptyScene { scene: self.name.clone() });
         }
-        let (w0, h0) = (self.cameras[0].width, self.cameras[0].height);
         for (cam, name) in self.cameras.iter().zip(&self.view_names) {
             cam.validate(name)?;
-            if (cam.width, cam.height) != (w0, h0) {
-                return Err(DatasetError::InconsistentSize { view: name.clone(), first: (w0, h0), found: (cam.width, cam.height) });
-            }
         }
         Ok(())
+    }
+
+    /// The first view (in view order) whose JPEG carries an EXIF orientation other than 1, with that value.
+    /// Readers never rotate: poses are estimated on the stored pixel grid, which is what the model gets.
+    pub fn exif_rotated_view(&self) -> Option<(usize, u16)> {
+        self.images.iter().enumerate().find_map(|(i, s)| s.exif_orientation().filter(|&o| o != 1).map(|o| (i, o)))
+    }
+
+    /// The load-time warnings, once per scene: which views get undistorted with which model, and the first photo
+    /// whose EXIF orientation asks viewers to rotate it.
+    fn warn_on_load(&self, path: &Path) {
+        let lensed: Vec<usize> = (0..self.len()).filter(|&i| self.lens(i).is_some()).collect();
+        if let Some(&first) = lensed.first() {
+            let mut models: Vec<&str> = lensed.iter().filter_map(|&i| self.lens(i).map(Distortion::name)).collect();
+            models.sort_unstable();
+            models.dedup();
+            tracing::warn!(
+                "{}: {} of {} views have lens distortion ({}, first: {}); their photos are undistorted to the pinhole camera as they load (same size and intrinsics, see docs/cameras.md)",
+                path.display(),
+                lensed.len(),
+                self.len(),
+                models.join(", "),
+                self.view_names[first]
+            );
+        }
+        if let Some((i, o)) = self.exif_rotated_view() {
+            tracing::warn!(
+                "{}: {} has EXIF orientation {o} (viewers show it rotated); photos are read as stored, never rotated, so the poses must refer to the stored pixels (if they were estimated on rotated photos, rotate the files themselves and estimate again)",
+                path.display(),
+                self.images[i].label()
+            );
+        }
     }
 }
 
@@ -104,6 +158,7 @@ pub fn read_scene_with(path: &Path, scene_key: Option<&str>) -> Result<Scene, Da
         SceneFormat::TorchChunk => torch_chunk::read_scene(&file, scene_key)?,
     };
     scene.validate()?;
+    scene.warn_on_load(path);
     Ok(scene)
 }
 

@@ -144,7 +144,7 @@ pub fn read_chunk(path: &Path) -> Result<Vec<ChunkScene>, DatasetError> {
 impl ChunkScene {
     /// Convert to a [`Scene`]: image sizes come from the encoded headers, intrinsics are de-normalised.
     pub fn into_scene(self, path: &Path) -> Result<Scene, DatasetError> {
-        let mut scene = Scene { name: self.key.clone(), view_names: vec![], cameras: vec![], images: vec![] };
+        let mut scene = Scene { name: self.key.clone(), ..Scene::default() };
         for (i, (bytes, row)) in self.images.into_iter().zip(&self.cameras).enumerate() {
             let source = ImageSource::Encoded { label: format!("{}: scene {} view {i}", path.display(), self.key), bytes };
             let (w, h) = source.dimensions()?;

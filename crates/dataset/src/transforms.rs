@@ -1,5 +1,8 @@
 //! nerfstudio / instant-ngp `transforms.json`: c2w in OpenGL axes, intrinsics shared at the top level or per
 //! frame (`fl_x`/`fl_y`/`cx`/`cy`/`w`/`h`, or `camera_angle_x`/`camera_angle_y`), image paths relative to the file.
+//! `camera_model` (default `OPENCV`) must be one of nerfstudio's perspective models; their distortion `k1`…`k4`,
+//! `p1`, `p2` (top level or per frame, per key the frame's value wins) is removed as the photos load
+//! ([`crate::lens`]). Fisheye, equirectangular and unknown models are refused.
 
 use std::path::{Path, PathBuf};
 
@@ -9,7 +12,7 @@ use nalgebra::Matrix4;
 use serde_json::Value;
 
 use crate::error::{field, io};
-use crate::{DatasetError, ImageSource, Scene};
+use crate::{DatasetError, Distortion, ImageSource, Scene};
 
 fn num(path: &Path, obj: &Value, top: &Value, key: &str, frame: usize) -> Result<Option<f64>, DatasetError> {
     for (v, loc) in [(obj.get(key), format!("frames[{frame}].{key}")), (top.get(key), key.to_string())] {
@@ -21,6 +24,38 @@ fn num(path: &Path, obj: &Value, top: &Value, key: &str, frame: usize) -> Result
         }
     }
     Ok(None)
+}
+
+/// A frame's `camera_model` (per frame, else top level, else nerfstudio's default `OPENCV`), refused unless it is
+/// one of nerfstudio's perspective models (`CAMERA_MODEL_TO_TYPE` in `nerfstudio/cameras/cameras.py`), which all
+/// share the k1–k4, p1, p2 distortion.
+fn check_camera_model(path: &Path, obj: &Value, top: &Value, frame: usize, rel: &str) -> Result<(), DatasetError> {
+    let (v, loc) = match (obj.get("camera_model"), top.get("camera_model")) {
+        (Some(v), _) => (v, format!("frames[{frame}].camera_model")),
+        (None, Some(v)) => (v, "camera_model".to_string()),
+        (None, None) => return Ok(()),
+    };
+    let model = v.as_str().ok_or_else(|| field(path, &loc, format!("expected a string such as \"OPENCV\", got {v}")))?;
+    let why = match model {
+        "SIMPLE_PINHOLE" | "PINHOLE" | "SIMPLE_RADIAL" | "RADIAL" | "OPENCV" => return Ok(()),
+        "OPENCV_FISHEYE" | "FISHEYE624" => "a fisheye lens, which this reader does not undistort (read as a pinhole, every ray would be wrong)",
+        "EQUIRECTANGULAR" | "OMNIDIRECTIONALSTEREO_L" | "OMNIDIRECTIONALSTEREO_R" | "VR180_L" | "VR180_R" => "a panorama, not a perspective image",
+        "ORTHOPHOTO" => "an orthographic image, not a perspective one",
+        _ => "which is not a camera model this reader knows (perspective ones: SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV)",
+    };
+    Err(DatasetError::UnsupportedLens {
+        path: path.to_path_buf(),
+        what: format!("{loc} (frame {frame}, {rel})"),
+        model: model.to_string(),
+        why: why.to_string(),
+    })
+}
+
+/// nerfstudio's perspective distortion of a frame; `None` when every coefficient is zero or absent.
+fn distortion(path: &Path, obj: &Value, top: &Value, frame: usize) -> Result<Option<Distortion>, DatasetError> {
+    let k = |key: &str| num(path, obj, top, key, frame).map(|v| v.unwrap_or(0.0));
+    let d = Distortion::Perspective { k1: k("k1")?, k2: k("k2")?, k3: k("k3")?, k4: k("k4")?, p1: k("p1")?, p2: k("p2")? };
+    Ok(d.nonzero())
 }
 
 /// Resolve a frame's image path: relative to the JSON's folder; instant-ngp files may omit the extension.
@@ -48,14 +83,10 @@ pub fn read(path: &Path) -> Result<Scene, DatasetError> {
         return Err(field(path, "frames", "the list is empty; a scene needs at least one view"));
     }
     let base = path.parent().unwrap_or(Path::new("."));
-    let mut scene = Scene {
-        name: base.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "scene".into()),
-        view_names: vec![],
-        cameras: vec![],
-        images: vec![],
-    };
+    let mut scene = Scene { name: base.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "scene".into()), ..Scene::default() };
     for (i, f) in frames.iter().enumerate() {
         let rel = f.get("file_path").and_then(Value::as_str).ok_or_else(|| field(path, format!("frames[{i}].file_path"), "missing or not a string"))?;
+        check_camera_model(path, f, &top, i, rel)?;
         let img_path = resolve_image(path, base, rel, i)?;
         let m = f
             .get("transform_matrix")
@@ -92,11 +123,9 @@ pub fn read(path: &Path) -> Result<Scene, DatasetError> {
         let cx = num(path, f, &top, "cx", i)?.unwrap_or(wf / 2.0);
         let cy = num(path, f, &top, "cy", i)?.unwrap_or(hf / 2.0);
         scene.cameras.push(Camera { fx, fy, cx, cy, width: w, height: h, c2w: to_array(&opengl_to_opencv(&gl)) });
+        scene.distortion.push(distortion(path, f, &top, i)?);
         scene.view_names.push(rel.to_string());
         scene.images.push(source);
-    }
-    if top.get("k1").and_then(Value::as_f64).is_some_and(|k| k != 0.0) {
-        tracing::warn!("{}: lens distortion (k1…) is ignored; undistort the images for best results", path.display());
     }
     Ok(scene)
 }

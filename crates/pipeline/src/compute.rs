@@ -16,11 +16,12 @@ impl std::str::FromStr for DeviceSpec {
     type Err = String;
     fn from_str(s: &str) -> std::result::Result<Self, String> {
         match s {
+            "auto" => Ok(Self::detect()),
             "cpu" => Ok(Self::Cpu),
             "cuda" => Ok(Self::Cuda(0)),
             _ => match s.strip_prefix("cuda:").map(str::parse::<usize>) {
                 Some(Ok(n)) => Ok(Self::Cuda(n)),
-                _ => Err(format!("`{s}` is not a device: use cpu, cuda or cuda:N (N = GPU index)")),
+                _ => Err(format!("`{s}` is not a device: use auto, cpu, cuda or cuda:N (N = GPU index)")),
             },
         }
     }
@@ -36,6 +37,15 @@ impl std::fmt::Display for DeviceSpec {
 }
 
 impl DeviceSpec {
+    /// GPU 0 when this binary has CUDA and a GPU answers, else the CPU (`--device auto`).
+    pub fn detect() -> Self {
+        if candle_core::utils::cuda_is_available() && Device::new_cuda(0).is_ok() {
+            Self::Cuda(0)
+        } else {
+            Self::Cpu
+        }
+    }
+
     /// Open the device; a CUDA request in a build without CUDA says how to get one.
     pub fn open(&self) -> Result<Device> {
         match self {

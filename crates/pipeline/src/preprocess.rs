@@ -1,11 +1,14 @@
 //! Image preprocessing shared by `render`, `export` and `eval`: the official data path's `rescale_and_crop`
 //! (scale so the image covers the model's input size, centre-crop to it) followed by the encoder's patch shim
 //! (centre-crop to a multiple of 64). Intrinsics follow every step, so a photo and its camera stay consistent.
+//! Each view is planned from its own size, so a scene may mix sizes: with a fixed input size every view comes
+//! out the same, and only then are views batched. `native` keeps each size, so it needs views of one size
+//! ([`Preprocess::check_sizes`]).
 
 use mvsplat360_camera::Camera;
 use mvsplat360_dataset::{ImageF32, Scene};
 
-use crate::error::{PipelineError, Result};
+use crate::error::{flag, PipelineError, Result};
 
 /// The input size the model sees.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
@@ -67,6 +70,33 @@ impl Preprocess {
         }
         let crop = mvsplat360_camera::CropRect { x0: (scaled.0 - cw) / 2, y0: (scaled.1 - ch) / 2, width: cw, height: ch };
         Ok(Plan { scaled, crop })
+    }
+
+    /// `--size native` keeps every photo's size, and the model batches views: refuse views of mixed sizes,
+    /// naming each size with its first view. A fixed size accepts any mix.
+    pub fn check_sizes(&self, scene: &Scene, views: &[usize]) -> Result<()> {
+        if self.size != InputSize::Native {
+            return Ok(());
+        }
+        let mut sizes: Vec<((u32, u32), usize, usize)> = Vec::new();
+        for &i in views {
+            let Some(c) = scene.cameras.get(i) else { continue };
+            match sizes.iter_mut().find(|s| s.0 == (c.width, c.height)) {
+                Some(s) => s.2 += 1,
+                None => sizes.push(((c.width, c.height), i, 1)),
+            }
+        }
+        if sizes.len() < 2 {
+            return Ok(());
+        }
+        let list: Vec<String> = sizes
+            .iter()
+            .map(|((w, h), i, n)| format!("{} is {w}x{h}{}", scene.view_names[*i], if *n > 1 { format!(" (and {} more)", n - 1) } else { String::new() }))
+            .collect();
+        Err(flag(
+            "--size",
+            format!("`native` keeps each photo's size, but the views used differ: {}; give --size WIDTHxHEIGHT (or leave it out for the model's size) to bring them to one size", list.join(", ")),
+        ))
     }
 
     /// The camera after preprocessing.
@@ -161,6 +191,31 @@ mod tests {
         assert_eq!(p.scaled, (300, 200));
         assert_eq!((p.crop.x0, p.crop.y0, p.crop.width, p.crop.height), (22, 4, 256, 192));
         assert!(pre.plan(&cam(60, 200)).is_err());
+    }
+
+    #[test]
+    fn mixed_sizes_fixed_accepted_native_refused() {
+        let tmp = tempfile::tempdir().unwrap();
+        let mut scene = Scene { name: "mixed".into(), ..Scene::default() };
+        for (name, w, h) in [("a.png", 300u32, 200u32), ("b.png", 200, 300), ("c.png", 300, 200)] {
+            let p = tmp.path().join(name);
+            image::RgbImage::from_pixel(w, h, image::Rgb([90, 120, 150])).save(&p).unwrap();
+            scene.view_names.push(name.into());
+            scene.cameras.push(cam(w, h));
+            scene.images.push(mvsplat360_dataset::ImageSource::File(p));
+        }
+        let fixed = Preprocess { size: InputSize::Fixed { width: 128, height: 128 }, multiple: 64 };
+        fixed.check_sizes(&scene, &[0, 1, 2]).unwrap();
+        for i in 0..3 {
+            let v = prepare_view(&scene, i, &fixed).unwrap();
+            assert_eq!((v.image.width, v.image.height, v.camera.width, v.camera.height), (128, 128, 128, 128), "view {i}");
+        }
+        let native = Preprocess { size: InputSize::Native, multiple: 64 };
+        native.check_sizes(&scene, &[0, 2]).unwrap();
+        let e = native.check_sizes(&scene, &[0, 1, 2]).unwrap_err().to_string();
+        for needle in ["--size", "a.png is 300x200 (and 1 more)", "b.png is 200x300"] {
+            assert!(e.contains(needle), "expected `{needle}` in `{e}`");
+        }
     }
 
     #[test]

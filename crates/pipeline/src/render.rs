@@ -114,7 +114,7 @@ pub struct Prepared {
 /// Open every image of the scene and check it against its camera (size, decodability), in parallel.
 pub fn check_scene_images(scene: &Scene) -> Result<()> {
     use rayon::prelude::*;
-    (0..scene.len()).into_par_iter().try_for_each(|i| scene.image(i).map(|_| ()).map_err(PipelineError::from))
+    (0..scene.len()).into_par_iter().try_for_each(|i| scene.check_image(i).map_err(PipelineError::from))
 }
 
 /// Read the scene, resolve the model and the views, validate everything, preprocess context and targets.
@@ -139,6 +139,8 @@ pub fn prepare(req: &RenderRequest, progress: &dyn Progress) -> Result<Prepared>
     }
     let size = req.size.unwrap_or(InputSize::Fixed { width: spec.data.image_width, height: spec.data.image_height });
     let pre = Preprocess { size, multiple: spec.encoder.image_multiple() as u32 };
+    let used: Vec<usize> = choice.context.iter().copied().chain(choice.targets.iter().filter_map(|t| t.view)).collect();
+    pre.check_sizes(&scene, &used)?;
     let mut context_images = Vec::new();
     let mut context_cameras_raw = Vec::new();
     for &i in &choice.context {

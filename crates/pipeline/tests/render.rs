@@ -284,3 +284,38 @@ fn model_fit_settings_default_override_and_validation() {
     let e = model::read_model_dir(&fitted).unwrap_err().to_string();
     assert!(e.contains("config.json") && e.contains("step"), "{e}");
 }
+
+/// Views of mixed sizes: each is preprocessed to the model's size on its own (and undistorted first, as
+/// `Scene::image` does), while `--size native`, which would batch them at their own sizes, is refused naming them.
+#[test]
+fn mixed_sizes_and_lens_distortion_before_preprocessing() {
+    let tmp = tempfile::tempdir().unwrap();
+    let m = tiny_model(tmp.path(), false);
+    let d = tmp.path().join("scene");
+    std::fs::create_dir_all(&d).unwrap();
+    let mut frames = Vec::new();
+    for (i, (name, w, h)) in [("a.png", 160u32, 96u32), ("b.png", 96, 160), ("c.png", 160, 96)].into_iter().enumerate() {
+        image::RgbImage::from_fn(w, h, |x, y| image::Rgb([(x * 255 / w) as u8, (y * 255 / h) as u8, ((x + y) % 256) as u8])).save(d.join(name)).unwrap();
+        frames.push(format!(r#"{{"file_path": "{name}", "transform_matrix": [[1,0,0,{}],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}}"#, i as f64 * 0.3));
+    }
+    std::fs::write(d.join("transforms.json"), format!(r#"{{"fl_x": 120, "k1": -0.05, "p1": 0.002, "frames": [{}]}}"#, frames.join(", "))).unwrap();
+    let mut req = request(&m, &tmp.path().join("out"), TargetSpec::Views(vec![2]));
+    req.scene = d.clone();
+    req.context = ContextSpec::Views(vec![0, 1]);
+    req.size = Some(InputSize::Native);
+    let e = render::prepare(&req, &Silent).err().expect("native with mixed sizes must be refused").to_string();
+    for needle in ["--size", "a.png is 160x96 (and 1 more)", "b.png is 96x160"] {
+        assert!(e.contains(needle), "expected `{needle}` in `{e}`");
+    }
+    req.size = None;
+    let p = render::prepare(&req, &Silent).unwrap();
+    let sizes: Vec<(u32, u32)> = p.context_images.iter().chain(p.target_photos.iter().flatten()).map(|im| (im.width, im.height)).collect();
+    assert_eq!(sizes, vec![(128, 64); 3]);
+    // The context photo is the undistorted photo, preprocessed.
+    let scene = mvsplat360_dataset::read_scene(&d).unwrap();
+    let lens = scene.lens(1).copied().expect("the views carry the distortion");
+    let raw = mvsplat360_dataset::ImageSource::File(d.join("b.png")).decode().unwrap();
+    let want = p.pre.view(&mvsplat360_dataset::lens::undistort(&raw, &scene.cameras[1], &lens), &scene.cameras[1]).unwrap().0;
+    assert_eq!(p.context_images[1], want);
+    assert_ne!(p.context_images[1], p.pre.view(&raw, &scene.cameras[1]).unwrap().0, "the distortion is not a no-op here");
+}

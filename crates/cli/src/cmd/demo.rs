@@ -19,9 +19,9 @@ pub struct Args {
     /// Context views picked from the bundled scene by farthest-point sampling.
     #[arg(long, default_value_t = 5)]
     pub num_context: usize,
-    /// Where the model runs: `cpu`, `cuda` (GPU 0) or `cuda:N`. CUDA needs a binary built with
-    /// `--features cuda` (see README, GPU).
-    #[arg(long, default_value = "cpu")]
+    /// Where the model runs: `auto` (GPU 0 when this binary has CUDA and a GPU is present, else the CPU),
+    /// `cpu`, `cuda` (GPU 0) or `cuda:N`. CUDA needs a binary built with `--features cuda` (see README, GPU).
+    #[arg(long, default_value = "auto")]
     pub device: mvsplat360_pipeline::compute::DeviceSpec,
 }
 

@@ -17,6 +17,35 @@ impl Bars {
     }
 }
 
+impl Bars {
+    fn with_bar(&self, f: impl FnOnce(&ProgressBar)) {
+        if let Ok(b) = self.bar.lock() {
+            if let Some(pb) = b.as_ref() {
+                f(pb);
+            }
+        }
+    }
+}
+
+/// `pose` feeds its bars from COLMAP's log lines, which say where a stage is rather than how far it moved.
+impl mvsplat360_pose::Progress for Bars {
+    fn begin(&self, stage: &str, total: u64) {
+        Progress::begin(self, stage, total)
+    }
+    fn set(&self, pos: u64) {
+        self.with_bar(|pb| pb.set_position(pos));
+    }
+    fn set_total(&self, total: u64) {
+        self.with_bar(|pb| pb.set_length(total));
+    }
+    fn end(&self) {
+        Progress::end(self)
+    }
+    fn note(&self, msg: &str) {
+        Progress::note(self, msg)
+    }
+}
+
 impl Progress for Bars {
     fn begin(&self, stage: &str, total: u64) {
         if self.quiet {
@@ -78,6 +107,8 @@ pub fn clean_partials_on_interrupt(dir: &Path) {
         d.push(dir.to_path_buf());
     }
     let _ = ctrlc::set_handler(|| {
+        // COLMAP and ffmpeg run in their own process groups, which the terminal's Ctrl-C does not reach.
+        mvsplat360_pose::stop_children();
         // Held until exit: the write in progress finishes (renamed into place) and no new one starts.
         let _gate = mvsplat360_pipeline::output::stop_writes();
         if let Ok(d) = OUT_DIRS.lock() {

@@ -1,6 +1,6 @@
 //! `mvsplat360 render`: posed photos in → Gaussians, 3DGS and refined frames, videos, cameras and a run record.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use mvsplat360_pipeline::render::RenderRequest;
@@ -11,7 +11,8 @@ use super::views::{view_list, ContextArgs, ModelFlags, RefineFlags, ViewList};
 #[derive(clap::Args)]
 pub struct Args {
     /// Scene: a folder with transforms.json, a transforms*.json file, a COLMAP folder (sparse/0 + images/),
-    /// or a `.torch` chunk.
+    /// a `.torch` chunk — or a video, or a folder of bare photos, which are first posed by COLMAP into
+    /// OUT/scene (see `mvsplat360 pose`; reused while the input is unchanged).
     pub scene: PathBuf,
     /// Output folder (created; a previous render there is replaced).
     #[arg(long, default_value = "out/render")]
@@ -53,7 +54,55 @@ pub struct Args {
     /// Video frame rate.
     #[arg(long, default_value_t = 8)]
     pub fps: u32,
+    /// How a video or a photo folder is posed (as `mvsplat360 pose`).
+    #[command(flatten)]
+    pub pose: super::pose::PoseFlags,
 }
+
+/// A video file or a folder of photos with no poses: what `render` poses first.
+fn needs_posing(p: &Path) -> bool {
+    if p.is_file() {
+        return !matches!(p.extension().and_then(|e| e.to_str()), Some("json") | Some("torch"));
+    }
+    p.is_dir()
+        && matches!(mvsplat360_dataset::detect_format(p), Err(mvsplat360_dataset::DatasetError::UnknownFormat { .. }))
+        && mvsplat360_pose::photos::list(p).is_ok_and(|(photos, _)| !photos.is_empty())
+}
+
+/// Poses a video or photo folder into OUT/scene, or reuses the scene posed there from the same input (COLMAP
+/// is not deterministic: a rerun must not move the cameras).
+fn posed_scene(a: &Args, quiet: bool) -> anyhow::Result<PathBuf> {
+    let scene = a.out.join("scene");
+    let opts = a.pose.options(a.views.num_context.max(2));
+    let fp = mvsplat360_pose::fingerprint(&a.scene, &opts)?;
+    if let Some(r) = mvsplat360_pose::read_report(&scene) {
+        if r.fingerprint == fp {
+            if !quiet {
+                eprintln!("{}: posed before into {} ({} of {} images); reusing it", a.scene.display(), scene.display(), r.registered, r.images_total);
+            }
+            return Ok(scene);
+        }
+        if !quiet {
+            eprintln!("{}: the input or the pose settings changed since {} was posed; posing again", a.scene.display(), scene.display());
+        }
+    }
+    if scene.exists() {
+        std::fs::remove_dir_all(&scene).with_context(|| format!("removing the old {}", scene.display()))?;
+    }
+    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    if !quiet {
+        eprintln!("{} has no camera poses: posing it with COLMAP into {} first (minutes on a CPU)", a.scene.display(), scene.display());
+    }
+    super::pose::pose_scene(&a.scene, &scene, &opts, quiet)?;
+    Ok(scene)
+}
+
+/// Said once when no weights are given: the shipped model is small and synthetic, which a real photo would
+/// otherwise find out only from the result.
+const SHIPPED_MODEL_NOTE: &str = "model: the shipped small model (assets/models/default: 128x64 input, trained on synthetic POV-Ray \
+scenes, no refiner) — fine for the bundled demo, not for real photos. For real scenes use the official weights: \
+--ckpt dl3dv_480p.ckpt (Hugging Face repo donydchen/mvsplat360; ~9 GB with its refiner, converted once into \
+$MVSPLAT360_CACHE or ~/.cache/mvsplat360) and --device cuda on a GPU build. See README, \"Your own scene\".";
 
 pub fn request(a: &Args) -> RenderRequest {
     let targets = if let Some(t) = &a.targets {
@@ -86,9 +135,16 @@ pub fn request(a: &Args) -> RenderRequest {
     }
 }
 
-pub fn run(args: Args, quiet: bool) -> anyhow::Result<()> {
+pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<()> {
+    super::progress::clean_partials_on_interrupt(&args.out);
+    if needs_posing(&args.scene) {
+        let scene = posed_scene(&args, quiet)?;
+        args.scene = scene;
+    }
+    if !quiet && args.model.ckpt.is_none() && args.model.encoder.is_none() {
+        eprintln!("{}", SHIPPED_MODEL_NOTE);
+    }
     let req = request(&args);
-    super::progress::clean_partials_on_interrupt(&req.out);
     let bars = super::progress::Bars::new(quiet);
     let s = mvsplat360_pipeline::render::run(&req, &bars).with_context(|| format!("rendering {}", args.scene.display()))?;
     if !quiet {

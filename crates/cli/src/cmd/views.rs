@@ -75,9 +75,9 @@ pub struct ModelFlags {
     /// model: `auto`), else `none` (official checkpoints). See docs/cameras.md.
     #[arg(long)]
     pub scene_scale: Option<SceneScale>,
-    /// Where the model runs: `cpu`, `cuda` (GPU 0) or `cuda:N`. CUDA needs a binary built with
-    /// `--features cuda` (see README, GPU).
-    #[arg(long, default_value = "cpu")]
+    /// Where the model runs: `auto` (GPU 0 when this binary has CUDA and a GPU is present, else the CPU),
+    /// `cpu`, `cuda` (GPU 0) or `cuda:N`. CUDA needs a binary built with `--features cuda` (see README, GPU).
+    #[arg(long, default_value = "auto")]
     pub device: DeviceSpec,
     /// Precision of the refiner (UNet, VAE, CLIP): `f32`, `f16` or `bf16` (GPU only). Half precision halves the
     /// refiner's memory and on a GPU is faster. The encoder and rasterizer always run in f32.

@@ -525,6 +525,7 @@ fn render_scene(cx: &Ctx, scene: Scene, plan: &ScenePlan, warnings: &mut Vec<Str
         return Err(flag("--index", format!("scene {}: need at least 2 context views, got {}", plan.key, plan.context.len())));
     }
     let spec = &cx.spec;
+    cx.pre.check_sizes(&scene, &[&plan.context[..], &plan.targets[..]].concat())?;
     let mut context_images = Vec::new();
     let mut raw_cams = Vec::new();
     for &i in &plan.context {

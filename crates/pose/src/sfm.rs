@@ -1,0 +1,213 @@
+//! The COLMAP runs, as nerfstudio's `ns-process-data` drives them: feature extraction with one shared camera
+//! (per image size), a sequential (video) or exhaustive (photos) matcher, the incremental mapper, then
+//! `image_undistorter` to a PINHOLE model. Each stage feeds a progress bar from COLMAP's own log lines.
+
+use std::path::{Path, PathBuf};
+
+use crate::colmap_log::{self, MapperLog};
+use crate::engine::{run_logged, ColmapInfo, CommandRecord};
+use crate::error::PoseError;
+use crate::Progress;
+
+/// Camera models `--camera-model` takes (perspective models that `image_undistorter` turns into PINHOLE).
+pub const CAMERA_MODELS: [&str; 6] = ["SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV", "SIMPLE_PINHOLE", "PINHOLE"];
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Matcher {
+    Sequential,
+    Exhaustive,
+}
+
+impl Matcher {
+    fn command(self) -> &'static str {
+        match self {
+            Matcher::Sequential => "sequential_matcher",
+            Matcher::Exhaustive => "exhaustive_matcher",
+        }
+    }
+}
+
+fn s(p: &Path) -> String {
+    p.display().to_string()
+}
+
+/// Runs one COLMAP command, with a bar fed by `progress_of` over its lines; a non-zero exit is an error
+/// naming the log (unless `allow_failure`: the mapper's failure is a result the caller explains).
+#[allow(clippy::too_many_arguments)]
+fn colmap_stage(
+    colmap: &ColmapInfo,
+    stage: &str,
+    args: Vec<String>,
+    logs: &Path,
+    total: u64,
+    progress: &dyn Progress,
+    on_line: &mut dyn FnMut(&str) -> Option<u64>,
+    allow_failure: bool,
+) -> Result<CommandRecord, PoseError> {
+    let argv: Vec<String> = std::iter::once(s(&colmap.path)).chain(std::iter::once(stage.to_string())).chain(args).collect();
+    let log = logs.join(format!("{stage}.log"));
+    progress.begin(stage, total);
+    let rec = run_logged(stage, &argv, &log, &mut |l| {
+        if let Some(pos) = on_line(l) {
+            progress.set(pos);
+        }
+    })?;
+    progress.end();
+    if crate::engine::was_stopped() {
+        return Err(PoseError::Interrupted { stage: stage.into(), work: logs.parent().unwrap_or(logs).to_path_buf() });
+    }
+    if rec.exit_code != Some(0) && !allow_failure {
+        let tail = last_lines(&log, 6);
+        return Err(PoseError::Engine {
+            program: format!("colmap {stage}"),
+            msg: format!("failed ({}); its log is {}; last lines:\n{tail}", rec.exit_code.map_or("killed".into(), |c| format!("exit {c}")), log.display()),
+        });
+    }
+    Ok(rec)
+}
+
+pub fn last_lines(path: &Path, n: usize) -> String {
+    let t = std::fs::read_to_string(path).unwrap_or_default();
+    let lines: Vec<&str> = t.lines().filter(|l| !l.trim().is_empty()).collect();
+    lines[lines.len().saturating_sub(n)..].join("\n")
+}
+
+pub struct Work<'a> {
+    pub colmap: &'a ColmapInfo,
+    pub root: &'a Path,
+    pub images: PathBuf,
+    pub database: PathBuf,
+    pub logs: PathBuf,
+}
+
+impl Work<'_> {
+    pub fn extract(&self, camera_model: &str, per_folder: bool, n: u64, progress: &dyn Progress) -> Result<CommandRecord, PoseError> {
+        let mut args = vec!["--database_path".into(), s(&self.database), "--image_path".into(), s(&self.images)];
+        args.extend(["--ImageReader.camera_model".into(), camera_model.into()]);
+        // One camera for all frames of one device: intrinsics are shared, which keeps the focal from drifting.
+        let single = if per_folder { "--ImageReader.single_camera_per_folder" } else { "--ImageReader.single_camera" };
+        args.extend([single.into(), "1".into()]);
+        args.extend(self.colmap.extraction_gpu_flag());
+        colmap_stage(self.colmap, "feature_extractor", args, &self.logs, n, progress, &mut |l| colmap_log::extraction_progress(l).map(|p| p.0), false)
+    }
+
+    pub fn matches(&self, matcher: Matcher, n: u64, progress: &dyn Progress) -> Result<CommandRecord, PoseError> {
+        let mut args = vec!["--database_path".into(), s(&self.database)];
+        args.extend(self.colmap.matching_gpu_flag());
+        let mut total = n;
+        colmap_stage(
+            self.colmap,
+            matcher.command(),
+            args,
+            &self.logs,
+            n,
+            progress,
+            &mut |l| {
+                let (i, of) = colmap_log::matching_progress(l)?;
+                if of != total {
+                    total = of;
+                    progress.set_total(of);
+                }
+                Some(i)
+            },
+            false,
+        )
+    }
+
+    /// The mapper, into `sparse/0`, `sparse/1`, …; returns its record and what its log said.
+    pub fn map(&self, n: u64, progress: &dyn Progress) -> Result<(CommandRecord, MapperLog, PathBuf), PoseError> {
+        let sparse = self.root.join("sparse");
+        if sparse.exists() {
+            std::fs::remove_dir_all(&sparse).map_err(|e| PoseError::io(&sparse, e))?;
+        }
+        std::fs::create_dir_all(&sparse).map_err(|e| PoseError::io(&sparse, e))?;
+        let mut args = vec!["--database_path".into(), s(&self.database), "--image_path".into(), s(&self.images), "--output_path".into(), s(&sparse)];
+        // nerfstudio's setting for COLMAP ≥ 3.7: a tighter global bundle adjustment tolerance.
+        args.push("--Mapper.ba_global_function_tolerance=1e-6".into());
+        let mut log = MapperLog::default();
+        let mut best = 0u64;
+        let rec = colmap_stage(
+            self.colmap,
+            "mapper",
+            args,
+            &self.logs,
+            n,
+            progress,
+            &mut |l| {
+                log.feed(l);
+                if colmap_log::starts_model(l) {
+                    best = best.max(2);
+                }
+                if let Some(k) = colmap_log::registered_count(l) {
+                    best = best.max(k);
+                }
+                Some(best)
+            },
+            true,
+        )?;
+        Ok((rec, log, sparse))
+    }
+
+    pub fn undistort(&self, model: &Path, out: &Path, n: u64, progress: &dyn Progress) -> Result<CommandRecord, PoseError> {
+        let args = vec![
+            "--image_path".into(),
+            s(&self.images),
+            "--input_path".into(),
+            s(model),
+            "--output_path".into(),
+            s(out),
+            "--output_type".into(),
+            "COLMAP".into(),
+        ];
+        colmap_stage(self.colmap, "image_undistorter", args, &self.logs, n, progress, &mut |l| colmap_log::undistortion_progress(l).map(|p| p.0), false)
+    }
+
+    pub fn analyze(&self, model: &Path, progress: &dyn Progress) -> Result<(CommandRecord, Option<f64>), PoseError> {
+        let args = vec!["--path".into(), s(model)];
+        let rec = colmap_stage(self.colmap, "model_analyzer", args, &self.logs, 0, progress, &mut |_| None, true)?;
+        let text = std::fs::read_to_string(self.logs.join("model_analyzer.log")).unwrap_or_default();
+        Ok((rec, colmap_log::mean_reprojection_error(&text)))
+    }
+}
+
+/// The sub-models the mapper wrote (`sparse/N` holding `images.bin`), with their registered image names,
+/// largest first (ties: the lower index, the one COLMAP built first).
+pub fn sub_models(sparse: &Path) -> Result<Vec<(usize, PathBuf, Vec<String>)>, PoseError> {
+    let mut out = vec![];
+    let Ok(rd) = std::fs::read_dir(sparse) else { return Ok(out) };
+    for e in rd.flatten() {
+        let p = e.path();
+        let Some(idx) = p.file_name().and_then(|n| n.to_str()).and_then(|n| n.parse::<usize>().ok()) else { continue };
+        let images = p.join("images.bin");
+        if !images.is_file() {
+            continue;
+        }
+        let names = mvsplat360_dataset::colmap::read_images_bin(&images)?.into_iter().map(|i| i.name).collect();
+        out.push((idx, p, names));
+    }
+    choose_order(&mut out);
+    Ok(out)
+}
+
+/// Largest first; among equals the lower index.
+pub fn choose_order<T>(models: &mut [(usize, T, Vec<String>)]) {
+    models.sort_by(|a, b| b.2.len().cmp(&a.2.len()).then(a.0.cmp(&b.0)));
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_largest_sub_model_is_kept() {
+        let n = |k: usize| (0..k).map(|i| format!("{i}.jpg")).collect::<Vec<_>>();
+        let mut m = vec![(0, (), n(7)), (1, (), n(12)), (2, (), n(12)), (3, (), n(2))];
+        choose_order(&mut m);
+        let order: Vec<usize> = m.iter().map(|x| x.0).collect();
+        assert_eq!(order, [1, 2, 0, 3]);
+        let mut one = vec![(0, (), n(3))];
+        choose_order(&mut one);
+        assert_eq!(one[0].0, 0);
+    }
+}
