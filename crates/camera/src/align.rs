@@ -367,8 +367,8 @@ mod tests {
         let truth = orbit(12, 4.0);
         let mut rng = Rng(7);
         let to_est = rng.similarity(0.37);
-        // The estimate lives in another frame, at half the resolution.
-        let mut est: Vec<Camera> = truth.iter().map(|c| to_est.apply_camera(c).rescaled(160, 90)).collect();
+        // The estimate lives in another frame, on the same pixel grid.
+        let mut est: Vec<Camera> = truth.iter().map(|c| to_est.apply_camera(c)).collect();
         let e = camera_errors(&est, &truth).unwrap();
         assert!(e.centre_stats.max < 1e-12 && e.rotation_stats.max < 1e-9 && e.focal_stats.max < 1e-12, "{e:?}");
         assert!((e.scene_radius - 4.0).abs() < 1e-12, "{}", e.scene_radius);
