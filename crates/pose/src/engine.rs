@@ -158,26 +158,34 @@ pub fn stop_children() {
     }
 }
 
-/// Runs `argv` (argv[0] = the program) in its own process group, feeding every line of its stdout and stderr
-/// (merged, as the user would see them) to `on_line`, and keeping the whole log in `log_file`. A non-zero exit
-/// is returned as the record's code, not as an error: the caller decides what a failure means (the mapper
-/// exits 1 when it builds no model, which is a result).
-pub fn run_logged(stage: &str, argv: &[String], log_file: &Path, on_line: &mut dyn FnMut(&str)) -> Result<CommandRecord, PoseError> {
+/// Starts `argv` (argv[0] = the program) with piped stdout and stderr in its own process group, registered for
+/// [`stop_children`]; the caller unregisters it once waited for.
+pub(crate) fn spawn_grouped(argv: &[String]) -> Result<std::process::Child, PoseError> {
     use std::os::unix::process::CommandExt;
-    let t0 = Instant::now();
     let program = argv.first().cloned().unwrap_or_default();
-    let engine_err = |msg: String| PoseError::Engine { program: program.clone(), msg };
-    let mut log = std::fs::File::create(log_file).map_err(|e| PoseError::io(log_file, e))?;
-    let mut child = Command::new(&argv[0])
-        .args(&argv[1..])
+    let child = Command::new(&program)
+        .args(argv.get(1..).unwrap_or_default())
         .stdin(Stdio::null())
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .process_group(0)
         .spawn()
-        .map_err(|e| engine_err(format!("cannot start it: {e}")))?;
+        .map_err(|e| PoseError::Engine { program, msg: format!("cannot start it: {e}") })?;
+    register_child(child.id() as i32);
+    Ok(child)
+}
+
+/// Runs `argv` (argv[0] = the program) in its own process group, feeding every line of its stdout and stderr
+/// (merged, as the user would see them) to `on_line`, and keeping the whole log in `log_file`. A non-zero exit
+/// is returned as the record's code, not as an error: the caller decides what a failure means (the mapper
+/// exits 1 when it builds no model, which is a result).
+pub fn run_logged(stage: &str, argv: &[String], log_file: &Path, on_line: &mut dyn FnMut(&str)) -> Result<CommandRecord, PoseError> {
+    let t0 = Instant::now();
+    let program = argv.first().cloned().unwrap_or_default();
+    let engine_err = |msg: String| PoseError::Engine { program: program.clone(), msg };
+    let mut log = std::fs::File::create(log_file).map_err(|e| PoseError::io(log_file, e))?;
+    let mut child = spawn_grouped(argv)?;
     let pid = child.id() as i32;
-    register_child(pid);
     let (tx, rx) = std::sync::mpsc::channel::<String>();
     let pump = |stream: Box<dyn Read + Send>, tx: std::sync::mpsc::Sender<String>| {
         std::thread::spawn(move || {

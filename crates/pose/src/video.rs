@@ -195,7 +195,6 @@ pub struct Extraction {
 /// Decodes `input` once and writes the sharpest frame of each of `n` intervals as `frame_NNNNNN.jpg`
 /// (NNNNNN = its index in the video) into `dir`.
 pub fn extract(ffmpeg: &Path, input: &Path, info: &VideoInfo, n: u64, max_size: u32, dir: &Path, progress: &dyn Progress) -> Result<Extraction, PoseError> {
-    use std::os::unix::process::CommandExt;
     let t0 = std::time::Instant::now();
     let size = output_size(info.display_size(), max_size);
     let (hdr, tonemap) = match info.hdr() {
@@ -213,15 +212,7 @@ pub fn extract(ffmpeg: &Path, input: &Path, info: &VideoInfo, n: u64, max_size: 
         .chain(["-map".into(), "0:v:0".into(), "-vf".into(), filter_chain(size, tonemap)])
         .chain(["-f", "rawvideo", "-pix_fmt", "rgb24", "pipe:1"].map(String::from))
         .collect();
-    let mut child = Command::new(&argv[0])
-        .args(&argv[1..])
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .process_group(0)
-        .spawn()
-        .map_err(|e| PoseError::Engine { program: argv[0].clone(), msg: format!("cannot start it: {e}") })?;
-    crate::engine::register_child(child.id() as i32);
+    let mut child = crate::engine::spawn_grouped(&argv)?;
     let mut stderr = child.stderr.take();
     let err_thread = std::thread::spawn(move || {
         let mut s = String::new();
