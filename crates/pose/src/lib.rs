@@ -410,7 +410,15 @@ fn pose_in(
             remove_if_exists(&done(&work, "matches"))?;
             w.extract(&opts.camera_model, per_folder, n as u64, progress)?
         } else {
-            w.matches(matcher, n as u64, progress)?
+            let rec = w.matches(matcher, n as u64, progress)?;
+            let closing = if matcher == Matcher::Sequential { w.close_loop(&files, progress)? } else { None };
+            match closing {
+                Some(r) => {
+                    commands.push(rec);
+                    r
+                }
+                None => rec,
+            }
         };
         commands.push(rec);
         std::fs::write(done(&work, stage), b"").map_err(|e| PoseError::io(&work, e))?;
@@ -429,7 +437,7 @@ fn pose_in(
     let unregistered: Vec<String> = files.iter().filter(|f| !kept_names.contains(f)).cloned().collect();
     let pairs = match (mlog.matched_pairs, matcher) {
         (Some(m), Matcher::Exhaustive) => format!("{m} of {} image pairs matched", n * (n - 1) / 2),
-        (Some(m), Matcher::Sequential) => format!("{m} image pairs matched (sequential matcher)"),
+        (Some(m), Matcher::Sequential) => format!("{m} image pairs matched (sequential matcher, first and last frames paired for loop closure)"),
         (None, _) => "the matcher's pair count is not in the mapper's log".into(),
     };
     let need = opts.min_views.max(2);

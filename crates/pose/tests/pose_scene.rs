@@ -93,7 +93,9 @@ fn a_video_is_posed() {
     assert!(left.is_empty(), "{left:?}");
     let stages: Vec<&str> = r.seconds.stages.iter().map(|s| s.0.as_str()).collect();
     assert_eq!(stages, ["frames", "features", "matches", "mapper", "undistort"]);
-    assert!(r.commands.iter().any(|c| c.argv.iter().any(|a| a == "sequential_matcher")));
+    for cmd in ["sequential_matcher", "matches_importer"] {
+        assert!(r.commands.iter().any(|c| c.argv.iter().any(|a| a == cmd)), "{cmd} not run");
+    }
     check_cameras(&out, 24, VIDEO);
     // The same input again: the scene is reused, not posed again.
     let again = pose(&video, &out, &PoseOptions { frames: 24, ..Default::default() }, &NoProgress).unwrap();
