@@ -115,22 +115,19 @@ pub fn prepare(photos: &[PathBuf], max_size: u32, dir: &Path, progress: &dyn Pro
         };
         let stem = p.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
         let source = p.file_name().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
-        let is_png = p.extension().is_some_and(|e| e.eq_ignore_ascii_case("png"));
-        let file = format!("{k:0width$}_{stem}.{}", if is_png { "png" } else { "jpg" });
+        let unchanged = (tw, th) == (w, h) && d.orientation <= 1;
+        // Unchanged pixels keep the original bytes; turned or scaled ones are written losslessly (a second JPEG
+        // compression costs COLMAP accuracy, see video.rs).
+        let ext = if unchanged { p.extension().map(|e| e.to_string_lossy().to_lowercase()).unwrap_or_default() } else { "png".into() };
+        let file = format!("{k:0width$}_{stem}.{ext}");
         let target = dir.join(&file);
-        if (tw, th) == (w, h) && d.orientation <= 1 {
-            // Unchanged pixels: the original bytes, no second compression.
+        if unchanged {
             std::fs::copy(p, &target).map_err(|e| PoseError::io(&target, e))?;
         } else {
             let img = if (tw, th) == (w, h) { d.img } else { d.img.resize_exact(tw, th, image::imageops::FilterType::Lanczos3) };
             let rgb = img.to_rgb8();
             let f = std::fs::File::create(&target).map_err(|e| PoseError::io(&target, e))?;
-            let res = if is_png {
-                rgb.write_to(&mut std::io::BufWriter::new(f), image::ImageFormat::Png)
-            } else {
-                image::codecs::jpeg::JpegEncoder::new_with_quality(std::io::BufWriter::new(f), 95).encode_image(&rgb)
-            };
-            res.map_err(|e| PoseError::io(&target, std::io::Error::other(e)))?;
+            rgb.write_to(&mut std::io::BufWriter::new(f), image::ImageFormat::Png).map_err(|e| PoseError::io(&target, std::io::Error::other(e)))?;
         }
         out.push(Photo { source, file, orientation: d.orientation, taken: d.taken, size: (tw, th) });
         progress.set(k as u64 + 1);
