@@ -137,6 +137,74 @@ fn eval_on_two_ranks_gives_the_single_process_results() {
     }
 }
 
+/// Three processes started as `srun` starts them (its variables, no launcher of ours; the third a few seconds
+/// later) on one --out: each scene rendered once, the last to finish writes the tables, which are those of one
+/// process, as are the images; `eval --merge` rewrites the same table without rendering.
+#[test]
+fn eval_ranks_started_by_srun_share_one_out() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (data, empty, m, index) = setup(tmp.path());
+    let (one, three) = (tmp.path().join("one"), tmp.path().join("three"));
+    let o = eval_cmd(&empty, &data, &index, &m, &one).env("RAYON_NUM_THREADS", "1").output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let rank = |k: usize| {
+        let mut c = eval_cmd(&empty, &data, &index, &m, &three);
+        c.env("RAYON_NUM_THREADS", "1").env("SLURM_JOB_ID", "9").env("SLURM_STEP_ID", "0").env("SLURM_NTASKS", "3");
+        c.env("SLURM_PROCID", k.to_string()).env("SLURM_LOCALID", k.to_string()).env("SLURM_NODEID", "0");
+        c.stderr(std::process::Stdio::piped()).spawn().unwrap()
+    };
+    let (r0, r1) = (rank(0), rank(1));
+    std::thread::sleep(std::time::Duration::from_secs(3));
+    let r2 = rank(2);
+    let mut err = String::new();
+    for c in [r0, r1, r2] {
+        let o = c.wait_with_output().unwrap();
+        let e = String::from_utf8_lossy(&o.stderr).into_owned();
+        assert!(o.status.success(), "{e}");
+        err.push_str(&e);
+    }
+    // Two scenes, three ranks: one each for ranks 0 and 1, none for rank 2; one of them wrote the tables.
+    assert_eq!(err.matches("] rendered 1, resumed 0").count(), 2, "{err}");
+    assert!(err.contains("[rank 2] rendered 0, resumed 0") && err.contains("via srun"), "{err}");
+    assert!(err.contains("every scene is complete: wrote"), "{err}");
+    let json = |d: &Path| -> serde_json::Value { serde_json::from_str(&std::fs::read_to_string(d.join("metrics.json")).unwrap()).unwrap() };
+    let (a, b) = (json(&one), json(&three));
+    for k in ["methods", "per_scene", "images", "scenes", "settings"] {
+        assert_eq!(a[k], b[k], "{k}");
+    }
+    for d in ["ImagesGT", "ImagesGSplat", "ImagesRefined0", "ImagesPostprocessed0V2"] {
+        for e in std::fs::read_dir(one.join(d)).unwrap().flatten() {
+            let other = three.join(d).join(e.file_name());
+            assert_eq!(std::fs::read(e.path()).unwrap(), std::fs::read(&other).unwrap(), "{}", other.display());
+        }
+    }
+    // --merge: the same table from the records, nothing rendered, whatever --dtype asks.
+    std::fs::remove_file(three.join("metrics.json")).unwrap();
+    let before = mtimes(&three);
+    let o = eval_cmd(&empty, &data, &index, &m, &three).args(["--merge", "--dtype", "bf16"]).output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(json(&three)["methods"], a["methods"]);
+    assert_eq!(mtimes(&three), before, "--merge rewrote scene files");
+    // Records of a bf16 run (a GPU's; the CPU cannot render in bf16): the CPU merges them, and the table says bf16.
+    let settings = three.join("eval.json");
+    let mut v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&settings).unwrap()).unwrap();
+    v["refiner_dtype"] = "bf16".into();
+    std::fs::write(&settings, serde_json::to_string(&v).unwrap()).unwrap();
+    let o = eval_cmd(&empty, &data, &index, &m, &three).arg("--merge").output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(json(&three)["settings"]["refiner_dtype"], "bf16");
+    assert_eq!(json(&three)["methods"], a["methods"]);
+    // --merge on an out with a scene missing names it and writes nothing.
+    let part = tmp.path().join("part");
+    let o = eval_cmd(&empty, &data, &index, &m, &part).args(["--scenes", "woodbox_a"]).output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    std::fs::remove_file(part.join("metrics.json")).unwrap();
+    let o = eval_cmd(&empty, &data, &index, &m, &part).arg("--merge").output().unwrap();
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && e.contains("woodbox_b") && e.contains("no complete record"), "{e}");
+    assert!(!part.join("metrics.json").exists());
+}
+
 #[test]
 fn eval_bad_inputs_fail_before_any_work() {
     let tmp = tempfile::tempdir().unwrap();

@@ -1,7 +1,8 @@
 //! Files written so that a reader or an interrupted run only ever sees a complete one: the content goes to
-//! `NAME.partial` in the same folder, which is then renamed over `NAME` (a rename within one file system is
-//! atomic). A failed write removes its `.partial`; one left by a killed process is overwritten by the next write
-//! and removed by the CLI's Ctrl-C handler.
+//! `NAME.PID@HOST.partial` in the same folder, which is then renamed over `NAME` (a rename within one file system
+//! is atomic). The name is the writer's own, so that several processes sharing one output folder (cluster ranks,
+//! a rerun next to a running job) never write to or remove each other's temporary files. A failed write removes
+//! its `.partial`; [`stale_partial`] says which leftovers are this process's or a dead one's on this host.
 
 use std::io;
 use std::path::{Path, PathBuf};
@@ -9,11 +10,47 @@ use std::path::{Path, PathBuf};
 /// Suffix of a file being written.
 pub const PARTIAL_SUFFIX: &str = ".partial";
 
-/// `path` with [`PARTIAL_SUFFIX`] appended.
+/// `path` with `.PID@HOST` and [`PARTIAL_SUFFIX`] appended (this process's temporary name for it).
 pub fn partial_name(path: &Path) -> PathBuf {
     let mut s = path.as_os_str().to_owned();
-    s.push(PARTIAL_SUFFIX);
+    s.push(format!(".{}@{}{PARTIAL_SUFFIX}", std::process::id(), host_name()));
     PathBuf::from(s)
+}
+
+/// This machine's name (`/proc/sys/kernel/hostname`, else `HOSTNAME`, else `localhost`).
+pub fn host_name() -> String {
+    static NAME: std::sync::OnceLock<String> = std::sync::OnceLock::new();
+    NAME.get_or_init(|| {
+        let n = std::fs::read_to_string("/proc/sys/kernel/hostname").ok().or_else(|| std::env::var("HOSTNAME").ok()).unwrap_or_default();
+        let n = n.trim().replace(['/', '@'], "_");
+        if n.is_empty() {
+            "localhost".into()
+        } else {
+            n
+        }
+    })
+    .clone()
+}
+
+/// Whether process `pid` runs on this machine (Linux: its `/proc` entry; elsewhere assumed alive).
+pub fn process_alive(pid: u32) -> bool {
+    if cfg!(target_os = "linux") {
+        Path::new("/proc").join(pid.to_string()).exists()
+    } else {
+        true
+    }
+}
+
+/// A temporary file that may be removed: this process's, a dead process's on this host, or an old-style
+/// `NAME.partial` without an owner. Another host's, or a live process's, is left alone.
+pub fn stale_partial(path: &Path) -> bool {
+    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let Some(stem) = name.strip_suffix(PARTIAL_SUFFIX) else { return false };
+    let owner = stem.rsplit_once('@').and_then(|(rest, host)| Some((rest.rsplit_once('.')?.1.parse::<u32>().ok()?, host)));
+    match owner {
+        None => true,
+        Some((pid, host)) => host == host_name() && (pid == std::process::id() || !process_alive(pid)),
+    }
 }
 
 /// Write `path` through `write(temporary path)`, then rename it into place; on failure nothing is left behind
@@ -60,5 +97,22 @@ mod tests {
         write_atomic(&p, |tmp| std::fs::write(tmp, b"two")).unwrap();
         assert_eq!(std::fs::read(&p).unwrap(), b"two");
         assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
+    }
+
+    #[test]
+    fn only_own_or_dead_owners_partials_are_stale() {
+        let dir = tempfile::tempdir().unwrap();
+        let me = partial_name(&dir.path().join("a.png"));
+        assert!(me.to_string_lossy().ends_with(&format!("a.png.{}@{}.partial", std::process::id(), host_name())));
+        assert!(stale_partial(&me));
+        // A live process on this host (the parent of this test, pid 1 in a container: both exist).
+        let live = std::os::unix::process::parent_id();
+        assert!(!stale_partial(&dir.path().join(format!("a.png.{live}@{}.partial", host_name()))));
+        // A pid beyond the kernel's maximum is dead.
+        assert!(stale_partial(&dir.path().join(format!("a.png.4294967295@{}.partial", host_name()))));
+        // Another host's is never this process's to remove; the old owner-less name is.
+        assert!(!stale_partial(&dir.path().join("a.png.7@other-node.partial")));
+        assert!(stale_partial(&dir.path().join("a.png.partial")));
+        assert!(!stale_partial(&dir.path().join("a.png")));
     }
 }

@@ -36,6 +36,14 @@ impl std::fmt::Display for DeviceSpec {
     }
 }
 
+/// GPUs this binary can open (0 without CUDA).
+pub fn cuda_device_count() -> usize {
+    if !candle_core::utils::cuda_is_available() {
+        return 0;
+    }
+    (0..64).take_while(|&i| Device::new_cuda(i).is_ok()).count()
+}
+
 impl DeviceSpec {
     /// GPU 0 when this binary has CUDA and a GPU answers, else the CPU (`--device auto`).
     pub fn detect() -> Self {

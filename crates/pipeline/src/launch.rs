@@ -1,7 +1,8 @@
-//! The multi-process launcher of `train --world-size N` and `eval --world-size N`: one program runs itself again
-//! as N *ranks*, each finding its place ([`Place::from_env`]) in the environment; the launcher waits for them,
-//! forwards an interrupt, and stops the others when one fails. What the ranks share beyond their place (a
-//! gradient hub, an NCCL id) is the caller's, passed as extra environment.
+//! Ranks: where a process stands among the processes of one run ([`Place::from_env`]), whichever launcher started
+//! it — the project's own `--world-size N` (below: one program runs itself again as N ranks, waits for them,
+//! forwards an interrupt and stops the others when one fails), torchrun, SLURM's srun or Open MPI's mpirun — and
+//! which GPU it takes ([`Place::gpu`]). What the ranks share beyond their place (a gradient hub, an NCCL id) is
+//! the caller's, passed as extra environment.
 
 use std::process::{Child, Command, ExitStatus};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -23,25 +24,146 @@ pub enum LaunchError {
     Io(String),
 }
 
+/// Which launcher started this process as a rank.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Launcher {
+    /// This program's own `--world-size N` (one machine).
+    Project,
+    /// `torchrun --no-python … mvsplat360 …`.
+    Torchrun,
+    /// `srun mvsplat360 …` inside a SLURM job step.
+    Slurm,
+    /// Open MPI's `mpirun`.
+    Mpi,
+}
+
+impl Launcher {
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Project => "--world-size",
+            Self::Torchrun => "torchrun",
+            Self::Slurm => "srun",
+            Self::Mpi => "mpirun",
+        }
+    }
+}
+
 /// This process's place among the ranks of a launch.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Place {
     pub rank: usize,
     pub world: usize,
+    /// Rank among the ranks on this machine, and how many run here (where the launcher says).
+    pub local_rank: usize,
+    pub local_world: Option<usize>,
+    pub launcher: Launcher,
 }
 
 impl Place {
     /// The launcher's variables, when this process is a rank (None when it is not).
     pub fn from_env() -> Result<Option<Self>, LaunchError> {
-        let Ok(rank) = std::env::var(ENV_RANK) else { return Ok(None) };
-        let num = |name: &str, v: &str| v.parse::<usize>().map_err(|_| LaunchError::Io(format!("{name}: `{v}` is not a number")));
-        let rank = num(ENV_RANK, &rank)?;
-        let world = num(ENV_WORLD, &std::env::var(ENV_WORLD).map_err(|_| LaunchError::Io(format!("{ENV_WORLD}: missing")))?)?;
-        if world == 0 || rank >= world {
-            return Err(LaunchError::Io(format!("{ENV_RANK}: rank {rank} of world size {world}")));
-        }
-        Ok(Some(Self { rank, world }))
+        Self::from_vars(&|k| std::env::var(k).ok())
     }
+
+    /// [`Place::from_env`] over any variable lookup. The project's own variables first (its ranks may run under a
+    /// cluster's job), then torchrun's (which wins over SLURM's when torchrun runs inside a job), then SLURM's
+    /// inside a job step only (the batch script itself, without `SLURM_STEP_ID`, is not a rank), then Open MPI's.
+    pub fn from_vars(get: &dyn Fn(&str) -> Option<String>) -> Result<Option<Self>, LaunchError> {
+        let num = |name: &str| -> Result<Option<usize>, LaunchError> {
+            match get(name) {
+                None => Ok(None),
+                Some(v) => v.trim().parse::<usize>().map(Some).map_err(|_| LaunchError::Io(format!("{name}: `{v}` is not a number"))),
+            }
+        };
+        let need = |name: &str, launcher: &str| -> Result<usize, LaunchError> {
+            num(name)?.ok_or_else(|| LaunchError::Io(format!("{name} is not set, though {launcher} started this process")))
+        };
+        let place = if let Some(rank) = num(ENV_RANK)? {
+            let world = need(ENV_WORLD, "this program's launcher")?;
+            Self { rank, world, local_rank: rank, local_world: Some(world), launcher: Launcher::Project }
+        } else if let Some(rank) = num("RANK")?.filter(|_| get("WORLD_SIZE").is_some()) {
+            let world = need("WORLD_SIZE", "torchrun")?;
+            let local_rank = need("LOCAL_RANK", "torchrun")?;
+            Self { rank, world, local_rank, local_world: num("LOCAL_WORLD_SIZE")?, launcher: Launcher::Torchrun }
+        } else if get("SLURM_STEP_ID").is_some() && get("SLURM_PROCID").is_some() {
+            let rank = need("SLURM_PROCID", "srun")?;
+            let world = need("SLURM_NTASKS", "srun")?;
+            let local_rank = need("SLURM_LOCALID", "srun")?;
+            let node = num("SLURM_NODEID")?.unwrap_or(0);
+            let local_world = get("SLURM_STEP_TASKS_PER_NODE").or_else(|| get("SLURM_TASKS_PER_NODE")).and_then(|v| tasks_on_node(&v, node));
+            Self { rank, world, local_rank, local_world, launcher: Launcher::Slurm }
+        } else if let Some(rank) = num("OMPI_COMM_WORLD_RANK")? {
+            let world = need("OMPI_COMM_WORLD_SIZE", "mpirun")?;
+            let local_rank = need("OMPI_COMM_WORLD_LOCAL_RANK", "mpirun")?;
+            let missing: Vec<&str> = ["MASTER_ADDR", "MASTER_PORT"].into_iter().filter(|k| get(k).is_none()).collect();
+            if !missing.is_empty() {
+                return Err(LaunchError::Io(format!(
+                    "{} not set: mpirun passes no rendezvous address; start it as `mpirun -x MASTER_ADDR=<rank 0's host> -x MASTER_PORT=<free port> …`",
+                    missing.join(" and ")
+                )));
+            }
+            Self { rank, world, local_rank, local_world: num("OMPI_COMM_WORLD_LOCAL_SIZE")?, launcher: Launcher::Mpi }
+        } else {
+            return Ok(None);
+        };
+        if place.world == 0 || place.rank >= place.world {
+            return Err(LaunchError::Io(format!("{}: rank {} of world size {}", place.launcher.name(), place.rank, place.world)));
+        }
+        if place.local_world.is_some_and(|l| place.local_rank >= l) {
+            return Err(LaunchError::Io(format!(
+                "{}: local rank {} of {} on this machine",
+                place.launcher.name(),
+                place.local_rank,
+                place.local_world.unwrap_or(0)
+            )));
+        }
+        Ok(Some(place))
+    }
+
+    /// The GPU index this rank uses among the `visible` ones: the only one when the launcher gave each rank its own
+    /// (`srun --gpus-per-task=1`, or `CUDA_VISIBLE_DEVICES` set per rank), else the local rank's when the whole
+    /// machine is visible to each rank; `first` (from `--device cuda:N`) offsets the project's own ranks, which
+    /// share one machine.
+    pub fn gpu(&self, visible: usize, first: usize) -> Result<usize, LaunchError> {
+        if self.launcher == Launcher::Project {
+            return Ok(first + self.rank);
+        }
+        let local_world = self.local_world.unwrap_or(self.local_rank + 1);
+        match visible {
+            0 => Err(LaunchError::Io(format!("rank {}: no GPU is visible to this process (CUDA_VISIBLE_DEVICES)", self.rank))),
+            1 => Ok(0),
+            v if v >= local_world => Ok(self.local_rank),
+            v => Err(LaunchError::Io(format!(
+                "rank {} (local rank {} of {local_world}): {v} GPUs are visible, neither one per rank nor one for each of the {local_world} ranks here; \
+                 give each rank one GPU (srun --gpus-per-task=1) or every rank all of them",
+                self.rank, self.local_rank
+            ))),
+        }
+    }
+}
+
+/// How many GPUs this process may use: `CUDA_VISIBLE_DEVICES`'s count when set (empty = none), else `count()`.
+pub fn visible_gpus(get: &dyn Fn(&str) -> Option<String>, count: impl FnOnce() -> usize) -> usize {
+    match get("CUDA_VISIBLE_DEVICES") {
+        Some(v) => v.split(',').filter(|s| !s.trim().is_empty() && s.trim() != "-1").count(),
+        None => count(),
+    }
+}
+
+/// SLURM's compressed tasks-per-node list (`2(x3),1`: 2 tasks on each of nodes 0–2, then 1) at node `node`.
+fn tasks_on_node(list: &str, node: usize) -> Option<usize> {
+    let mut at = 0;
+    for part in list.split(',') {
+        let (n, reps) = match part.split_once("(x") {
+            Some((n, r)) => (n.trim().parse().ok()?, r.trim_end_matches(')').parse::<usize>().ok()?),
+            None => (part.trim().parse().ok()?, 1),
+        };
+        if node < at + reps {
+            return Some(n);
+        }
+        at += reps;
+    }
+    None
 }
 
 /// How the ranks of [`launch`] run.
@@ -150,4 +272,78 @@ fn terminate(c: &Child) {
     }
     #[cfg(not(unix))]
     let _ = c;
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn place(vars: &[(&str, &str)]) -> Result<Option<Place>, LaunchError> {
+        let m: std::collections::HashMap<String, String> = vars.iter().map(|(k, v)| (k.to_string(), v.to_string())).collect();
+        Place::from_vars(&|k| m.get(k).cloned())
+    }
+
+    const SLURM_STEP: [(&str, &str); 6] =
+        [("SLURM_JOB_ID", "77"), ("SLURM_STEP_ID", "0"), ("SLURM_PROCID", "9"), ("SLURM_NTASKS", "16"), ("SLURM_LOCALID", "1"), ("SLURM_NODEID", "1")];
+
+    #[test]
+    fn places_from_each_launcher() {
+        assert_eq!(place(&[]).unwrap(), None);
+        let p = place(&[(ENV_RANK, "2"), (ENV_WORLD, "4")]).unwrap().unwrap();
+        assert_eq!((p.rank, p.world, p.launcher), (2, 4, Launcher::Project));
+        let torch = [("RANK", "5"), ("WORLD_SIZE", "8"), ("LOCAL_RANK", "1"), ("LOCAL_WORLD_SIZE", "4"), ("MASTER_ADDR", "n0"), ("MASTER_PORT", "29500")];
+        let p = place(&torch).unwrap().unwrap();
+        assert_eq!((p.rank, p.world, p.local_rank, p.local_world, p.launcher), (5, 8, 1, Some(4), Launcher::Torchrun));
+        // torchrun inside a SLURM job step: torchrun's numbers.
+        let both: Vec<_> = torch.iter().chain(SLURM_STEP.iter()).copied().collect();
+        assert_eq!(place(&both).unwrap().unwrap().launcher, Launcher::Torchrun);
+        let mut slurm = SLURM_STEP.to_vec();
+        slurm.push(("SLURM_STEP_TASKS_PER_NODE", "8(x2)"));
+        let p = place(&slurm).unwrap().unwrap();
+        assert_eq!((p.rank, p.world, p.local_rank, p.local_world, p.launcher), (9, 16, 1, Some(8), Launcher::Slurm));
+        // The batch script (no step) is not a rank.
+        let batch: Vec<_> = SLURM_STEP.iter().filter(|(k, _)| *k != "SLURM_STEP_ID").copied().collect();
+        assert_eq!(place(&batch).unwrap(), None);
+        let mpi = [("OMPI_COMM_WORLD_RANK", "3"), ("OMPI_COMM_WORLD_SIZE", "4"), ("OMPI_COMM_WORLD_LOCAL_RANK", "1"), ("OMPI_COMM_WORLD_LOCAL_SIZE", "2")];
+        let e = place(&mpi).unwrap_err().to_string();
+        assert!(e.contains("MASTER_ADDR and MASTER_PORT not set") && e.contains("mpirun -x MASTER_ADDR"), "{e}");
+        let with: Vec<_> = mpi.iter().copied().chain([("MASTER_ADDR", "n0"), ("MASTER_PORT", "29600")]).collect();
+        let p = place(&with).unwrap().unwrap();
+        assert_eq!((p.rank, p.world, p.local_rank, p.local_world, p.launcher), (3, 4, 1, Some(2), Launcher::Mpi));
+    }
+
+    #[test]
+    fn bad_places_are_refused_by_name() {
+        let e = place(&[("RANK", "x"), ("WORLD_SIZE", "2")]).unwrap_err().to_string();
+        assert!(e.contains("RANK: `x` is not a number"), "{e}");
+        let e = place(&[("RANK", "0"), ("WORLD_SIZE", "2")]).unwrap_err().to_string();
+        assert!(e.contains("LOCAL_RANK is not set"), "{e}");
+        let e = place(&[("RANK", "2"), ("WORLD_SIZE", "2"), ("LOCAL_RANK", "0")]).unwrap_err().to_string();
+        assert!(e.contains("rank 2 of world size 2"), "{e}");
+    }
+
+    #[test]
+    fn slurm_tasks_per_node_lists() {
+        assert_eq!(tasks_on_node("4", 0), Some(4));
+        assert_eq!(tasks_on_node("2(x3),1", 2), Some(2));
+        assert_eq!(tasks_on_node("2(x3),1", 3), Some(1));
+        assert_eq!(tasks_on_node("2(x3),1", 4), None);
+    }
+
+    #[test]
+    fn gpus_one_per_rank_or_the_whole_machine() {
+        let torch = |local: usize| Place { rank: 4 + local, world: 8, local_rank: local, local_world: Some(4), launcher: Launcher::Torchrun };
+        assert_eq!(torch(3).gpu(1, 0).unwrap(), 0);
+        assert_eq!(torch(3).gpu(4, 0).unwrap(), 3);
+        assert_eq!(torch(3).gpu(8, 0).unwrap(), 3);
+        let e = torch(3).gpu(2, 0).unwrap_err().to_string();
+        assert!(e.contains("2 GPUs are visible") && e.contains("--gpus-per-task=1"), "{e}");
+        assert!(torch(0).gpu(0, 0).unwrap_err().to_string().contains("no GPU is visible"));
+        let own = Place { rank: 2, world: 4, local_rank: 2, local_world: Some(4), launcher: Launcher::Project };
+        assert_eq!(own.gpu(8, 3).unwrap(), 5);
+        let env = |v: &'static str| move |k: &str| (k == "CUDA_VISIBLE_DEVICES").then(|| v.to_string());
+        assert_eq!(visible_gpus(&env("0,1,2"), || 8), 3);
+        assert_eq!(visible_gpus(&env(""), || 8), 0);
+        assert_eq!(visible_gpus(&|_| None, || 8), 8);
+    }
 }

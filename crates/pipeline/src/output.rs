@@ -1,6 +1,6 @@
 //! Output writers. Every file is written under a temporary name in the same folder and renamed into place,
-//! so an interrupted run leaves only complete files; `.partial` leftovers of a killed run are removed by the
-//! next run (and by the Ctrl-C handler of the CLI).
+//! so an interrupted run leaves only complete files; `.partial` leftovers of this process or of a killed one on
+//! this host are removed by the next run (and by the Ctrl-C handler of the CLI); other processes' are left alone.
 
 use std::path::Path;
 
@@ -50,14 +50,15 @@ pub fn write_png(path: &Path, img: &ImageF32) -> Result<()> {
     atomic_write(path, |p| rgb.save_with_format(p, image::ImageFormat::Png).map_err(|e| e.to_string()))
 }
 
-/// Remove `*.partial` files left by a killed run, recursively under `dir`.
+/// Remove this process's `*.partial` files and those of dead processes on this host, recursively under `dir`
+/// ([`mvsplat360_dataset::atomic::stale_partial`]).
 pub fn remove_partials(dir: &Path) {
     let Ok(rd) = std::fs::read_dir(dir) else { return };
     for e in rd.flatten() {
         let p = e.path();
         if p.is_dir() {
             remove_partials(&p);
-        } else if p.to_string_lossy().ends_with(PARTIAL_SUFFIX) {
+        } else if mvsplat360_dataset::atomic::stale_partial(&p) {
             let _ = std::fs::remove_file(&p);
         }
     }

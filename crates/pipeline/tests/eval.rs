@@ -67,6 +67,7 @@ fn request(data: &Path, index: &Path, m: &Path, out: &Path) -> EvalRequest {
         out: out.to_path_buf(),
         noise: None,
         shard: None,
+        merge_only: false,
     }
 }
 

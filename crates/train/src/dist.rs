@@ -112,6 +112,22 @@ impl Rank {
     /// The launcher's variables, when this process is a rank (None when it is not).
     pub fn from_env() -> Result<Option<Self>> {
         let Some(place) = mvsplat360_pipeline::launch::Place::from_env().map_err(|e| net("launcher", e))? else { return Ok(None) };
+        if place.launcher != mvsplat360_pipeline::launch::Launcher::Project && place.world == 1 {
+            return Ok(None);
+        }
+        if place.launcher != mvsplat360_pipeline::launch::Launcher::Project {
+            return Err(net(
+                place.launcher.name(),
+                format!(
+                    "this process is rank {} of {} under {}, but training across separately started processes has no rendezvous yet; \
+                     train on one machine with `train --world-size N` (evaluation does run under {})",
+                    place.rank,
+                    place.world,
+                    place.launcher.name(),
+                    place.launcher.name()
+                ),
+            ));
+        }
         let (rank, world) = (place.rank, place.world);
         let link = match (std::env::var(ENV_HUB), std::env::var(ENV_NCCL_ID)) {
             (Ok(a), _) => Link::Hub(a),

@@ -10,7 +10,7 @@ use anyhow::Context;
 use mvsplat360_dataset::index::IndexOptions;
 use mvsplat360_pipeline::compute::DeviceSpec;
 use mvsplat360_pipeline::eval::EvalRequest;
-use mvsplat360_pipeline::launch::{LaunchError, Place};
+use mvsplat360_pipeline::launch::{LaunchError, Launcher, Place};
 
 use super::views::{ModelFlags, RefineFlags};
 
@@ -55,10 +55,12 @@ pub struct Args {
     /// defaults). Changing it on an existing --out re-scores the saved images; nothing is rendered again.
     #[arg(long, default_value = "pytorch-fid")]
     pub fid_variant: mvsplat360_metrics::inception::FidVariant,
-    /// Evaluate with N processes started by this command, each rendering every N-th scene of the index: one per
-    /// GPU with `--device cuda` (GPUs N..N+world-1 for `cuda:N`), or sharing the cores on the CPU. Then this
-    /// process writes one `metrics.json`/`metrics.md` from every scene's record (as a resumed run does); an
-    /// interrupted run resumes per scene with any world size.
+    /// Evaluate with N processes started by this command on this machine, each rendering every N-th scene of the
+    /// index: one per GPU with `--device cuda` (GPUs N..N+world-1 for `cuda:N`), or sharing the cores on the CPU.
+    /// Then this process writes one `metrics.json`/`metrics.md` from every scene's record (as a resumed run does);
+    /// an interrupted run resumes per scene with any world size. On a cluster, start one process per GPU with
+    /// `srun`, `torchrun --no-python` or `mpirun` instead (README, Evaluation on a cluster): each finds its rank
+    /// and GPU from their variables, and the last to finish writes the tables.
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..))]
     pub world_size: u64,
     /// The refiner's initial noise per scene instead of drawing it from --seed: a safetensors file with one
@@ -66,6 +68,11 @@ pub struct Args {
     /// official `test_step` drew, to reproduce its frames (scripts/fixtures/official-eval saves it).
     #[arg(long, value_name = "FILE")]
     pub noise: Option<PathBuf>,
+    /// Only write `metrics.json`/`metrics.md` from the scene records in --out, rendering nothing (after ranks
+    /// started by a cluster's launcher, or to re-read a finished run); needs no GPU, whatever --device and
+    /// --dtype the scenes were rendered with. Fails, naming them, while scenes are incomplete.
+    #[arg(long)]
+    pub merge: bool,
 }
 
 pub fn request(a: &Args) -> EvalRequest {
@@ -86,22 +93,31 @@ pub fn request(a: &Args) -> EvalRequest {
         out: a.out.clone(),
         noise: a.noise.clone(),
         shard: None,
+        merge_only: a.merge,
     }
 }
 
 pub fn run(args: Args, quiet: bool) -> anyhow::Result<()> {
     let mut req = request(&args);
-    if let Some(place) = Place::from_env()? {
+    if let Some(place) = Place::from_env().context("finding this process's rank")?.filter(|_| !args.merge) {
         return run_rank(req, place);
     }
     let bars = super::progress::Bars::new(quiet);
-    if args.world_size > 1 {
+    if args.world_size > 1 && !args.merge {
         launch_ranks(&req, args.world_size as usize, &bars)?;
         // Every scene is complete now: this run only reads the records and writes the merged tables.
-        req.model.compute.device = mvsplat360_pipeline::compute::DeviceSpec::Cpu;
+        req.merge_only = true;
     }
     super::progress::clean_partials_on_interrupt(&req.out);
     let s = mvsplat360_pipeline::eval::run(&req, &bars).with_context(|| format!("evaluating {} on {}", args.index.display(), args.data.display()))?;
+    if !s.incomplete.is_empty() {
+        anyhow::bail!(
+            "{}: {} scene(s) have no complete record yet ({}); run the evaluation for them first (the same command without --merge)",
+            req.out.display(),
+            s.incomplete.len(),
+            list(&s.incomplete)
+        );
+    }
     if !quiet {
         let fmt = |v: Option<f64>, d: usize| v.map(|x| format!("{x:.d$}")).unwrap_or_else(|| "–".into());
         for (m, sc) in &s.methods {
@@ -132,16 +148,53 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<()> {
 }
 
 /// One rank of `--world-size N`: its share of the scenes, notes prefixed with its number, no bars.
+/// Under a cluster's launcher (torchrun, srun, mpirun) there is no parent to merge: each rank, once its scenes
+/// are done, writes the tables if every scene is complete, so the last one to finish writes them.
 fn run_rank(mut req: EvalRequest, place: Place) -> anyhow::Result<()> {
     if let DeviceSpec::Cuda(n) = req.model.compute.device {
-        req.model.compute.device = DeviceSpec::Cuda(n + place.rank);
+        let visible = mvsplat360_pipeline::launch::visible_gpus(&|k| std::env::var(k).ok(), mvsplat360_pipeline::compute::cuda_device_count);
+        req.model.compute.device = DeviceSpec::Cuda(place.gpu(visible, n)?);
     }
     req.shard = Some(place);
     super::progress::clean_partials_on_interrupt(&req.out);
     let notes = RankNotes(place.rank);
     let s = mvsplat360_pipeline::eval::run(&req, &notes).with_context(|| format!("rank {}: evaluating {}", place.rank, req.index.display()))?;
-    eprintln!("[rank {}] rendered {}, resumed {}, re-scored {} scene(s) in {:.1}s", place.rank, s.rendered.len(), s.resumed.len(), s.rescored.len(), s.seconds);
+    eprintln!(
+        "[rank {}] rendered {}, resumed {}, re-scored {} scene(s) in {:.1}s (rank {} of {} via {})",
+        place.rank,
+        s.rendered.len(),
+        s.resumed.len(),
+        s.rescored.len(),
+        s.seconds,
+        place.rank,
+        place.world,
+        place.launcher.name()
+    );
+    if place.launcher == Launcher::Project {
+        return Ok(());
+    }
+    req.shard = None;
+    req.merge_only = true;
+    let m = mvsplat360_pipeline::eval::run(&req, &notes).with_context(|| format!("rank {}: merging the scene records in {}", place.rank, req.out.display()))?;
+    if m.incomplete.is_empty() {
+        eprintln!("[rank {}] every scene is complete: wrote {}", place.rank, req.out.join(mvsplat360_pipeline::eval::METRICS_MD).display());
+    } else {
+        eprintln!(
+            "[rank {}] {} scene(s) still with other ranks ({}); the last rank to finish writes the tables",
+            place.rank,
+            m.incomplete.len(),
+            list(&m.incomplete)
+        );
+    }
     Ok(())
+}
+
+fn list(keys: &[String]) -> String {
+    let mut s = keys.iter().take(5).cloned().collect::<Vec<_>>().join(", ");
+    if keys.len() > 5 {
+        s.push_str(", …");
+    }
+    s
 }
 
 /// Prepares what the ranks share, starts them and waits. Ctrl-C is forwarded once (each rank stops after

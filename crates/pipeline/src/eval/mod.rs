@@ -165,6 +165,10 @@ pub struct EvalRequest {
     /// position in index order is `rank` modulo `world`, and write no `metrics.json`/`metrics.md` (the launcher
     /// writes them from every scene's record once the ranks are done, as a resumed run does). None = all.
     pub shard: Option<crate::launch::Place>,
+    /// `eval --merge`, and a cluster rank once its scenes are done: write `metrics.json`/`metrics.md` from the scene
+    /// records already on disk, rendering nothing and never opening the compute device (so a bf16 GPU run merges
+    /// on any machine); while some scene is incomplete nothing is written and [`EvalSummary::incomplete`] names it.
+    pub merge_only: bool,
 }
 
 /// Averages of one method over a set of images.
@@ -204,6 +208,8 @@ pub struct EvalSummary {
     pub methods: Vec<(Method, MethodScores)>,
     pub warnings: Vec<String>,
     pub seconds: f64,
+    /// With [`EvalRequest::merge_only`]: scenes without a complete record (no tables were written).
+    pub incomplete: Vec<String>,
 }
 
 /// One image's scores.
@@ -688,7 +694,17 @@ pub fn run(req: &EvalRequest, progress: &dyn Progress) -> Result<EvalSummary> {
     output::check_writable(out, "--out")?;
     output::remove_partials(out);
     let size = req.size.unwrap_or(InputSize::Fixed { width: spec.data.image_width, height: spec.data.image_height });
-    let settings = settings_json(req, &spec, size);
+    let mut settings = settings_json(req, &spec, size);
+    if req.merge_only {
+        // The records' precision, whatever this command asks for: a merge computes nothing.
+        let stored: Option<serde_json::Value> = std::fs::read_to_string(out.join(SETTINGS_JSON)).ok().and_then(|t| serde_json::from_str(&t).ok());
+        match stored.as_ref().and_then(|v| v.get("refiner_dtype")) {
+            Some(d) => settings["refiner_dtype"] = d.clone(),
+            None => {
+                settings.as_object_mut().map(|o| o.remove("refiner_dtype"));
+            }
+        }
+    }
     check_settings(out, &settings)?;
     let refine_file = match &spec.refiner {
         Some((_, w)) => Some(crate::model::refiner_safetensors(w, &|m| progress.note(m))?),
@@ -708,7 +724,7 @@ pub fn run(req: &EvalRequest, progress: &dyn Progress) -> Result<EvalSummary> {
     let pre = Preprocess { size, multiple: spec.encoder.image_multiple() as u32 };
     let description = spec.description.clone();
     let experiment = spec.data.experiment.clone();
-    let device = req.model.compute.open()?;
+    let device = if req.merge_only { Device::Cpu } else { req.model.compute.open()? };
     let scene_scale = crate::scale::resolve(req.scene_scale, spec.scene_scale);
     let noise = match &req.noise {
         Some(f) => {
@@ -753,6 +769,25 @@ pub fn run(req: &EvalRequest, progress: &dyn Progress) -> Result<EvalSummary> {
         progress.note(&format!("resuming: {} of {} scenes already complete in {}", resumed.len(), plans.len(), out.display()));
     }
     let total_render: usize = to_render.values().map(Vec::len).sum();
+    if req.merge_only && total_render > 0 {
+        let incomplete = to_render.values().flatten().map(|&i| plans[i].key.clone()).collect();
+        let seconds = t_all.elapsed().as_secs_f64();
+        return Ok(EvalSummary {
+            out: out.clone(),
+            selected,
+            null_entries,
+            rendered,
+            rescored,
+            resumed,
+            missing,
+            skipped_fov: Vec::new(),
+            images: 0,
+            methods: Vec::new(),
+            warnings,
+            seconds,
+            incomplete,
+        });
+    }
     let mut done = 0;
     for (chunk, idxs) in &to_render {
         let path = data_dir.join(chunk);
@@ -800,6 +835,7 @@ pub fn run(req: &EvalRequest, progress: &dyn Progress) -> Result<EvalSummary> {
             methods: Vec::new(),
             warnings,
             seconds,
+            incomplete: Vec::new(),
         });
     }
     // Aggregate.
@@ -871,7 +907,21 @@ pub fn run(req: &EvalRequest, progress: &dyn Progress) -> Result<EvalSummary> {
         images
     );
     output::write_bytes(&out.join(METRICS_MD), markdown(&line, &table, &per_scene_primary, primary, blended).as_bytes())?;
-    Ok(EvalSummary { out: out.clone(), selected, null_entries, rendered, rescored, resumed, missing, skipped_fov, images, methods: table, warnings, seconds })
+    Ok(EvalSummary {
+        out: out.clone(),
+        selected,
+        null_entries,
+        rendered,
+        rescored,
+        resumed,
+        missing,
+        skipped_fov,
+        images,
+        methods: table,
+        warnings,
+        seconds,
+        incomplete: Vec::new(),
+    })
 }
 
 // ------------------------------------------------------------------------------------------------------------

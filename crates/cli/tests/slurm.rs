@@ -1,0 +1,61 @@
+//! `scripts/slurm/eval.sbatch` parses (`bash -n`) and, run as `sbatch` would run it with `srun` and `scontrol`
+//! replaced by shims, starts one `mvsplat360 eval` per task with srun's variables, the rendezvous address of the
+//! job's first node and a port derived from the job id; outside a job it refuses.
+
+use std::path::Path;
+use std::process::Command;
+
+const SCRIPT: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../../scripts/slurm/eval.sbatch");
+
+fn write_exe(path: &Path, text: &str) {
+    std::fs::write(path, text).unwrap();
+    Command::new("chmod").arg("+x").arg(path).status().unwrap();
+}
+
+#[test]
+fn the_sbatch_script_starts_one_eval_per_task() {
+    assert!(Command::new("bash").args(["-n", SCRIPT]).status().unwrap().success());
+    let d = tempfile::tempdir().unwrap();
+    let bin = d.path().join("bin");
+    std::fs::create_dir(&bin).unwrap();
+    let log = d.path().join("ranks.log");
+    write_exe(&bin.join("scontrol"), "#!/bin/bash\n[[ \"$1 $2 $3\" == \"show hostnames gpu-a[01-02]\" ]] || exit 3\nprintf 'gpu-a01\\ngpu-a02\\n'\n");
+    // srun: one process per task with the variables of a job step (all on this machine).
+    write_exe(
+        &bin.join("srun"),
+        &format!(
+            "#!/bin/bash\necho \"srun $*\" >> {log}\n[[ $1 == --kill-on-bad-exit=1 ]] || exit 4\nshift\nfor ((t = 0; t < SLURM_NTASKS; t++)); do\n  \
+             SLURM_STEP_ID=0 SLURM_PROCID=$t SLURM_LOCALID=$t SLURM_NODEID=0 \"$@\" &\ndone\nwait\n",
+            log = log.display()
+        ),
+    );
+    let fake = d.path().join("mvsplat360");
+    write_exe(&fake, &format!("#!/bin/bash\necho \"rank $SLURM_PROCID step $SLURM_STEP_ID at $MASTER_ADDR:$MASTER_PORT: $*\" >> {}\n", log.display()));
+    let path = format!("{}:{}", bin.display(), std::env::var("PATH").unwrap());
+    let out = Command::new("bash")
+        .arg(SCRIPT)
+        .env("PATH", &path)
+        .env("SLURM_JOB_ID", "4242")
+        .env("SLURM_JOB_NODELIST", "gpu-a[01-02]")
+        .env("SLURM_NTASKS", "3")
+        .env("MVSPLAT360", &fake)
+        .env("OUT", "/scratch/eval")
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let text = std::fs::read_to_string(&log).unwrap();
+    let mut lines: Vec<&str> = text.lines().collect();
+    lines.sort();
+    assert_eq!(lines.len(), 4, "{text}");
+    let args = "eval --data datasets/dl3dv/test --index assets/dl3dv_evaluation/dl3dv_ctx_5v_tgt_56v.json --ckpt checkpoints/dl3dv_480p.ckpt \
+                --device cuda --dtype bf16 --out /scratch/eval --quiet";
+    for (k, line) in lines[..3].iter().enumerate() {
+        assert_eq!(*line, format!("rank {k} step 0 at gpu-a01:24242: {args}"));
+    }
+    assert!(lines[3].starts_with("srun --kill-on-bad-exit=1 "), "{}", lines[3]);
+
+    // The batch script outside a job.
+    let out = Command::new("bash").arg(SCRIPT).env("PATH", &path).env_remove("SLURM_JOB_ID").output().unwrap();
+    assert_eq!(out.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("run it with sbatch"));
+}
