@@ -99,7 +99,18 @@ pub fn request(a: &Args) -> EvalRequest {
 
 pub fn run(args: Args, quiet: bool) -> anyhow::Result<()> {
     let mut req = request(&args);
-    if let Some(place) = Place::from_env().context("finding this process's rank")?.filter(|_| !args.merge) {
+    let place = Place::from_env().context("finding this process's rank")?.filter(|_| !args.merge);
+    // `srun -n 1 mvsplat360 eval --world-size 8` (one task, our own ranks): the task is not a rank.
+    let place = place.filter(|p| !(p.launcher != Launcher::Project && p.world == 1 && args.world_size > 1));
+    if let Some(place) = place {
+        if place.launcher != Launcher::Project && args.world_size > 1 {
+            anyhow::bail!(
+                "--world-size {} under {} with {} ranks: each rank would start its own; give the ranks to one of them (drop --world-size, or start one task)",
+                args.world_size,
+                place.launcher.name(),
+                place.world
+            );
+        }
         return run_rank(req, place);
     }
     let bars = super::progress::Bars::new(quiet);
