@@ -68,6 +68,7 @@ fn request(data: &Path, index: &Path, m: &Path, out: &Path) -> EvalRequest {
         noise: None,
         shard: None,
         merge_only: false,
+        exclude: Vec::new(),
     }
 }
 

@@ -110,6 +110,7 @@ fn eval_reproduces_the_official_evaluation() {
         noise: Some(fx.join("noise.safetensors")),
         shard: None,
         merge_only: false,
+        exclude: Vec::new(),
     };
     let s = eval::run(&req, &Silent).unwrap();
     assert!(s.missing.is_empty() && s.skipped_fov.is_empty(), "{s:?}");

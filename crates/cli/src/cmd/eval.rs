@@ -73,6 +73,10 @@ pub struct Args {
     /// --dtype the scenes were rendered with. Fails, naming them, while scenes are incomplete.
     #[arg(long)]
     pub merge: bool,
+    /// Leave these scenes of the index out (comma-separated keys), e.g. one whose data failed: `metrics.json`
+    /// lists them under `scenes.excluded`.
+    #[arg(long, value_delimiter = ',')]
+    pub exclude: Vec<String>,
 }
 
 pub fn request(a: &Args) -> EvalRequest {
@@ -94,6 +98,7 @@ pub fn request(a: &Args) -> EvalRequest {
         noise: a.noise.clone(),
         shard: None,
         merge_only: a.merge,
+        exclude: a.exclude.clone(),
     }
 }
 
@@ -155,7 +160,22 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<()> {
             s.out.join(mvsplat360_pipeline::eval::METRICS_MD).display()
         );
     }
-    Ok(())
+    fail_on_failures(&s)
+}
+
+/// Exit non-zero while scenes failed (the tables of the others are written).
+fn fail_on_failures(s: &mvsplat360_pipeline::eval::EvalSummary) -> anyhow::Result<()> {
+    if s.failed.is_empty() {
+        return Ok(());
+    }
+    let lines: Vec<String> = s.failed.iter().map(|(k, e)| format!("  {k}: {e}")).collect();
+    let keys: Vec<&str> = s.failed.iter().map(|f| f.0.as_str()).collect();
+    anyhow::bail!(
+        "{} scene(s) could not be evaluated (the others are scored; metrics.json lists these under scenes.failed):\n{}\nfix their data and run again, or leave them out: --exclude {}",
+        s.failed.len(),
+        lines.join("\n"),
+        keys.join(",")
+    )
 }
 
 /// One rank of `--world-size N`: its share of the scenes, notes prefixed with its number, no bars.
@@ -189,6 +209,7 @@ fn run_rank(mut req: EvalRequest, place: Place) -> anyhow::Result<()> {
     let m = mvsplat360_pipeline::eval::run(&req, &notes).with_context(|| format!("rank {}: merging the scene records in {}", place.rank, req.out.display()))?;
     if m.incomplete.is_empty() {
         eprintln!("[rank {}] every scene is complete: wrote {}", place.rank, req.out.join(mvsplat360_pipeline::eval::METRICS_MD).display());
+        return fail_on_failures(&m);
     } else {
         eprintln!(
             "[rank {}] {} scene(s) still with other ranks ({}); the last rank to finish writes the tables",

@@ -64,6 +64,7 @@ use crate::render::{self, Prepared, Progress, RefineSettings};
 use crate::scale::SceneScale;
 use crate::views::{Target, ViewChoice};
 
+pub mod lease;
 mod report;
 mod score;
 
@@ -169,6 +170,8 @@ pub struct EvalRequest {
     /// records already on disk, rendering nothing and never opening the compute device (so a bf16 GPU run merges
     /// on any machine); while some scene is incomplete nothing is written and [`EvalSummary::incomplete`] names it.
     pub merge_only: bool,
+    /// `--exclude`: scenes of the index left out (listed in `metrics.json`).
+    pub exclude: Vec<String>,
 }
 
 /// Averages of one method over a set of images.
@@ -210,6 +213,9 @@ pub struct EvalSummary {
     pub seconds: f64,
     /// With [`EvalRequest::merge_only`]: scenes without a complete record (no tables were written).
     pub incomplete: Vec<String>,
+    /// Scenes whose data could not be evaluated (scene, error), recorded in `scenes/{scene}.error.json`; the
+    /// others are scored, `metrics.json` lists these, and a rerun tries them again (or `--exclude` them).
+    pub failed: Vec<(String, String)>,
 }
 
 /// One image's scores.
@@ -615,6 +621,70 @@ fn render_scene(cx: &Ctx, scene: Scene, plan: &ScenePlan, warnings: &mut Vec<Str
     write_record(out, &record)
 }
 
+/// Scene positions in the order this process takes them: a `--world-size` rank its own share only (its launcher
+/// supervises the others), a cluster rank its share first and then the rest (helping with what others have
+/// not claimed), a lone process all in index order; scenes of one chunk stay together within each part.
+fn scene_order(plans: &[ScenePlan], shard: Option<crate::launch::Place>) -> Vec<usize> {
+    let by_chunk = |mut v: Vec<usize>| {
+        let first: HashMap<&str, usize> = v.iter().rev().map(|&i| (plans[i].chunk.as_str(), i)).collect();
+        v.sort_by_key(|&i| (first[plans[i].chunk.as_str()], i));
+        v
+    };
+    let all: Vec<usize> = (0..plans.len()).collect();
+    match shard {
+        None => by_chunk(all),
+        Some(p) => {
+            let (own, rest): (Vec<usize>, Vec<usize>) = all.into_iter().partition(|i| i % p.world == p.rank);
+            let mut v = by_chunk(own);
+            if p.launcher != crate::launch::Launcher::Project {
+                v.extend(by_chunk(rest));
+            }
+            v
+        }
+    }
+}
+
+fn failure_json(out: &Path, key: &str) -> PathBuf {
+    out.join(SCENES_DIR).join(format!("{key}.error.json"))
+}
+
+fn read_failure(out: &Path, key: &str) -> Option<String> {
+    let v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(failure_json(out, key)).ok()?).ok()?;
+    Some(v["error"].as_str().unwrap_or("failed").to_string())
+}
+
+/// A failure recorded by another process during this run (an older one is tried again).
+fn read_failure_since(out: &Path, key: &str, since: std::time::SystemTime) -> Option<String> {
+    let t = std::fs::metadata(failure_json(out, key)).and_then(|m| m.modified()).ok()?;
+    (t >= since).then(|| read_failure(out, key)).flatten()
+}
+
+/// Errors of one scene's data (an undecodable image, a view out of range, non-finite output), which are recorded
+/// while the evaluation goes on; anything else (the device, the disk) ends it.
+fn is_data_error(e: &PipelineError) -> bool {
+    matches!(e, PipelineError::Dataset(_) | PipelineError::Camera(_) | PipelineError::NonFinite { .. } | PipelineError::Flag { flag: "--index", .. })
+}
+
+/// Reads the scene from its chunk (the last chunk read is kept) and renders it; None when the chunk lacks it.
+fn render_claimed(
+    cx: &Ctx,
+    data_dir: &Path,
+    plan: &ScenePlan,
+    cache: &mut Option<(String, HashMap<String, ChunkScene>)>,
+    warnings: &mut Vec<String>,
+) -> Result<Option<SceneRecord>> {
+    let path = data_dir.join(&plan.chunk);
+    if cache.as_ref().is_none_or(|(c, _)| *c != plan.chunk) {
+        *cache = None;
+        let scenes = torch_chunk::read_chunk(&path)?.into_iter().map(|s| (s.key.clone(), s)).collect();
+        *cache = Some((plan.chunk.clone(), scenes));
+    }
+    let Some(cs) = cache.as_mut().and_then(|(_, m)| m.remove(&plan.key)) else { return Ok(None) };
+    let scene = cs.into_scene(&path)?;
+    scene.validate()?;
+    render_scene(cx, scene, plan, warnings).map(Some)
+}
+
 /// Write `scenes/{scene}.json` atomically and return the record as read back from it, so a first run and a
 /// resumed one aggregate bit-identical numbers.
 fn write_record(out: &Path, rec: &SceneRecord) -> Result<SceneRecord> {
@@ -659,12 +729,18 @@ pub fn run(req: &EvalRequest, progress: &dyn Progress) -> Result<EvalSummary> {
             }
         }
     }
+    for k in &req.exclude {
+        if !index.contains_key(k) {
+            return Err(flag("--exclude", format!("no scene `{k}` in {}", req.index.display())));
+        }
+    }
     let wanted: Option<BTreeSet<&String>> = req.scenes.as_ref().map(|l| l.iter().collect());
+    let excluded: BTreeSet<&String> = req.exclude.iter().collect();
     let mut null_entries = 0;
     let mut plans = Vec::new();
     let mut missing = Vec::new();
     for (k, e) in &index {
-        if wanted.as_ref().is_some_and(|w| !w.contains(k)) {
+        if wanted.as_ref().is_some_and(|w| !w.contains(k)) || excluded.contains(k) {
             continue;
         }
         let Some(e) = e else {
@@ -742,9 +818,9 @@ pub fn run(req: &EvalRequest, progress: &dyn Progress) -> Result<EvalSummary> {
     let used = cx.nets.used();
     let mut records: Vec<Option<SceneRecord>> = vec![None; plans.len()];
     let (mut resumed, mut rescored, mut rendered) = (Vec::new(), Vec::new(), Vec::new());
-    let mut to_render: BTreeMap<String, Vec<usize>> = BTreeMap::new();
-    let mine = |i: usize| req.shard.is_none_or(|p| i % p.world == p.rank);
-    for (i, plan) in plans.iter().enumerate().filter(|(i, _)| mine(*i)) {
+    let mut to_render: Vec<usize> = Vec::new();
+    for i in scene_order(&plans, req.shard) {
+        let plan = &plans[i];
         match resume_state(out, plan, &methods, used) {
             Resume::Done(rec) => {
                 resumed.push(plan.key.clone());
@@ -762,15 +838,26 @@ pub fn run(req: &EvalRequest, progress: &dyn Progress) -> Result<EvalSummary> {
                 records[i] = Some(write_record(out, &rec)?);
                 rescored.push(plan.key.clone());
             }
-            Resume::Render => to_render.entry(plan.chunk.clone()).or_default().push(i),
+            Resume::Render => to_render.push(i),
         }
     }
     if !resumed.is_empty() {
         progress.note(&format!("resuming: {} of {} scenes already complete in {}", resumed.len(), plans.len(), out.display()));
     }
-    let total_render: usize = to_render.values().map(Vec::len).sum();
+    let mut failed: Vec<(String, String)> = Vec::new();
+    if req.merge_only {
+        // A recorded failure is a result; a scene without record or failure is not done yet.
+        to_render.retain(|&i| match read_failure(out, &plans[i].key) {
+            Some(msg) => {
+                failed.push((plans[i].key.clone(), msg));
+                false
+            }
+            None => true,
+        });
+    }
+    let total_render = to_render.len();
     if req.merge_only && total_render > 0 {
-        let incomplete = to_render.values().flatten().map(|&i| plans[i].key.clone()).collect();
+        let incomplete = to_render.iter().map(|&i| plans[i].key.clone()).collect();
         let seconds = t_all.elapsed().as_secs_f64();
         return Ok(EvalSummary {
             out: out.clone(),
@@ -786,38 +873,92 @@ pub fn run(req: &EvalRequest, progress: &dyn Progress) -> Result<EvalSummary> {
             warnings,
             seconds,
             incomplete,
+            failed,
         });
     }
+    // Render: each scene under its lease (see `lease`), so that processes sharing --out render it once; scenes
+    // another live process holds are waited for, and taken over when their owner dies.
+    let leases = lease::Leases::new(&out.join(SCENES_DIR));
+    let started = std::time::SystemTime::now();
+    let mut queue: std::collections::VecDeque<usize> = to_render.into();
+    let mut waiting: Vec<usize> = Vec::new();
+    let mut told: BTreeSet<usize> = BTreeSet::new();
+    let mut cache: Option<(String, HashMap<String, ChunkScene>)> = None;
     let mut done = 0;
-    for (chunk, idxs) in &to_render {
-        let path = data_dir.join(chunk);
-        let mut scenes: HashMap<String, ChunkScene> = torch_chunk::read_chunk(&path)?.into_iter().map(|s| (s.key.clone(), s)).collect();
-        for &i in idxs {
-            let plan = &plans[i];
-            done += 1;
-            let Some(cs) = scenes.remove(&plan.key) else {
+    loop {
+        let Some(i) = queue.pop_front() else {
+            if waiting.is_empty() {
+                break;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(500));
+            for i in std::mem::take(&mut waiting) {
+                let key = &plans[i].key;
+                if let Resume::Done(rec) = resume_state(out, &plans[i], &methods, used) {
+                    resumed.push(key.clone());
+                    records[i] = Some(*rec);
+                } else if let Some(msg) = read_failure_since(out, key, started) {
+                    failed.push((key.clone(), msg));
+                } else {
+                    queue.push_back(i);
+                }
+            }
+            continue;
+        };
+        let plan = &plans[i];
+        if let lease::Claim::Held(owner) = leases.claim(&plan.key).map_err(|e| werr(&out.join(SCENES_DIR), e))? {
+            if told.insert(i) {
+                progress.note(&format!("scene {}: being rendered by {owner}; waiting for it (taken over if that process dies)", plan.key));
+            }
+            waiting.push(i);
+            continue;
+        }
+        // Finished by another process since it was looked at.
+        if let Resume::Done(rec) = resume_state(out, plan, &methods, used) {
+            leases.release(&plan.key);
+            resumed.push(plan.key.clone());
+            records[i] = Some(*rec);
+            continue;
+        }
+        done += 1;
+        progress.note(&format!(
+            "[{done}/{total_render}] scene {} ({} context, {} targets, {} scored)",
+            plan.key,
+            plan.context.len(),
+            plan.targets.len(),
+            plan.scored.len()
+        ));
+        let result = render_claimed(&cx, &data_dir, plan, &mut cache, &mut warnings);
+        let failure = failure_json(out, &plan.key);
+        match result {
+            Ok(Some(rec)) => {
+                let _ = std::fs::remove_file(&failure);
+                rendered.push(plan.key.clone());
+                records[i] = Some(rec);
+            }
+            Ok(None) => {
                 warnings.push(format!(
-                    "scene {} is listed in {} under {chunk} but that chunk does not hold it",
+                    "scene {} is listed in {} under {} but that chunk does not hold it",
                     plan.key,
-                    data_dir.join("index.json").display()
+                    data_dir.join("index.json").display(),
+                    plan.chunk
                 ));
                 missing.push(plan.key.clone());
+            }
+            Err(e) if is_data_error(&e) => {
+                let msg = e.to_string();
+                progress.note(&format!("warning: scene {} failed, the others go on: {msg}", plan.key));
+                let rec = json!({ "scene": plan.key, "error": msg, "host": mvsplat360_dataset::atomic::host_name(), "pid": std::process::id() });
+                let written = write_json(&failure, &rec);
+                leases.release(&plan.key);
+                written?;
+                failed.push((plan.key.clone(), msg));
                 continue;
-            };
-            progress.note(&format!(
-                "[{done}/{total_render}] scene {} ({} context, {} targets, {} scored)",
-                plan.key,
-                plan.context.len(),
-                plan.targets.len(),
-                plan.scored.len()
-            ));
-            let scene = cs.into_scene(&path)?;
-            scene.validate()?;
-            let rec = render_scene(&cx, scene, plan, &mut warnings)?;
-            rendered.push(plan.key.clone());
-            records[i] = Some(rec);
+            }
+            Err(e) => return Err(e),
         }
+        leases.release(&plan.key);
     }
+    drop(leases);
     if req.shard.is_some() {
         // A rank: its scenes' records are on disk; the launcher aggregates.
         let seconds = t_all.elapsed().as_secs_f64();
@@ -836,6 +977,7 @@ pub fn run(req: &EvalRequest, progress: &dyn Progress) -> Result<EvalSummary> {
             warnings,
             seconds,
             incomplete: Vec::new(),
+            failed,
         });
     }
     // Aggregate.
@@ -887,6 +1029,8 @@ pub fn run(req: &EvalRequest, progress: &dyn Progress) -> Result<EvalSummary> {
             "null_in_index": null_entries,
             "missing_from_data": missing,
             "skipped_fov": skipped_fov,
+            "failed": failed.iter().map(|(k, e)| json!({ "scene": k, "error": e })).collect::<Vec<_>>(),
+            "excluded": req.exclude,
         },
         "images": images,
         "methods": table.iter().map(|(m, s)| (m.key().to_string(), json!(s))).collect::<serde_json::Map<_, _>>(),
@@ -896,7 +1040,7 @@ pub fn run(req: &EvalRequest, progress: &dyn Progress) -> Result<EvalSummary> {
     });
     write_json(&out.join(METRICS_JSON), &metrics)?;
     let line = format!(
-        "Index `{}`, data `{}`, model {}: {} scene(s) evaluated ({} null in the index, {} missing from the data, {} skipped for field of view), {} image(s) per method.",
+        "Index `{}`, data `{}`, model {}: {} scene(s) evaluated ({} null in the index, {} missing from the data, {} skipped for field of view, {} failed), {} image(s) per method.",
         req.index.display(),
         data_dir.display(),
         description,
@@ -904,6 +1048,7 @@ pub fn run(req: &EvalRequest, progress: &dyn Progress) -> Result<EvalSummary> {
         null_entries,
         missing.len(),
         skipped_fov.len(),
+        failed.len(),
         images
     );
     output::write_bytes(&out.join(METRICS_MD), markdown(&line, &table, &per_scene_primary, primary, blended).as_bytes())?;
@@ -921,6 +1066,7 @@ pub fn run(req: &EvalRequest, progress: &dyn Progress) -> Result<EvalSummary> {
         warnings,
         seconds,
         incomplete: Vec::new(),
+        failed,
     })
 }
 
