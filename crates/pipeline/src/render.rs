@@ -2,7 +2,6 @@
 //! temporal windows → colour-histogram matching → frames, videos, cameras and a run record.
 
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
 use std::time::Instant;
 
 use candle_core::{DType, Device, Tensor};
@@ -210,11 +209,9 @@ pub fn encode(p: &Prepared, progress: &dyn Progress) -> Result<Gaussians> {
     let (intr, extr) = camera_tensors(&k_norm, &c2w, &dev).map_err(compute("encoder input"))?;
     let near = Tensor::full(cfg.near, (1, v), &dev).map_err(compute("encoder input"))?;
     let far = Tensor::full(cfg.far, (1, v), &dev).map_err(compute("encoder input"))?;
-    let key = format!("encoder|{}|{cfg:?}|{:?}", p.spec.encoder_file.display(), dev.location());
-    let encoder = cached(key, || {
-        progress.note(&format!("loading encoder weights from {}", p.spec.encoder_file.display()));
-        EncoderCostVolume::load(&p.spec.encoder_file, &cfg, &dev).map_err(|e| PipelineError::Model { path: p.spec.encoder_file.clone(), msg: e.to_string() })
-    })?;
+    progress.note(&format!("loading encoder weights from {}", p.spec.encoder_file.display()));
+    let encoder = EncoderCostVolume::load(&p.spec.encoder_file, &cfg, &dev)
+        .map_err(|e| PipelineError::Model { path: p.spec.encoder_file.clone(), msg: e.to_string() })?;
     progress.begin("encoder", 1);
     let g = encoder.forward(&images, &intr, &extr, &near, &far).map_err(compute("encoder"))?;
     progress.advance(1);
@@ -315,12 +312,9 @@ struct RefinerModules {
 /// CLIP context token (1, 1, D) of the context views; the CLIP tower is dropped before the UNet is loaded.
 fn clip_context(p: &Prepared, weights: &Path, progress: &dyn Progress) -> Result<Tensor> {
     let (cfg, _) = p.spec.refiner.as_ref().ok_or_else(|| flag("--refiner", "no refiner configured"))?;
-    let key = format!("clip|{}|{:?}|{:?}|{:?}", weights.display(), cfg.clip, p.device.location(), p.refiner_dtype);
-    let clip = cached(key, || {
-        progress.note(&format!("loading CLIP image embedder from {}", weights.display()));
-        ClipImageEmbedder::load_as(weights, None, &cfg.clip, &p.device, p.refiner_dtype)
-            .map_err(|e| PipelineError::Model { path: weights.to_path_buf(), msg: e.to_string() })
-    })?;
+    progress.note(&format!("loading CLIP image embedder from {}", weights.display()));
+    let clip = ClipImageEmbedder::load_as(weights, None, &cfg.clip, &p.device, p.refiner_dtype)
+        .map_err(|e| PipelineError::Model { path: weights.to_path_buf(), msg: e.to_string() })?;
     let v = p.context_images.len();
     let (w, h) = (p.context_images[0].width as usize, p.context_images[0].height as usize);
     let data: Vec<f32> = p.context_images.iter().flat_map(|im| im.data.iter().copied()).collect();
@@ -330,47 +324,15 @@ fn clip_context(p: &Prepared, weights: &Path, progress: &dyn Progress) -> Result
     Ok(ctx)
 }
 
-fn load_refiner(p: &Prepared, weights: &Path, s: &RefineSettings, num_splits: Option<usize>, progress: &dyn Progress) -> Result<Arc<RefinerModules>> {
+fn load_refiner(p: &Prepared, weights: &Path, s: &RefineSettings, num_splits: Option<usize>, progress: &dyn Progress) -> Result<RefinerModules> {
     let (cfg, _) = p.spec.refiner.as_ref().ok_or_else(|| flag("--refiner", "no refiner configured"))?;
-    let key = format!("refiner|{}|{cfg:?}|{:?}|{:?}|{num_splits:?}|{s:?}", weights.display(), p.device.location(), p.refiner_dtype);
-    cached(key, || {
-        progress.note(&format!("loading the video UNet and VAE from {}", weights.display()));
-        let merr = |e: &dyn std::fmt::Display| PipelineError::Model { path: weights.to_path_buf(), msg: e.to_string() };
-        let unet = VideoUNet::load_as(weights, None, &cfg.unet, &p.device, p.refiner_dtype).map_err(|e| merr(&e))?;
-        let vae = AutoencoderKL::load_as(weights, None, &cfg.vae, &p.device, p.refiner_dtype).map_err(|e| merr(&e))?;
-        let sampler = SamplerConfig { num_steps: s.steps, min_scale: s.guidance_min, max_scale: s.guidance_max, num_splits, ..SamplerConfig::default() };
-        let rc = RefinerConfig { sampler, scale_factor: cfg.vae.scale_factor as f32, decode_chunk: Some(s.vae_chunk), ..RefinerConfig::default() };
-        Ok(RefinerModules { refiner: Refiner::new(unet, rc), vae })
-    })
-}
-
-/// Whether loaded models are kept for the next scene ([`keep_models`]).
-static KEEP_MODELS: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
-type Loaded = Vec<(String, Arc<dyn std::any::Any + Send + Sync>)>;
-static LOADED: std::sync::Mutex<Loaded> = std::sync::Mutex::new(Vec::new());
-
-/// Keep the encoder, CLIP and refiner loaded between scenes for the rest of this process (`eval`: the weights,
-/// about 9 GB with the refiner, are read once instead of once per scene). A single render leaves it off, which
-/// frees the CLIP tower before the UNet loads.
-pub fn keep_models() {
-    KEEP_MODELS.store(true, std::sync::atomic::Ordering::Relaxed);
-}
-
-/// `load()`, or the model loaded under the same key (file, configuration, device, precision) earlier in this
-/// process when [`keep_models`] is on; one model of each kind (the key's first field) is kept.
-fn cached<T: Send + Sync + 'static>(key: String, load: impl FnOnce() -> Result<T>) -> Result<Arc<T>> {
-    if !KEEP_MODELS.load(std::sync::atomic::Ordering::Relaxed) {
-        return load().map(Arc::new);
-    }
-    let mut loaded = LOADED.lock().unwrap_or_else(|e| e.into_inner());
-    if let Some(m) = loaded.iter().find(|(k, _)| *k == key).and_then(|(_, m)| m.clone().downcast::<T>().ok()) {
-        return Ok(m);
-    }
-    let kind = key.split('|').next().unwrap_or_default().to_string();
-    loaded.retain(|(k, _)| k.split('|').next() != Some(kind.as_str()));
-    let m = Arc::new(load()?);
-    loaded.push((key, m.clone()));
-    Ok(m)
+    progress.note(&format!("loading the video UNet and VAE from {}", weights.display()));
+    let merr = |e: &dyn std::fmt::Display| PipelineError::Model { path: weights.to_path_buf(), msg: e.to_string() };
+    let unet = VideoUNet::load_as(weights, None, &cfg.unet, &p.device, p.refiner_dtype).map_err(|e| merr(&e))?;
+    let vae = AutoencoderKL::load_as(weights, None, &cfg.vae, &p.device, p.refiner_dtype).map_err(|e| merr(&e))?;
+    let sampler = SamplerConfig { num_steps: s.steps, min_scale: s.guidance_min, max_scale: s.guidance_max, num_splits, ..SamplerConfig::default() };
+    let rc = RefinerConfig { sampler, scale_factor: cfg.vae.scale_factor as f32, decode_chunk: Some(s.vae_chunk), ..RefinerConfig::default() };
+    Ok(RefinerModules { refiner: Refiner::new(unet, rc), vae })
 }
 
 /// The temporal windows over `n` frames: (start, real frames); every window is padded to `window` frames by

@@ -812,8 +812,6 @@ pub fn run(req: &EvalRequest, progress: &dyn Progress) -> Result<EvalSummary> {
         }
         None => None,
     };
-    // Every scene of this process uses the same weights: read them once.
-    crate::render::keep_models();
     let cx = Ctx { req, spec, pre, refine_file, device, methods: methods.clone(), nets, scene_scale, noise, progress };
 
     // Resume: complete scenes are kept, scenes with images but incomplete scores are re-scored from disk.
