@@ -191,10 +191,24 @@ fn eval_ranks_started_by_srun_share_one_out() {
     let mut v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&settings).unwrap()).unwrap();
     v["refiner_dtype"] = "bf16".into();
     std::fs::write(&settings, serde_json::to_string(&v).unwrap()).unwrap();
+    let set_dtype = |scene: &str, dtype: &str| {
+        let p = three.join("scenes").join(format!("{scene}.json"));
+        let mut r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
+        assert!(r["rendered_by"]["pid"].as_u64().is_some(), "the record names its process: {r}");
+        r["rendered_by"]["refiner_dtype"] = dtype.into();
+        std::fs::write(&p, serde_json::to_string(&r).unwrap()).unwrap();
+    };
+    set_dtype("woodbox_a", "bf16");
+    set_dtype("woodbox_b", "bf16");
     let o = eval_cmd(&empty, &data, &index, &m, &three).arg("--merge").output().unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     assert_eq!(json(&three)["settings"]["refiner_dtype"], "bf16");
     assert_eq!(json(&three)["methods"], a["methods"]);
+    // One record of another precision: the merge refuses, naming it.
+    set_dtype("woodbox_b", "f16");
+    let o = eval_cmd(&empty, &data, &index, &m, &three).arg("--merge").output().unwrap();
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && e.contains("woodbox_b (f16)") && !e.contains("woodbox_a (bf16)"), "{e}");
     // --merge on an out with a scene missing names it and writes nothing.
     let part = tmp.path().join("part");
     let o = eval_cmd(&empty, &data, &index, &m, &part).args(["--scenes", "woodbox_a"]).output().unwrap();

@@ -276,6 +276,19 @@ pub struct SceneRecord {
     pub methods: BTreeMap<String, Vec<ImageScores>>,
     pub gaussians: usize,
     pub seconds: f64,
+    /// Who rendered it (absent in records of earlier versions).
+    #[serde(default)]
+    pub rendered_by: Option<RenderedBy>,
+}
+
+/// The process that rendered a scene, and in what precision.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RenderedBy {
+    pub host: String,
+    pub pid: u32,
+    pub device: String,
+    /// The refiner's `--dtype` (`f32` also without a refiner).
+    pub refiner_dtype: String,
 }
 
 /// One scene's work, from its index entry.
@@ -525,6 +538,12 @@ fn render_scene(cx: &Ctx, scene: Scene, plan: &ScenePlan, warnings: &mut Vec<Str
         methods: BTreeMap::new(),
         gaussians: 0,
         seconds: 0.0,
+        rendered_by: Some(RenderedBy {
+            host: mvsplat360_dataset::atomic::host_name(),
+            pid: std::process::id(),
+            device: cx.req.model.compute.device.to_string(),
+            refiner_dtype: if cx.refine_file.is_some() { cx.req.model.compute.refiner_dtype.as_str().to_string() } else { "f32".into() },
+        }),
     };
     // The official loaders skip scenes with a view wider than max_fov (all views of the scene are checked).
     if let Some((i, (fx, fy))) = scene.cameras.iter().map(official_fov_deg).enumerate().find(|(_, (x, y))| *x > MAX_FOV_DEG || *y > MAX_FOV_DEG) {
@@ -982,6 +1001,22 @@ pub fn run(req: &EvalRequest, progress: &dyn Progress) -> Result<EvalSummary> {
     }
     // Aggregate.
     let done_records: Vec<&SceneRecord> = records.iter().flatten().filter(|r| r.skipped.is_none()).collect();
+    // One table, one precision: eval.json keeps processes of another --dtype out; this catches edited folders.
+    let want = settings.get("refiner_dtype").and_then(|v| v.as_str()).unwrap_or("f32");
+    let mixed: Vec<String> = done_records
+        .iter()
+        .filter_map(|r| r.rendered_by.as_ref().filter(|b| b.refiner_dtype != want).map(|b| format!("{} ({})", r.scene, b.refiner_dtype)))
+        .collect();
+    if !mixed.is_empty() {
+        return Err(flag(
+            "--out",
+            format!(
+                "{}: these scenes were rendered in another precision than the folder's {want}: {}; render them again (remove their scenes/*.json)",
+                out.display(),
+                mixed.join(", ")
+            ),
+        ));
+    }
     let skipped_fov: Vec<String> = records.iter().flatten().filter(|r| r.skipped.is_some()).map(|r| r.scene.clone()).collect();
     let mut table = Vec::new();
     for &m in &methods {
