@@ -135,7 +135,69 @@ fn serve_file(path: &std::path::Path, range: Option<&str>) -> Reply {
     reply(200, ctype, Box::new(f), len, vec![accept])
 }
 
-fn respond(out: &OutDir, req: &Request) -> Reply {
+/// Which `Host` headers the server answers: against DNS rebinding (a foreign site's name pointed at 127.0.0.1
+/// reaches the server with its own name in `Host`, as Vite and webpack-dev-server refuse), only IP literals,
+/// `localhost` and `*.localhost`, and the names given with `--allow-host` (a tunnel's or proxy's), each with the
+/// server's port or none.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct HostPolicy {
+    pub port: u16,
+    pub allowed: Vec<String>,
+}
+
+impl HostPolicy {
+    /// `Host`'s name when it is one this server answers to.
+    fn accepts(&self, host: &str) -> bool {
+        let host = host.trim().to_ascii_lowercase();
+        // `[v6]:port`, `[v6]`, `name:port`, `name`.
+        let (name, port) = if let Some(rest) = host.strip_prefix('[') {
+            let Some((v6, after)) = rest.split_once(']') else { return false };
+            if v6.parse::<std::net::Ipv6Addr>().is_err() {
+                return false;
+            }
+            (v6.to_string(), after.strip_prefix(':'))
+        } else {
+            match host.rsplit_once(':') {
+                Some((n, p)) => (n.to_string(), Some(p)),
+                None => (host.clone(), None),
+            }
+        };
+        if port.is_some_and(|p| p.parse::<u16>().ok() != Some(self.port)) {
+            return false;
+        }
+        let name = name.trim_end_matches('.');
+        name.parse::<std::net::IpAddr>().is_ok()
+            || host.starts_with('[')
+            || name == "localhost"
+            || name.ends_with(".localhost")
+            || self.allowed.iter().any(|a| a.eq_ignore_ascii_case(name))
+    }
+
+    /// None when `req` may be answered, else the refusal.
+    fn check(&self, req: &Request) -> Option<Reply> {
+        let get = |name: &str| req.headers().iter().find(|h| h.field.as_str().as_str().eq_ignore_ascii_case(name)).map(|h| h.value.as_str().to_string());
+        let Some(host) = get("Host") else { return Some(text(400, "no Host header")) };
+        if !self.accepts(&host) {
+            return Some(text(403, "this Host is not served (start `mvsplat360 view` with --allow-host NAME for a tunnel or proxy name)"));
+        }
+        if get("Sec-Fetch-Site").is_some_and(|v| v.eq_ignore_ascii_case("cross-site")) {
+            return Some(text(403, "cross-site request refused"));
+        }
+        if let Some(origin) = get("Origin") {
+            let o = origin.trim();
+            let hostpart = o.strip_prefix("http://").or_else(|| o.strip_prefix("https://"));
+            if !hostpart.is_some_and(|h| self.accepts(h.trim_end_matches('/'))) {
+                return Some(text(403, "cross-origin request refused"));
+            }
+        }
+        None
+    }
+}
+
+fn respond(out: &OutDir, policy: &HostPolicy, req: &Request) -> Reply {
+    if let Some(refusal) = policy.check(req) {
+        return refusal;
+    }
     if !matches!(req.method(), Method::Get | Method::Head) {
         return text(405, "method not allowed (read-only server)");
     }
@@ -164,15 +226,22 @@ pub struct Server {
     http: Arc<tiny_http::Server>,
     out: OutDir,
     url: String,
+    policy: HostPolicy,
 }
 
 impl Server {
     /// Check `out` and listen on 127.0.0.1:`port` (0: any free port).
     pub fn bind(out: OutDir, port: u16) -> Result<Self> {
-        let addr = format!("127.0.0.1:{port}");
+        Self::bind_on(out, "127.0.0.1", port, Vec::new())
+    }
+
+    /// [`Server::bind`] on the address `host` (an IP), answering also to the `Host` names in `allow_hosts`.
+    pub fn bind_on(out: OutDir, host: &str, port: u16, allow_hosts: Vec<String>) -> Result<Self> {
+        let addr = if host.contains(':') { format!("[{host}]:{port}") } else { format!("{host}:{port}") };
         let http = tiny_http::Server::http(&addr).map_err(|e| ViewerError::Bind { addr: addr.clone(), msg: e.to_string() })?;
         let port = http.server_addr().to_ip().map(|a| a.port()).unwrap_or(port);
-        Ok(Self { http: Arc::new(http), out, url: format!("http://127.0.0.1:{port}/") })
+        let url = if host.contains(':') { format!("http://[{host}]:{port}/") } else { format!("http://{host}:{port}/") };
+        Ok(Self { http: Arc::new(http), out, url, policy: HostPolicy { port, allowed: allow_hosts } })
     }
 
     /// The page's address.
@@ -185,10 +254,10 @@ impl Server {
     pub fn serve(self, threads: usize) {
         let workers: Vec<_> = (0..threads.max(1))
             .map(|_| {
-                let (http, out) = (self.http.clone(), self.out.clone());
+                let (http, out, policy) = (self.http.clone(), self.out.clone(), self.policy.clone());
                 std::thread::spawn(move || {
                     for req in http.incoming_requests() {
-                        let resp = respond(&out, &req);
+                        let resp = respond(&out, &policy, &req);
                         // A client that went away mid-response is not our error.
                         let _ = req.respond(resp);
                     }
@@ -204,6 +273,19 @@ impl Server {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn hosts_answered() {
+        let p = HostPolicy { port: 8080, allowed: vec!["gpu-box.tail1234.ts.net".into()] };
+        for ok in
+            ["127.0.0.1:8080", "127.0.0.1", "localhost:8080", "LOCALHOST", "app.localhost:8080", "[::1]:8080", "10.1.2.3:8080", "gpu-box.tail1234.ts.net:8080"]
+        {
+            assert!(p.accepts(ok), "{ok}");
+        }
+        for bad in ["evil.example", "evil.example:8080", "127.0.0.1:9999", "localhost.evil.example:8080", "[::1", "[nothost]:8080", "", "127.0.0.1:80:80"] {
+            assert!(!p.accepts(bad), "{bad}");
+        }
+    }
 
     #[test]
     fn ranges() {

@@ -41,6 +41,15 @@ pub fn write_static(out: &OutDir, dest: &Path) -> Result<()> {
     }
     let manifest = out.manifest();
     for rel in manifest.paths() {
+        // A link to a file outside the render folder would publish it: refuse, naming it.
+        let from = out.root.join(&rel);
+        let real = from.canonicalize().map_err(io(&from))?;
+        if !real.starts_with(&out.root) {
+            return Err(ViewerError::StaticDest {
+                path: from,
+                msg: format!("is a link to {}, outside the render folder; copy the file in, or remove the link", real.display()),
+            });
+        }
         let to = dest.join("data").join(&rel);
         if let Some(parent) = to.parent() {
             std::fs::create_dir_all(parent).map_err(io(parent))?;

@@ -129,7 +129,7 @@ fn path_escapes_are_refused() {
     }
     // Not served, not even the request: the server is read-only.
     let mut s = TcpStream::connect(&addr).unwrap();
-    write!(s, "PUT /data/run.json HTTP/1.1\r\nHost: x\r\nContent-Length: 2\r\nConnection: close\r\n\r\n{{}}").unwrap();
+    write!(s, "PUT /data/run.json HTTP/1.1\r\nHost: {addr}\r\nContent-Length: 2\r\nConnection: close\r\n\r\n{{}}").unwrap();
     let mut buf = String::new();
     s.read_to_string(&mut buf).unwrap();
     assert!(buf.starts_with("HTTP/1.1 405"), "{buf}");
@@ -164,4 +164,55 @@ fn static_export_is_self_contained() {
     std::fs::write(other.join("keep.txt"), "x").unwrap();
     assert!(mvsplat360_viewer::write_static(&dir, &other).unwrap_err().to_string().contains("not empty"));
     assert!(mvsplat360_viewer::write_static(&dir, &out.join("site")).unwrap_err().to_string().contains("inside the render folder"));
+}
+
+/// Send a request with exactly these header lines (no Host unless given); the status.
+fn raw_status(addr: &str, headers: &str) -> u16 {
+    let mut s = TcpStream::connect(addr).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+    write!(s, "GET /data/run.json HTTP/1.1\r\n{headers}Connection: close\r\n\r\n").unwrap();
+    let mut buf = String::new();
+    s.read_to_string(&mut buf).unwrap();
+    buf.split(' ').nth(1).and_then(|c| c.parse().ok()).expect("status code")
+}
+
+/// DNS rebinding: a foreign name in `Host` (a web page's own domain pointed at 127.0.0.1) is refused, as are
+/// cross-site and foreign-origin requests; the server's address, localhost and --allow-host names are answered.
+#[test]
+fn foreign_hosts_and_origins_are_refused() {
+    let t = tempfile::tempdir().unwrap();
+    let out = out_dir(t.path());
+    let addr = start(&out);
+    let port = addr.rsplit(':').next().unwrap();
+    assert_eq!(raw_status(&addr, &format!("Host: {addr}\r\n")), 200);
+    assert_eq!(raw_status(&addr, &format!("Host: localhost:{port}\r\n")), 200);
+    assert_eq!(raw_status(&addr, &format!("Host: {addr}\r\nOrigin: http://{addr}\r\nSec-Fetch-Site: same-origin\r\n")), 200);
+    assert_eq!(raw_status(&addr, "Host: evil.example\r\n"), 403);
+    assert_eq!(raw_status(&addr, &format!("Host: evil.example:{port}\r\n")), 403);
+    assert_eq!(raw_status(&addr, "Host: 127.0.0.1:1\r\n"), 403);
+    assert_eq!(raw_status(&addr, ""), 400);
+    assert_eq!(raw_status(&addr, &format!("Host: {addr}\r\nOrigin: http://evil.example\r\n")), 403);
+    assert_eq!(raw_status(&addr, &format!("Host: {addr}\r\nSec-Fetch-Site: cross-site\r\n")), 403);
+    let server = Server::bind_on(OutDir::open(&out).unwrap(), "127.0.0.1", 0, vec!["gpu-box.example".into()]).unwrap();
+    let addr2 = server.url().trim_end_matches('/').trim_start_matches("http://").to_string();
+    std::thread::spawn(move || server.serve(1));
+    let port2 = addr2.rsplit(':').next().unwrap();
+    assert_eq!(raw_status(&addr2, &format!("Host: gpu-box.example:{port2}\r\n")), 200);
+    assert_eq!(raw_status(&addr2, &format!("Host: other.example:{port2}\r\n")), 403);
+}
+
+/// A link out of the render folder is refused by the static export, named, and nothing of it is copied.
+#[cfg(unix)]
+#[test]
+fn static_export_refuses_links_out_of_the_folder() {
+    let t = tempfile::tempdir().unwrap();
+    let out = out_dir(t.path());
+    let dir = OutDir::open(&out).unwrap();
+    let site = t.path().join("site");
+    let e = mvsplat360_viewer::write_static(&dir, &site).unwrap_err().to_string();
+    assert!(e.contains("0001.png") && e.contains("outside the render folder"), "{e}");
+    let copied = |d: &Path| -> bool {
+        std::fs::read_dir(d).into_iter().flatten().flatten().any(|e| std::fs::read(e.path()).is_ok_and(|b| String::from_utf8_lossy(&b).contains(SECRET)))
+    };
+    assert!(!copied(&site.join("data/frames/gsplat")), "the secret was published");
 }

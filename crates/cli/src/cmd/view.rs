@@ -10,9 +10,18 @@ pub struct Args {
     /// The --out folder of `mvsplat360 render` (needs gaussians.ply, cameras.json and run.json; refined frames,
     /// ground truth, video and metrics.json are shown when present).
     pub out_dir: PathBuf,
-    /// Port to listen on, on 127.0.0.1 only (0: any free port; the address is printed).
+    /// Port to listen on (0: any free port; the address is printed).
     #[arg(long, default_value_t = 8080)]
     pub port: u16,
+    /// Address to listen on. The default serves this machine only; for a remote machine prefer an SSH tunnel
+    /// (`ssh -L 8080:127.0.0.1:8080 HOST`, then open http://127.0.0.1:8080/ locally) over another address, which
+    /// every machine that can reach it may read.
+    #[arg(long, default_value = "127.0.0.1", conflicts_with = "static_dir")]
+    pub host: std::net::IpAddr,
+    /// Also answer requests whose `Host` is NAME (a tunnel's or reverse proxy's name; repeatable). Other names
+    /// than IP addresses and localhost are refused, so that no web page can read the render through DNS rebinding.
+    #[arg(long = "allow-host", value_name = "NAME", conflicts_with = "static_dir")]
+    pub allow_host: Vec<String>,
     /// Open the page in the default web browser.
     #[arg(long)]
     pub open: bool,
@@ -29,7 +38,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         println!("wrote {} (serve it with any static web server; opening index.html from disk does not work)", dest.display());
         return Ok(());
     }
-    let server = mvsplat360_viewer::Server::bind(out, args.port)?;
+    if !args.host.is_loopback() {
+        eprintln!(
+            "warning: serving on {}: any machine that reaches this address can read the render's files (photos, Gaussians, paths); \
+             an SSH tunnel to 127.0.0.1 keeps them private",
+            args.host
+        );
+    }
+    let server = mvsplat360_viewer::Server::bind_on(out, &args.host.to_string(), args.port, args.allow_host.clone())?;
     let url = server.url().to_string();
     // One line on stdout (flushed at once): scripts and tests read the address from it.
     println!("serving {} at {url} (Ctrl-C to stop)", args.out_dir.display());
