@@ -132,7 +132,8 @@ struct Bin<'a> {
 
 impl Bin<'_> {
     fn take(&mut self, n: usize) -> Result<&[u8], DatasetError> {
-        if self.pos + n > self.data.len() {
+        // `pos + n` could overflow on a crafted count; the remaining length cannot.
+        if n > self.data.len() - self.pos {
             return Err(malformed(self.path, format!("file ends early at byte {} (truncated?)", self.data.len())));
         }
         let s = &self.data[self.pos..self.pos + n];

@@ -7,6 +7,7 @@
 pub mod atomic;
 pub mod colmap;
 pub mod error;
+pub mod guard;
 pub mod image;
 pub mod index;
 pub mod lens;

@@ -80,9 +80,18 @@ pub fn read_chunk(path: &Path) -> Result<Vec<ChunkScene>, DatasetError> {
     let root = {
         let entry = zip.by_name(&pkl).map_err(|e| bad(path, e.to_string()))?;
         let mut reader = std::io::BufReader::new(entry);
-        let mut stack = Stack::empty();
-        stack.read_loop(&mut reader).map_err(|e| bad(path, format!("unpickling failed: {e}")))?;
-        stack.finalize().map_err(|e| bad(path, format!("unpickling failed: {e}")))?
+        // candle's unpickler can panic on a crafted pickle (found by tests/fuzz.rs: a LONG1 of more than 8
+        // bytes overflows a shift); the file is then refused like any other malformed one.
+        let unpickled = crate::guard::catch_quietly(|| {
+            let mut stack = Stack::empty();
+            stack.read_loop(&mut reader)?;
+            stack.finalize()
+        });
+        match unpickled {
+            Ok(Ok(root)) => root,
+            Ok(Err(e)) => return Err(bad(path, format!("unpickling failed: {e}"))),
+            Err(msg) => return Err(bad(path, format!("unpickling failed: malformed pickle ({msg})"))),
+        }
     };
     let dir = std::path::PathBuf::from(pkl.trim_end_matches(".pkl"));
     let mut ar = Archive { path, zip, dir, cache: HashMap::new() };

@@ -1,0 +1,233 @@
+//! Seeded mutations of the readers' inputs (COLMAP binary and text models, `transforms.json`, `.torch` chunks):
+//! every case must end in `Ok` or an error, never a panic, and quickly. The seed files are the project's own
+//! (assets/woodbox, the test chunk); the mutations are byte flips, truncations, inserted bytes and fields
+//! overwritten with extreme values (binary), and replaced, dropped or doubled tokens (text). A fixed seed here;
+//! `MVSPLAT360_FUZZ_SEED` and `MVSPLAT360_FUZZ_CASES` run other and longer hunts.
+
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+/// xorshift64*: the same cases on every machine.
+struct Rng(u64);
+
+impl Rng {
+    fn next(&mut self) -> u64 {
+        self.0 ^= self.0 >> 12;
+        self.0 ^= self.0 << 25;
+        self.0 ^= self.0 >> 27;
+        self.0.wrapping_mul(0x2545_f491_4f6c_dd1d)
+    }
+    fn below(&mut self, n: usize) -> usize {
+        (self.next() % n.max(1) as u64) as usize
+    }
+}
+
+fn root() -> &'static Path {
+    Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../.."))
+}
+
+fn seed() -> u64 {
+    std::env::var("MVSPLAT360_FUZZ_SEED").ok().and_then(|s| s.parse().ok()).unwrap_or(20261202)
+}
+
+fn cases(default: usize) -> usize {
+    std::env::var("MVSPLAT360_FUZZ_CASES").ok().and_then(|s| s.parse().ok()).unwrap_or(default)
+}
+
+const EXTREMES: [u64; 9] = [0, 1, u64::MAX, u64::MAX / 24, u64::MAX / 24 + 1, 1 << 31, (1 << 32) - 1, 0x7ff8_0000_0000_0000, 0xfff0_0000_0000_0000];
+
+fn mutate_binary(rng: &mut Rng, data: &[u8]) -> Vec<u8> {
+    let mut d = data.to_vec();
+    for _ in 0..1 + rng.below(3) {
+        match rng.below(5) {
+            0 if !d.is_empty() => {
+                let i = rng.below(d.len());
+                d[i] ^= 1 << rng.below(8);
+            }
+            1 => d.truncate(rng.below(d.len() + 1)),
+            2 => {
+                let i = rng.below(d.len() + 1);
+                let extra: Vec<u8> = (0..1 + rng.below(16)).map(|_| rng.next() as u8).collect();
+                d.splice(i..i, extra);
+            }
+            _ if d.len() >= 8 => {
+                // A count, id, size or parameter field: 4 or 8 bytes, half the time where the original holds a
+                // small positive integer (a count or a size, what a crafted file would change).
+                let counts: Vec<usize> = (0..d.len() - 7)
+                    .filter(|&i| (1..100_000).contains(&u64::from_le_bytes(data.get(i..i + 8).and_then(|b| b.try_into().ok()).unwrap_or([0; 8]))))
+                    .collect();
+                let i = if !counts.is_empty() && rng.below(2) == 0 { counts[rng.below(counts.len())] } else { rng.below(d.len() - 7) };
+                let v = EXTREMES[rng.below(EXTREMES.len())];
+                let w = if rng.below(2) == 0 { 8 } else { 4 };
+                d[i..i + w].copy_from_slice(&v.to_le_bytes()[..w]);
+            }
+            _ => d.clear(),
+        }
+    }
+    d
+}
+
+const TOKENS: [&str; 12] = ["-1", "0", "1e308", "-1e308", "NaN", "inf", "18446744073709551616", "4294967296", "x", "", "{", "\"a\""];
+
+fn mutate_text(rng: &mut Rng, text: &str) -> String {
+    let mut toks: Vec<String> = text.split_inclusive(|c: char| c.is_whitespace() || c == ',' || c == ':').map(str::to_string).collect();
+    for _ in 0..1 + rng.below(3) {
+        if toks.is_empty() {
+            break;
+        }
+        let i = rng.below(toks.len());
+        match rng.below(4) {
+            0 => toks[i] = format!("{} ", TOKENS[rng.below(TOKENS.len())]),
+            1 => {
+                toks.remove(i);
+            }
+            2 => {
+                let t = toks[i].clone();
+                toks.insert(i, t);
+            }
+            _ => toks.truncate(i),
+        }
+    }
+    toks.concat()
+}
+
+/// Runs `read` on each mutated file; panics are collected and reported with the case that caused them.
+fn fuzz(name: &str, seed_file: &Path, n: usize, mutate: impl Fn(&mut Rng, &[u8]) -> Vec<u8>, read: impl Fn(&Path) -> bool) {
+    let dir = tempfile::tempdir().unwrap();
+    let original = std::fs::read(seed_file).unwrap();
+    let mut rng = Rng(seed() ^ name.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| (h ^ b as u64).wrapping_mul(0x100_0000_01b3)));
+    let target = dir.path().join(seed_file.file_name().unwrap());
+    let (mut ok, mut errors, mut panics) = (0, 0, Vec::new());
+    let t0 = Instant::now();
+    for case in 0..n {
+        let bytes = mutate(&mut rng, &original);
+        std::fs::write(&target, &bytes).unwrap();
+        let t = Instant::now();
+        match std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| read(&target))) {
+            Ok(true) => ok += 1,
+            Ok(false) => errors += 1,
+            Err(_) => {
+                let keep = dir.path().join(format!("panic-{case}"));
+                std::fs::copy(&target, &keep).unwrap();
+                panics.push(case);
+            }
+        }
+        assert!(t.elapsed() < Duration::from_secs(2), "{name} case {case} took {:?}", t.elapsed());
+    }
+    eprintln!("{name}: {n} cases ({ok} read, {errors} refused) in {:.1} s, seed {}", t0.elapsed().as_secs_f64(), seed());
+    if !panics.is_empty() {
+        let kept = dir.keep();
+        panic!("{name}: {} case(s) panicked: {:?}; inputs kept in {}", panics.len(), &panics[..panics.len().min(10)], kept.display());
+    }
+}
+
+/// Offsets of the 8-byte count fields of a COLMAP `images.bin` (the image count, each image's point count) and of
+/// a `cameras.bin` (the camera count, each width and height), where a crafted file puts its absurd values.
+fn count_fields(data: &[u8], images: bool) -> Vec<usize> {
+    let u64_at = |i: usize| data.get(i..i + 8).map(|b| u64::from_le_bytes(b.try_into().unwrap()));
+    let mut out = vec![0];
+    let mut pos = 8;
+    for _ in 0..u64_at(0).unwrap_or(0) {
+        if images {
+            pos += 4 + 32 + 24 + 4;
+            let Some(end) = data.get(pos..).and_then(|r| r.iter().position(|&b| b == 0)) else { break };
+            pos += end + 1;
+            out.push(pos);
+            pos += 8 + 24 * u64_at(pos).unwrap_or(0) as usize;
+        } else {
+            let params = match data.get(pos + 4..pos + 8).map(|b| i32::from_le_bytes(b.try_into().unwrap())) {
+                Some(0) => 3,
+                Some(1) | Some(2) => 4,
+                Some(3) => 5,
+                Some(4) => 8,
+                _ => break,
+            };
+            out.extend([pos + 8, pos + 16]);
+            pos += 24 + 8 * params;
+        }
+    }
+    out
+}
+
+/// [`mutate_binary`], or (a third of the cases) one count field set to an extreme value.
+fn mutate_colmap(images: bool) -> impl Fn(&mut Rng, &[u8]) -> Vec<u8> {
+    move |rng, data| {
+        let fields = count_fields(data, images);
+        if rng.below(3) > 0 {
+            return mutate_binary(rng, data);
+        }
+        let mut d = data.to_vec();
+        let at = fields[rng.below(fields.len())];
+        if at + 8 <= d.len() {
+            d[at..at + 8].copy_from_slice(&EXTREMES[rng.below(EXTREMES.len())].to_le_bytes());
+        }
+        d
+    }
+}
+
+#[test]
+fn colmap_binary_models() {
+    let sparse = root().join("assets/woodbox/sparse/0");
+    fuzz("cameras.bin", &sparse.join("cameras.bin"), cases(1500), mutate_colmap(false), |p| mvsplat360_dataset::colmap::read_cameras_bin(p).is_ok());
+    fuzz("images.bin", &sparse.join("images.bin"), cases(1500), mutate_colmap(true), |p| mvsplat360_dataset::colmap::read_images_bin(p).is_ok());
+}
+
+#[test]
+fn colmap_text_models() {
+    let sparse = root().join("assets/woodbox/sparse_txt/0");
+    let text = |r: &mut Rng, b: &[u8]| mutate_text(r, &String::from_utf8_lossy(b)).into_bytes();
+    fuzz("cameras.txt", &sparse.join("cameras.txt"), cases(1500), text, |p| mvsplat360_dataset::colmap::read_cameras_txt(p).is_ok());
+    fuzz("images.txt", &sparse.join("images.txt"), cases(1500), text, |p| mvsplat360_dataset::colmap::read_images_txt(p).is_ok());
+}
+
+#[test]
+fn transforms_json_scenes() {
+    // The scene folder: the mutated transforms.json beside a link to the bundled images.
+    let dir = tempfile::tempdir().unwrap();
+    std::os::unix::fs::symlink(root().join("assets/woodbox/images"), dir.path().join("images")).unwrap();
+    let seed_file = root().join("assets/woodbox/transforms.json");
+    let scene = dir.path().join("transforms.json");
+    let text = |r: &mut Rng, b: &[u8]| mutate_text(r, &String::from_utf8_lossy(b)).into_bytes();
+    let original = std::fs::read(&seed_file).unwrap();
+    let mut rng = Rng(seed());
+    let mut panics = vec![];
+    let n = cases(1500);
+    for case in 0..n {
+        std::fs::write(&scene, text(&mut rng, &original)).unwrap();
+        if std::panic::catch_unwind(|| mvsplat360_dataset::read_scene(dir.path()).map(|s| s.validate())).is_err() {
+            panics.push(case);
+        }
+    }
+    assert!(panics.is_empty(), "transforms.json: cases {panics:?} panicked (seed {})", seed());
+}
+
+/// A `.torch` archive with one entry (the pickle half the time, else a tensor's storage or an image) mutated and
+/// the archive written again, so that the mutation reaches the unpickler and the tensor readers, not only the
+/// zip's checksums.
+fn mutate_chunk(rng: &mut Rng, data: &[u8]) -> Vec<u8> {
+    use std::io::{Read, Write};
+    let mut zin = zip::ZipArchive::new(std::io::Cursor::new(data)).unwrap();
+    let names: Vec<String> = zin.file_names().map(|n| n.unwrap().into_owned()).collect();
+    let pkl = names.iter().position(|n| n.ends_with("data.pkl")).unwrap();
+    let pick = if rng.below(2) == 0 { pkl } else { rng.below(names.len()) };
+    let mut out = zip::ZipWriter::new(std::io::Cursor::new(Vec::new()));
+    let opts = zip::write::SimpleFileOptions::default().compression_method(zip::CompressionMethod::Stored);
+    for (k, name) in names.iter().enumerate() {
+        let mut bytes = Vec::new();
+        zin.by_name(name).unwrap().read_to_end(&mut bytes).unwrap();
+        if k == pick {
+            bytes = mutate_binary(rng, &bytes);
+        }
+        out.start_file(name.clone(), opts).unwrap();
+        out.write_all(&bytes).unwrap();
+    }
+    out.finish().unwrap().into_inner()
+}
+
+#[test]
+fn torch_chunks() {
+    let chunk = root().join("crates/dataset/tests/data/chunk/000000.torch");
+    fuzz("000000.torch", &chunk, cases(400), mutate_chunk, |p| {
+        mvsplat360_dataset::torch_chunk::read_chunk(p).is_ok_and(|scenes| scenes.into_iter().all(|s| s.into_scene(p).is_ok()))
+    });
+}
