@@ -41,8 +41,9 @@ struct Archive<'a> {
 impl Archive<'_> {
     /// Raw little-endian bytes of a pickled tensor (contiguous tensors only, as torch.save writes them here).
     fn tensor_bytes(&mut self, obj: Object, what: &str) -> Result<(DType, Vec<usize>, Vec<u8>), DatasetError> {
-        let info = obj
-            .into_tensor_info(Object::Unicode(what.to_string()), &self.dir)
+        // candle's tensor rebuild indexes the pickled tuples unchecked: a malformed one panics (tests/fuzz.rs).
+        let info = crate::guard::catch_quietly(|| obj.into_tensor_info(Object::Unicode(what.to_string()), &self.dir))
+            .map_err(|msg| bad(self.path, format!("{what}: malformed tensor record ({msg})")))?
             .map_err(|e| bad(self.path, format!("{what}: {e}")))?
             .ok_or_else(|| bad(self.path, format!("{what}: expected a tensor")))?;
         if !info.layout.is_contiguous() {
@@ -50,14 +51,17 @@ impl Archive<'_> {
         }
         if !self.cache.contains_key(&info.path) {
             let mut entry = self.zip.by_name(&info.path).map_err(|e| bad(self.path, format!("{what}: storage {} missing: {e}", info.path)))?;
-            let mut buf = Vec::with_capacity(entry.size() as usize);
+            // The size is the archive's claim: never reserve more than the file holds.
+            let file_len = std::fs::metadata(self.path).map(|m| m.len()).unwrap_or(0);
+            let mut buf = Vec::with_capacity(entry.size().min(file_len) as usize);
             entry.read_to_end(&mut buf).map_err(|e| io(self.path, e))?;
             self.cache.insert(info.path.clone(), buf);
         }
         let storage = &self.cache[&info.path];
         let start = info.layout.start_offset();
-        let len = info.layout.shape().elem_count() * info.dtype.size_in_bytes();
-        let bytes = storage.get(start..start + len).ok_or_else(|| bad(self.path, format!("{what}: storage {} is shorter than the tensor", info.path)))?;
+        let short = || bad(self.path, format!("{what}: storage {} is shorter than the tensor", info.path));
+        let len = info.layout.dims().iter().try_fold(info.dtype.size_in_bytes(), |a, &d| a.checked_mul(d)).ok_or_else(short)?;
+        let bytes = storage.get(start..start.checked_add(len).ok_or_else(short)?).ok_or_else(short)?;
         Ok((info.dtype, info.layout.dims().to_vec(), bytes.to_vec()))
     }
 }

@@ -231,3 +231,14 @@ fn torch_chunks() {
         mvsplat360_dataset::torch_chunk::read_chunk(p).is_ok_and(|scenes| scenes.into_iter().all(|s| s.into_scene(p).is_ok()))
     });
 }
+
+/// The inputs the hunts found panicking (tests/data/fuzz/README.md): each is now one clear refusal.
+#[test]
+fn found_cases_are_refused() {
+    for (file, says) in [("long1-over-8-bytes.torch", "malformed pickle"), ("short-storage-tuple.torch", "malformed tensor record")] {
+        let p = root().join("crates/dataset/tests/data/fuzz").join(file);
+        let e = mvsplat360_dataset::torch_chunk::read_chunk(&p).and_then(|v| v.into_iter().map(|s| s.into_scene(&p)).collect::<Result<Vec<_>, _>>());
+        let e = e.err().map(|e| e.to_string()).unwrap_or_default();
+        assert!(e.contains(says) && e.contains(file), "{file}: {e}");
+    }
+}

@@ -179,7 +179,7 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
     // Every loss is divided by all micro-batches of the step, over all ranks (Lightning's 1/k times DDP's mean).
     let denom = (accum as usize * world) as f64;
     let save = |adam: &Adam, step: u64, secs: f64| -> Result<()> {
-        let state = State { step, seed: cfg.train.seed, config: config_text.clone(), train_seconds: secs };
+        let state = State { step, seed: cfg.train.seed, config: config_text.clone(), train_seconds: secs, files: Default::default() };
         checkpoint::save(&out, &state, &model.state_dict()?, &adam.state_tensors()?, cfg.train.keep_checkpoints)?;
         Ok(())
     };
