@@ -21,6 +21,10 @@ pub struct State {
     pub config: String,
     /// Seconds of training so far (all sessions).
     pub train_seconds: f64,
+    /// Ranks the run had when this was written: the global batch is `world × train.accumulate` (absent in
+    /// checkpoints of earlier versions: not checked).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub world: Option<u64>,
     /// File name → SHA-256 (hex) of the tensor files (absent in checkpoints of earlier versions: not checked).
     #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
     pub files: std::collections::BTreeMap<String, String>,
@@ -220,12 +224,25 @@ impl RunLock {
             match std::fs::OpenOptions::new().write(true).create_new(true).open(&path) {
                 Ok(mut f) => {
                     use std::io::Write;
-                    writeln!(f, "{}", std::process::id()).map_err(|e| TrainError::Write { path: path.clone(), msg: e.to_string() })?;
+                    let me = mvsplat360_dataset::atomic::host_name();
+                    writeln!(f, "{} {me}", std::process::id()).map_err(|e| TrainError::Write { path: path.clone(), msg: e.to_string() })?;
                     return Ok(Self { path });
                 }
                 Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
-                    let owner = std::fs::read_to_string(&path).ok().and_then(|s| s.trim().parse::<u32>().ok());
-                    if let Some(pid) = owner.filter(|&p| process_alive(p)) {
+                    // `PID HOST` (an older lock holds the pid only: this host's).
+                    let text = std::fs::read_to_string(&path).unwrap_or_default();
+                    let mut parts = text.split_whitespace();
+                    let pid = parts.next().and_then(|s| s.parse::<u32>().ok());
+                    let host = parts.next().map(str::to_string).unwrap_or_else(mvsplat360_dataset::atomic::host_name);
+                    if host != mvsplat360_dataset::atomic::host_name() {
+                        return Err(TrainError::Checkpoint(format!(
+                            "{}: a training run on {host} (process {}) holds this folder; its state cannot be seen from here — \
+                             wait for it, or delete the file if that run is gone",
+                            path.display(),
+                            pid.map_or("?".into(), |p| p.to_string())
+                        )));
+                    }
+                    if let Some(pid) = pid.filter(|&p| process_alive(p)) {
                         return Err(TrainError::Checkpoint(format!(
                             "{}: another training run (process {pid}) is writing to this folder; wait for it, stop it, or \
                              choose another `train.out` (delete the file if process {pid} is not a training run)",
@@ -258,7 +275,7 @@ mod tests {
     use super::*;
 
     fn state(step: u64) -> State {
-        State { step, seed: 7, config: "x = 1".into(), train_seconds: 1.0, files: Default::default() }
+        State { step, seed: 7, config: "x = 1".into(), train_seconds: 1.0, world: Some(1), files: Default::default() }
     }
 
     fn tensors(v: f32) -> Vec<(String, Tensor)> {
@@ -303,6 +320,23 @@ mod tests {
         }
         let e = load_latest(d.path()).err().unwrap().to_string();
         assert!(e.contains("every checkpoint") && e.contains("step-0000001") && e.contains("step-0000002"), "{e}");
+    }
+
+    #[test]
+    fn the_run_lock_names_its_host() {
+        let d = tempfile::tempdir().unwrap();
+        let lock = RunLock::acquire(d.path()).unwrap();
+        let text = std::fs::read_to_string(d.path().join("train.lock")).unwrap();
+        assert_eq!(text.trim(), format!("{} {}", std::process::id(), mvsplat360_dataset::atomic::host_name()));
+        assert!(RunLock::acquire(d.path()).err().unwrap().to_string().contains("another training run"));
+        drop(lock);
+        // Held on another machine: refused, naming it (its process cannot be checked from here).
+        std::fs::write(d.path().join("train.lock"), "12 node-b\n").unwrap();
+        let e = RunLock::acquire(d.path()).err().unwrap().to_string();
+        assert!(e.contains("on node-b (process 12)"), "{e}");
+        // A dead process on this machine (an old pid-only lock too): taken over.
+        std::fs::write(d.path().join("train.lock"), "4294967295\n").unwrap();
+        assert!(RunLock::acquire(d.path()).is_ok());
     }
 
     #[test]

@@ -157,6 +157,15 @@ fn resume_refuses_a_changed_config_and_fresh_runs_refuse_old_checkpoints() {
     assert!(e.contains("different config"), "steps differ, so the configs differ: {e}");
     let s = mvsplat360_train::run(&cfg, &RunOptions { resume: true, ..Default::default() }, &Quiet).unwrap();
     assert_eq!(s.steps, 2);
+    // Written by 2 ranks (a global batch of 2 × accumulate): resuming on 1 is refused unless asked for.
+    let mut v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&state).unwrap()).unwrap();
+    assert_eq!(v["world"], 1, "the checkpoint records its world size");
+    v["world"] = 2.into();
+    std::fs::write(&state, v.to_string()).unwrap();
+    let e = mvsplat360_train::run(&cfg, &RunOptions { resume: true, ..Default::default() }, &Quiet).unwrap_err().to_string();
+    assert!(e.contains("written by 2 rank(s)") && e.contains("--world-size 2") && e.contains("--allow-world-change"), "{e}");
+    let s = mvsplat360_train::run(&cfg, &RunOptions { resume: true, allow_world_change: true, ..Default::default() }, &Quiet).unwrap();
+    assert_eq!(s.steps, 2);
 }
 
 /// A `.torch` chunk source (the committed two-scene test chunk) streams scenes into training.

@@ -25,6 +25,10 @@ pub struct Args {
     /// Continue from the newest checkpoint in the config's `train.out` (the same config is required).
     #[arg(long)]
     pub resume: bool,
+    /// With --resume: continue a checkpoint written with another --world-size; the global batch (world size ×
+    /// `train.accumulate` examples per step) changes from then on. Without it such a resume is refused.
+    #[arg(long, requires = "resume")]
+    pub allow_world_change: bool,
     /// Override `train.out`.
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -151,7 +155,7 @@ pub fn run(a: Args, quiet: bool) -> anyhow::Result<()> {
         pb
     });
     let mon = Bar { pb, stop, rank: rank_no };
-    let opts = RunOptions { resume: a.resume, weights_dir: a.weights_dir, device: a.device, dist: rank };
+    let opts = RunOptions { resume: a.resume, weights_dir: a.weights_dir, device: a.device, dist: rank, allow_world_change: a.allow_world_change };
     match mvsplat360_train::run(&cfg, &opts, &mon) {
         Ok(_) if rank_no > 0 => Ok(()),
         Ok(s) => {

@@ -16,6 +16,7 @@ fn main() {
         match a.as_str() {
             "--config" => config = args.next(),
             "--resume" => opts.resume = true,
+            "--allow-world-change" => opts.allow_world_change = true,
             "--export" => match args.next().as_deref().map(mvsplat360_train::checkpoint::parse_step) {
                 Some(Ok(s)) => export = Some(s),
                 Some(Err(e)) => {
@@ -60,7 +61,7 @@ fn main() {
             },
             "-h" | "--help" => {
                 println!(
-                    "usage: mvsplat360-train --config <toml> [--resume] [--weights-dir DIR] [--device cpu|cuda|cuda:N] \
+                    "usage: mvsplat360-train --config <toml> [--resume [--allow-world-change]] [--weights-dir DIR] [--device cpu|cuda|cuda:N] \
                      [--world-size N] [--dist-backend auto|host|nccl]\n       mvsplat360-train --config <toml> --export STEP|latest \
                      [--export-to DIR]   (a checkpoint as a model folder, default <train.out>/model-STEP)"
                 );

@@ -65,6 +65,8 @@ pub struct RunOptions {
     pub device: DeviceSpec,
     /// This process's rank in a data-parallel run ([`crate::dist::launch`]); None = a single process.
     pub dist: Option<crate::dist::Rank>,
+    /// Resume a checkpoint written with another world size (the global batch changes from then on).
+    pub allow_world_change: bool,
 }
 
 #[derive(Debug, Clone)]
@@ -131,6 +133,21 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
                     ck.path.display()
                 )));
             }
+            if let Some(w) = ck.state.world.filter(|&w| w != world as u64) {
+                let k = cfg.train.accumulate as u64;
+                let what = format!(
+                    "{} was written by {w} rank(s): {} examples per step ({w} × train.accumulate {k}); this run has {world}: {} per step",
+                    ck.path.display(),
+                    w * k,
+                    world as u64 * k
+                );
+                if !opts.allow_world_change {
+                    return Err(TrainError::Checkpoint(format!(
+                        "{what}; resume with --world-size {w}, or pass --allow-world-change to continue with the new batch"
+                    )));
+                }
+                mon.note(&format!("{what}; continuing with the new batch (--allow-world-change)"));
+            }
             model.load_state_dict(&ck.model)?;
             adam.load_state(&ck.optim)?;
             start = ck.state.step;
@@ -179,7 +196,8 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
     // Every loss is divided by all micro-batches of the step, over all ranks (Lightning's 1/k times DDP's mean).
     let denom = (accum as usize * world) as f64;
     let save = |adam: &Adam, step: u64, secs: f64| -> Result<()> {
-        let state = State { step, seed: cfg.train.seed, config: config_text.clone(), train_seconds: secs, files: Default::default() };
+        let state =
+            State { step, seed: cfg.train.seed, config: config_text.clone(), train_seconds: secs, world: Some(world as u64), files: Default::default() };
         checkpoint::save(&out, &state, &model.state_dict()?, &adam.state_tensors()?, cfg.train.keep_checkpoints)?;
         Ok(())
     };
