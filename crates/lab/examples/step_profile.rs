@@ -25,7 +25,7 @@ fn main() -> anyhow::Result<()> {
     for it in 0..3 {
         let mut rng = rand::rngs::StdRng::seed_from_u64(it);
         let t = Instant::now();
-        let scene = src.draw(&mut rng)?;
+        let scene = src.draw(&mut rng, cfg.train.seed, it)?;
         let ex = make_example(&scene, &s, cfg.model.near, cfg.model.far, &mut rng)?.expect("example");
         let t_data = t.elapsed().as_secs_f64();
         let t = Instant::now();

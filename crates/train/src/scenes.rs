@@ -54,8 +54,10 @@ impl SceneSource {
         Ok(Self { kind, pre, cache: HashMap::new() })
     }
 
-    /// A random scene of this source.
-    pub fn draw(&mut self, rng: &mut impl Rng) -> Result<TrainScene> {
+    /// A random scene of this source for training step `step` (`seed`: the run's). The chunk a `chunks` source
+    /// reads is a function of `(seed, step)` alone, not of what this process read before, so a resumed run and
+    /// every rank read the chunk an uninterrupted single process would.
+    pub fn draw(&mut self, rng: &mut impl Rng, seed: u64, step: u64) -> Result<TrainScene> {
         match &mut self.kind {
             Kind::Procedural { count, seed, views, width, height } => {
                 let s = *seed + rng.gen_range(0..*count);
@@ -75,10 +77,9 @@ impl SceneSource {
                 Ok(s)
             }
             Kind::Chunks { files, loaded } => {
-                // Stream: stay on one chunk for a while, as the official loader iterates chunk by chunk.
-                let switch = loaded.as_ref().is_none_or(|_| rng.gen_bool(0.05));
-                if switch {
-                    let f = rng.gen_range(0..files.len());
+                // Stream: stay on one chunk for CHUNK_STEPS steps, as the official loader iterates chunk by chunk.
+                let f = chunk_of_step(seed, step, files.len());
+                if loaded.as_ref().is_none_or(|(g, _)| *g != f) {
                     let scenes = mvsplat360_dataset::torch_chunk::read_chunk(&files[f])
                         .map_err(|e| TrainError::Data(format!("{}: {e}", files[f].display())))?
                         .into_iter()
@@ -96,6 +97,19 @@ impl SceneSource {
             }
         }
     }
+}
+
+/// Training steps spent on one chunk of a `chunks` source before the next is drawn.
+pub const CHUNK_STEPS: u64 = 20;
+
+/// The chunk (of `n`) a `chunks` source reads at `step`: a fresh uniform draw every [`CHUNK_STEPS`] steps,
+/// seeded by `(seed, step / CHUNK_STEPS)` (splitmix64).
+pub fn chunk_of_step(seed: u64, step: u64, n: usize) -> usize {
+    let mut z = seed ^ (step / CHUNK_STEPS).wrapping_mul(0x9e37_79b9_7f4a_7c15) ^ 0xc4ce_b9fe_1a85_ec53;
+    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    z ^= z >> 31;
+    (z % n.max(1) as u64) as usize
 }
 
 /// Preprocess every view to the training size.

@@ -195,7 +195,7 @@ fn depth_targets_agree_across_views() {
     let mut src = mvsplat360_train::scenes::SceneSource::open(&cfg.data.sources[0], cfg.model.width, cfg.model.height, 64).unwrap();
     for flip in [false, true] {
         let mut rng = rand::rngs::StdRng::seed_from_u64(4);
-        let mut scene = src.draw(&mut rng).unwrap();
+        let mut scene = src.draw(&mut rng, 0, 0).unwrap();
         // The same scene in units 3× smaller, so that the example's rescaling to model units is exercised.
         for c in &mut scene.cameras {
             for row in c.c2w.iter_mut().take(3) {

@@ -29,8 +29,11 @@ fn tiny_config_loss_decreases() {
     assert!(!dir.path().join("train.lock").exists(), "a finished run leaves no lock");
 }
 
-fn write_config(dir: &std::path::Path, out: &std::path::Path) -> std::path::PathBuf {
-    let cfg = common::tiny_config(out, 10, "");
+fn write_config(dir: &std::path::Path, out: &std::path::Path, sources: Option<Vec<mvsplat360_train::config::Source>>) -> std::path::PathBuf {
+    let mut cfg = common::tiny_config(out, 10, "");
+    if let Some(s) = sources {
+        cfg.data.sources = s;
+    }
     let p = dir.join("cfg.toml");
     std::fs::write(&p, cfg.to_toml()).unwrap();
     p
@@ -38,17 +41,33 @@ fn write_config(dir: &std::path::Path, out: &std::path::Path) -> std::path::Path
 
 #[test]
 fn killed_and_resumed_run_matches_uninterrupted() {
+    kill_and_resume(None);
+}
+
+/// The same from `.torch` chunks (a folder of two): the chunk read at each step does not depend on what the
+/// process read before, so the resumed run reads what the uninterrupted one did.
+#[test]
+fn killed_and_resumed_chunk_run_matches_uninterrupted() {
+    let dir = tempfile::tempdir().unwrap();
+    let chunk = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../dataset/tests/data/chunk/000000.torch");
+    for name in ["000000.torch", "000001.torch"] {
+        std::fs::copy(&chunk, dir.path().join(name)).unwrap();
+    }
+    kill_and_resume(Some(vec![mvsplat360_train::config::Source::Chunks { path: dir.path().to_path_buf() }]));
+}
+
+fn kill_and_resume(sources: Option<Vec<mvsplat360_train::config::Source>>) {
     let bin = env!("CARGO_BIN_EXE_mvsplat360-train");
     let dir = tempfile::tempdir().unwrap();
     let (a, b) = (dir.path().join("a"), dir.path().join("b"));
-    let ca = write_config(dir.path(), &a);
+    let ca = write_config(dir.path(), &a, sources.clone());
     let st = Command::new(bin).args(["--config", ca.to_str().unwrap()]).stdout(Stdio::null()).status().unwrap();
     assert!(st.success());
     let full = log::read(&a.join("log.jsonl")).unwrap();
     assert_eq!(full.len(), 10);
 
     std::fs::create_dir_all(dir.path().join("kb")).unwrap();
-    let cb = write_config(&dir.path().join("kb"), &b);
+    let cb = write_config(&dir.path().join("kb"), &b, sources);
     let mut child = Command::new(bin).args(["--config", cb.to_str().unwrap()]).stdout(Stdio::null()).stderr(Stdio::null()).spawn().unwrap();
     // Kill between checkpoints (after step 5 is logged; the last checkpoint is step 4).
     let t0 = Instant::now();
@@ -178,7 +197,7 @@ fn chunk_source_trains() {
     let mut rng = rand::rngs::StdRng::seed_from_u64(0);
     let keys: Vec<String> = mvsplat360_dataset::torch_chunk::read_chunk(&chunk).unwrap().into_iter().map(|c| c.key).collect();
     for _ in 0..3 {
-        let scene = s.draw(&mut rng).unwrap();
+        let scene = s.draw(&mut rng, 0, 0).unwrap();
         assert!(keys.iter().any(|k| scene.name.contains(k.as_str())), "{} not among {keys:?}", scene.name);
         assert!(scene.images.iter().all(|im| (im.width, im.height) == (64, 64)));
         assert_eq!(scene.images.len(), scene.cameras.len());
@@ -256,7 +275,7 @@ fn second_run_on_a_live_folder_is_refused_and_a_killed_runs_lock_taken_over() {
     let bin = env!("CARGO_BIN_EXE_mvsplat360-train");
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("o");
-    let cfg = write_config(dir.path(), &out);
+    let cfg = write_config(dir.path(), &out, None);
     let mut child = Command::new(bin).args(["--config", cfg.to_str().unwrap()]).stdout(Stdio::null()).stderr(Stdio::null()).spawn().unwrap();
     let lock = out.join("train.lock");
     let t0 = Instant::now();
@@ -271,7 +290,7 @@ fn second_run_on_a_live_folder_is_refused_and_a_killed_runs_lock_taken_over() {
     child.wait().unwrap();
     assert!(lock.is_file(), "SIGKILL runs no clean-up: the lock stays");
     let taken = mvsplat360_train::checkpoint::RunLock::acquire(&out).expect("a killed run's lock is taken over");
-    assert_eq!(std::fs::read_to_string(&lock).unwrap().trim(), std::process::id().to_string());
+    assert_eq!(std::fs::read_to_string(&lock).unwrap().trim(), format!("{} {}", std::process::id(), mvsplat360_dataset::atomic::host_name()));
     drop(taken);
     assert!(!lock.exists(), "the lock is removed when its run ends");
 }

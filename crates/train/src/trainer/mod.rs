@@ -218,7 +218,7 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
         let global = |micro: u32| rank as u32 * accum + micro;
         for micro in 0..accum {
             let mut rng = step_rng(cfg.train.seed, step, global(micro));
-            examples.push(draw_example(&mut sources, &weights, wsum, &settings, cfg, &mut rng)?.to_device(&dev)?);
+            examples.push(draw_example(&mut sources, &weights, wsum, &settings, cfg, step, &mut rng)?.to_device(&dev)?);
         }
         let train_encoder = adam.params.iter().any(|p| p.name.starts_with("encoder."));
         let micro_step = |micro: u32, ex: &Example| -> Result<MicroResult> {
@@ -399,7 +399,16 @@ struct MicroResult {
     grads: Vec<Option<Tensor>>,
 }
 
-fn draw_example(sources: &mut [SceneSource], weights: &[f64], wsum: f64, s: &SamplerSettings, cfg: &TrainConfig, rng: &mut impl Rng) -> Result<Example> {
+#[allow(clippy::too_many_arguments)]
+fn draw_example(
+    sources: &mut [SceneSource],
+    weights: &[f64],
+    wsum: f64,
+    s: &SamplerSettings,
+    cfg: &TrainConfig,
+    step: u64,
+    rng: &mut impl Rng,
+) -> Result<Example> {
     for _ in 0..20 {
         let mut u = rng.gen_range(0.0..wsum);
         let mut k = 0;
@@ -407,7 +416,7 @@ fn draw_example(sources: &mut [SceneSource], weights: &[f64], wsum: f64, s: &Sam
             u -= weights[k];
             k += 1;
         }
-        let scene = sources[k].draw(rng)?;
+        let scene = sources[k].draw(rng, cfg.train.seed, step)?;
         if let Some(ex) = make_example(&scene, s, cfg.model.near, cfg.model.far, rng)? {
             return Ok(ex);
         }

@@ -49,7 +49,7 @@ pub fn example(cfg: &TrainConfig, seed: u64, num_target: usize, flip: bool) -> m
     use rand::SeedableRng;
     let mut src = mvsplat360_train::scenes::SceneSource::open(&cfg.data.sources[0], cfg.model.width, cfg.model.height, 64).unwrap();
     let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
-    let scene = src.draw(&mut rng).unwrap();
+    let scene = src.draw(&mut rng, 0, 0).unwrap();
     let s = mvsplat360_train::sampler::SamplerSettings { num_context: 3, num_target, gap: None, gap_initial: None, warm_up: 0.0, closed_loop: true, flip };
     mvsplat360_train::trainer::make_example(&scene, &s, cfg.model.near, cfg.model.far, &mut rng).unwrap().unwrap()
 }
