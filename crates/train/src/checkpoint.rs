@@ -49,7 +49,7 @@ pub fn save(out: &Path, state: &State, model: &[(String, Tensor)], optim: &[(Str
         let bytes: usize = model.iter().chain(optim).map(|(_, t)| t.elem_count() * t.dtype().size_in_bytes()).sum();
         return Err(match e {
             TrainError::Write { path, msg } => {
-                TrainError::Write { path, msg: format!("{msg} (the checkpoint needs about {:.2} GB on that disk; nothing of it was kept)", bytes as f64 / 1e9) }
+                TrainError::Write { path, msg: format!("{msg} (the checkpoint needs about {} on that disk; nothing of it was kept)", human_bytes(bytes)) }
             }
             other => other,
         });
@@ -68,6 +68,17 @@ pub fn save(out: &Path, state: &State, model: &[(String, Tensor)], optim: &[(Str
         }
     }
     Ok(fin)
+}
+
+fn human_bytes(n: usize) -> String {
+    let n = n as f64;
+    if n >= 1e9 {
+        format!("{:.2} GB", n / 1e9)
+    } else if n >= 1e6 {
+        format!("{:.1} MB", n / 1e6)
+    } else {
+        format!("{:.0} KB", (n / 1e3).ceil())
+    }
 }
 
 fn write_tmp(root: &Path, tmp: &Path, state: &State, model: &[(String, Tensor)], optim: &[(String, Tensor)]) -> Result<()> {
@@ -345,7 +356,7 @@ mod tests {
         // `checkpoints` is a file: the save cannot create its folder.
         std::fs::write(d.path().join("checkpoints"), b"").unwrap();
         let e = save(d.path(), &state(1), &tensors(1.0), &tensors(0.1), 3).unwrap_err().to_string();
-        assert!(e.contains("needs about 0.00 GB"), "{e}");
+        assert!(e.contains("needs about 9 KB"), "{e}");
         assert_eq!(std::fs::read_dir(d.path()).unwrap().count(), 1);
     }
 }
