@@ -9,9 +9,13 @@ use std::process::Command;
 
 const SCRIPT: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../../scripts/slurm/eval.sbatch");
 
+/// Written by a child `sh`, not by this process: a write descriptor held here could leak into a process that
+/// another test thread forks at that moment, and executing the file would then fail with ETXTBSY.
 fn write_exe(path: &Path, text: &str) {
-    std::fs::write(path, text).unwrap();
-    Command::new("chmod").arg("+x").arg(path).status().unwrap();
+    use std::io::Write;
+    let mut c = Command::new("sh").args(["-c", r#"cat > "$1" && chmod +x "$1""#, "sh"]).arg(path).stdin(std::process::Stdio::piped()).spawn().unwrap();
+    c.stdin.take().unwrap().write_all(text.as_bytes()).unwrap();
+    assert!(c.wait().unwrap().success());
 }
 
 #[test]
