@@ -45,6 +45,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             "views": scene.len(),
             "width": c0.width,
             "height": c0.height,
+            "sizes": cams.iter().map(|c| [c.width, c.height]).collect::<Vec<_>>(),
             "shared_intrinsics": shared,
             "intrinsics": cams.iter().map(|c| [c.fx, c.fy, c.cx, c.cy]).collect::<Vec<_>>(),
             "view_names": scene.view_names,
@@ -60,7 +61,20 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     println!("scene      {} ({})", scene.name, args.scene.display());
     println!("views      {}", scene.len());
-    println!("image      {}x{}", c0.width, c0.height);
+    // Views may differ in size (photos from several cameras): every distinct size, with its view count.
+    let mut sizes: Vec<((u32, u32), usize)> = Vec::new();
+    for c in cams {
+        match sizes.iter_mut().find(|(s, _)| *s == (c.width, c.height)) {
+            Some((_, n)) => *n += 1,
+            None => sizes.push(((c.width, c.height), 1)),
+        }
+    }
+    if sizes.len() == 1 {
+        println!("image      {}x{}", c0.width, c0.height);
+    } else {
+        let list: Vec<String> = sizes.iter().map(|((w, h), n)| format!("{w}x{h} ({n} views)")).collect();
+        println!("image      sizes differ: {}", list.join(", "));
+    }
     println!(
         "intrinsics fx {:.2} fy {:.2} cx {:.2} cy {:.2}{}",
         c0.fx,
