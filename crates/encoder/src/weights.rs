@@ -95,10 +95,15 @@ impl Checkpoint {
                 Ok(Self { path, store: Store::Safetensors(st), shapes })
             }
             CheckpointFormat::TorchZip => {
-                let has_state_dict = candle_core::pickle::PthTensors::new(&path, Some("state_dict"));
-                let pth = match has_state_dict {
+                // candle's unpickler can panic on a crafted pickle (crates/dataset/tests/fuzz.rs found two ways):
+                // such a file is refused like any other malformed one.
+                let guarded = |key: Option<&str>| {
+                    mvsplat360_dataset::guard::catch_quietly(|| candle_core::pickle::PthTensors::new(&path, key))
+                        .map_err(|msg| WeightsError::Format { path: path.clone(), msg: format!("malformed pickle ({msg})") })
+                };
+                let pth = match guarded(Some("state_dict"))? {
                     Ok(p) if !p.tensor_infos().is_empty() => p,
-                    _ => candle_core::pickle::PthTensors::new(&path, None).map_err(fmt_err)?,
+                    _ => guarded(None)?.map_err(fmt_err)?,
                 };
                 let shapes = pth.tensor_infos().iter().map(|(k, ti)| (k.clone(), (ti.layout.dims().to_vec(), ti.dtype))).collect();
                 Ok(Self { path, store: Store::Torch(pth), shapes })
@@ -130,7 +135,10 @@ impl Checkpoint {
         let terr = |msg: String| WeightsError::Tensor { path: self.path.clone(), key: key.to_string(), msg };
         match &self.store {
             Store::Safetensors(st) => st.load(key, device).map_err(|e| terr(e.to_string())),
-            Store::Torch(p) => match p.get(key).map_err(|e| terr(e.to_string()))? {
+            Store::Torch(p) => match mvsplat360_dataset::guard::catch_quietly(|| p.get(key))
+                .map_err(|m| terr(format!("malformed tensor record ({m})")))?
+                .map_err(|e| terr(e.to_string()))?
+            {
                 Some(t) => t.to_device(device).map_err(|e| terr(e.to_string())),
                 None => Err(terr("not in the file".into())),
             },

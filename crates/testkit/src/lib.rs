@@ -3,6 +3,8 @@
 //! Fixtures live in `$MVSPLAT360_FIXTURES`, default `<repo root>/../shared/fixtures`.
 //! A missing folder is a test failure with a message saying where we looked, never a silent pass.
 
+pub mod mutate;
+
 use std::collections::HashMap;
 use std::path::PathBuf;
 
