@@ -278,7 +278,7 @@ impl Drop for RunLock {
 
 /// Whether a process with this id runs (Linux: /proc; elsewhere a lock is always treated as stale).
 fn process_alive(pid: u32) -> bool {
-    cfg!(target_os = "linux") && Path::new(&format!("/proc/{pid}")).exists()
+    cfg!(target_os = "linux") && mvsplat360_dataset::atomic::process_alive(pid)
 }
 
 #[cfg(test)]
