@@ -874,27 +874,9 @@ pub fn run(req: &EvalRequest, progress: &dyn Progress) -> Result<EvalSummary> {
             None => true,
         });
     }
+    // A merge renders nothing: scenes without a record are reported, and no tables are written.
+    let incomplete: Vec<String> = if req.merge_only { to_render.drain(..).map(|i| plans[i].key.clone()).collect() } else { Vec::new() };
     let total_render = to_render.len();
-    if req.merge_only && total_render > 0 {
-        let incomplete = to_render.iter().map(|&i| plans[i].key.clone()).collect();
-        let seconds = t_all.elapsed().as_secs_f64();
-        return Ok(EvalSummary {
-            out: out.clone(),
-            selected,
-            null_entries,
-            rendered,
-            rescored,
-            resumed,
-            missing,
-            skipped_fov: Vec::new(),
-            images: 0,
-            methods: Vec::new(),
-            warnings,
-            seconds,
-            incomplete,
-            failed,
-        });
-    }
     // Render: each scene under its lease (see `lease`), so that processes sharing --out render it once; scenes
     // another live process holds are waited for, and taken over when their owner dies.
     let leases = lease::Leases::new(&out.join(SCENES_DIR));
@@ -978,8 +960,8 @@ pub fn run(req: &EvalRequest, progress: &dyn Progress) -> Result<EvalSummary> {
         leases.release(&plan.key);
     }
     drop(leases);
-    if req.shard.is_some() {
-        // A rank: its scenes' records are on disk; the launcher aggregates.
+    if req.shard.is_some() || !incomplete.is_empty() {
+        // A rank (its scenes' records are on disk; the launcher or the last rank aggregates), or an incomplete merge.
         let seconds = t_all.elapsed().as_secs_f64();
         let images = records.iter().flatten().map(|r| r.scored.len()).sum();
         return Ok(EvalSummary {
@@ -995,7 +977,7 @@ pub fn run(req: &EvalRequest, progress: &dyn Progress) -> Result<EvalSummary> {
             methods: Vec::new(),
             warnings,
             seconds,
-            incomplete: Vec::new(),
+            incomplete,
             failed,
         });
     }
