@@ -184,9 +184,7 @@ pub fn read_report(scene: &Path) -> Option<PoseReport> {
 
 fn write_json<T: Serialize>(path: &Path, v: &T) -> Result<(), PoseError> {
     let text = serde_json::to_string_pretty(v).map_err(|e| PoseError::io(path, std::io::Error::other(e)))?;
-    let tmp = path.with_extension("json.tmp");
-    std::fs::write(&tmp, text + "\n").map_err(|e| PoseError::io(&tmp, e))?;
-    std::fs::rename(&tmp, path).map_err(|e| PoseError::io(path, e))
+    mvsplat360_dataset::atomic::write_atomic(path, |tmp| std::fs::write(tmp, text + "\n")).map_err(|e| PoseError::io(path, e))
 }
 
 fn remove_if_exists(p: &Path) -> Result<(), PoseError> {
