@@ -104,16 +104,19 @@ fn gpu_training_run() {
 #[test]
 #[ignore = "needs a CUDA GPU and NCCL: cargo test --features nccl -- --include-ignored"]
 fn nccl_world_size_one_equals_a_single_process() {
-    use mvsplat360_train::dist::{Link, Rank};
+    use mvsplat360_pipeline::launch::{Launcher, Place};
+    use mvsplat360_train::dist::{Backend, Rank};
     let dir = tempfile::tempdir().unwrap();
     let run = |name: &str, dist: Option<Rank>| {
         let cfg = common::tiny_config(&dir.path().join(name), 3, "depth_weight = 0.1");
-        mvsplat360_train::run(&cfg, &RunOptions { device: DeviceSpec::Cuda(0), dist, ..Default::default() }, &Quiet).unwrap();
+        mvsplat360_train::run(&cfg, &RunOptions { device: DeviceSpec::Cuda(0), dist, dist_backend: Backend::Nccl, ..Default::default() }, &Quiet).unwrap();
         log::read(&dir.path().join(name).join("log.jsonl")).unwrap()
     };
     let single = run("single", None);
-    let id = mvsplat360_train::dist::nccl_unique_id().unwrap();
-    let dp = run("nccl", Some(Rank { rank: 0, world: 1, link: Link::NcclId(id) }));
+    // Rank 0 of one: it makes the NCCL id at its rendezvous, which nobody else joins.
+    let place = Place { rank: 0, world: 1, local_rank: 0, local_world: Some(1), launcher: Launcher::Project };
+    let rank = Rank { rank: 0, world: 1, place, rendezvous: "127.0.0.1:0".into(), timeout: std::time::Duration::from_secs(60) };
+    let dp = run("nccl", Some(rank));
     assert_eq!(dp.len(), 3);
     for (a, b) in single.iter().zip(&dp) {
         println!("step {}: loss {:.7} vs {:.7}, grad norm {:.6} vs {:.6}", a.step, a.loss, b.loss, a.grad_norm, b.grad_norm);

@@ -44,11 +44,12 @@ pub struct Args {
     /// Data-parallel training over N processes (ranks), started by this command: one per GPU with `--device
     /// cuda` (GPUs N..N+world-1 for `cuda:N`), or sharing the cores on the CPU. Each rank draws its own
     /// micro-batches and gradients are summed every step, so a step equals one process with `accumulate` ×
-    /// N micro-batches. Rank 0 writes the log, checkpoints and model folder.
+    /// N micro-batches. Rank 0 writes the log, checkpoints and model folder. Under srun, torchrun or mpirun
+    /// each started process is a rank already: leave this out (README, Training on a cluster).
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..))]
     pub world_size: u64,
-    /// How the ranks sum gradients: `nccl` (GPUs; a build with `--features nccl`), `host` (over TCP through
-    /// this process, any device), or `auto` = nccl on GPUs, host on the CPU.
+    /// How the ranks sum gradients: `nccl` (GPUs; a build with `--features nccl`), `host` (a TCP ring through
+    /// host memory, any device), or `auto` = nccl on GPUs, host on the CPU. Every rank must be given the same.
     #[arg(long, default_value = "auto")]
     pub dist_backend: mvsplat360_train::dist::Backend,
     /// Instead of training, write the checkpoint of this step (or `latest`) in `train.out` as a model folder
@@ -119,6 +120,14 @@ pub fn run(a: Args, quiet: bool) -> anyhow::Result<()> {
         return Ok(());
     }
     let rank = mvsplat360_train::dist::Rank::from_env()?;
+    if let Some(r) = rank.as_ref().filter(|r| r.place.launcher != mvsplat360_pipeline::launch::Launcher::Project && a.world_size > 1) {
+        anyhow::bail!(
+            "--world-size {} under {} with {} ranks: each rank would start its own; give the ranks to one of them (drop --world-size, or start one task)",
+            a.world_size,
+            r.place.launcher.name(),
+            r.world
+        );
+    }
     let stop = Arc::new(AtomicBool::new(false));
     let s2 = stop.clone();
     if rank.is_some() {
@@ -155,7 +164,14 @@ pub fn run(a: Args, quiet: bool) -> anyhow::Result<()> {
         pb
     });
     let mon = Bar { pb, stop, rank: rank_no };
-    let opts = RunOptions { resume: a.resume, weights_dir: a.weights_dir, device: a.device, dist: rank, allow_world_change: a.allow_world_change };
+    let opts = RunOptions {
+        resume: a.resume,
+        weights_dir: a.weights_dir,
+        device: a.device,
+        dist: rank,
+        allow_world_change: a.allow_world_change,
+        dist_backend: a.dist_backend,
+    };
     match mvsplat360_train::run(&cfg, &opts, &mon) {
         Ok(_) if rank_no > 0 => Ok(()),
         Ok(s) => {

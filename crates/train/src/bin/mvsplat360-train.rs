@@ -100,6 +100,14 @@ fn main() {
             std::process::exit(2);
         }
     };
+    if let Some(r) = rank.as_ref().filter(|r| r.place.launcher != mvsplat360_pipeline::launch::Launcher::Project && world > 1) {
+        eprintln!(
+            "error: --world-size {world} under {} with {} ranks: each rank would start its own; drop --world-size, or start one task",
+            r.place.launcher.name(),
+            r.world
+        );
+        std::process::exit(2);
+    }
     let lines = Lines { stop: Arc::new(AtomicBool::new(false)), rank: rank.as_ref().map_or(0, |r| r.rank) };
     let stop = lines.stop.clone();
     // Background jobs are stopped with SIGTERM (and a shell's `&` ignores SIGINT): finish the step, checkpoint.
@@ -121,6 +129,7 @@ fn main() {
         return;
     }
     opts.dist = rank;
+    opts.dist_backend = backend;
     let result = mvsplat360_train::TrainConfig::from_file(config.as_ref()).and_then(|cfg| mvsplat360_train::run(&cfg, &opts, &lines));
     match result {
         Ok(s) if lines.rank > 0 => drop(s),

@@ -6,6 +6,8 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+use sha2::{Digest, Sha256};
+
 use candle_core::{DType, Device, IndexOp, Tensor, Var};
 use candle_nn::{VarBuilder, VarMap};
 use mvsplat360_camera::Camera;
@@ -67,6 +69,8 @@ pub struct RunOptions {
     pub dist: Option<crate::dist::Rank>,
     /// Resume a checkpoint written with another world size (the global batch changes from then on).
     pub allow_world_change: bool,
+    /// `--dist-backend` of a data-parallel run.
+    pub dist_backend: crate::dist::Backend,
 }
 
 #[derive(Debug, Clone)]
@@ -86,12 +90,20 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
     // Rank 0 owns the output folder: lock, log, plots, checkpoints, model folders.
     let main = rank == 0;
     let _lock = if main { Some(checkpoint::RunLock::acquire(&out)?) } else { None };
-    let dev = match opts.device {
-        DeviceSpec::Cuda(n) => DeviceSpec::Cuda(n + rank),
-        d => d,
+    let dev = match &opts.dist {
+        Some(r) => r.device(opts.device)?,
+        None => opts.device,
     }
     .open()?;
-    let mut coll = opts.dist.as_ref().map(|r| crate::dist::connect(r, &dev)).transpose()?;
+    let config_text = cfg.to_toml();
+    let mut coll = match &opts.dist {
+        Some(r) => {
+            let backend = opts.dist_backend.resolve(dev.is_cuda())?;
+            let fingerprint = u64::from_le_bytes(Sha256::digest(config_text.as_bytes())[..8].try_into().expect("8 bytes"));
+            Some(crate::dist::connect(r, backend, fingerprint, &dev)?)
+        }
+        None => None,
+    };
     let model = Model::new_on(cfg, &dev)?;
     let multiple = cfg.model.encoder.image_multiple() as u32;
     let mut sources = cfg.data.sources.iter().map(|s| SceneSource::open(s, cfg.model.width, cfg.model.height, multiple)).collect::<Result<Vec<_>>>()?;
@@ -121,7 +133,6 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
     }
     let mut adam = Adam::new(params)?;
     let sched = OneCycle::new(cfg.train.lr, cfg.train.steps, cfg.train.pct_start);
-    let config_text = cfg.to_toml();
 
     let mut start = 0u64;
     let mut train_seconds = 0.0;
@@ -165,6 +176,14 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
     if start == 0 && main {
         // The step-0 model, for before/after comparisons.
         mvsplat360_pipeline::model::write_model_dir(&out.join("model-step0"), &model.model_config(), &model.model_tensors()?)?;
+    }
+    if let Some(c) = coll.as_mut() {
+        let (words, _) = weights_digest(&model, start)?;
+        crate::dist::check_agreement(
+            c.as_mut(),
+            &words,
+            &format!("the step and weights they start from (rank 0: step {start}; to resume, every rank must read the same checkpoint in `train.out`, a folder all machines share)"),
+        )?;
     }
     let log_path = out.join("log.jsonl");
     let mut records = Vec::new();
@@ -372,13 +391,23 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
         }
         mon.step(&rec, cfg.train.steps);
         let stop = stop_all.unwrap_or_else(|| mon.should_stop());
-        if main && (step % cfg.train.checkpoint_every == 0 || step == cfg.train.steps || stop) {
-            save(&adam, step, train_seconds)?;
-            let _ = crate::log::plot(&records, &out.join("loss.png"));
+        if step % cfg.train.checkpoint_every == 0 || step == cfg.train.steps || stop {
+            if let Some(c) = coll.as_mut() {
+                let (words, _) = weights_digest(&model, step)?;
+                crate::dist::check_agreement(c.as_mut(), &words, &format!("their weights after step {step} (a nondeterministic step?)"))?;
+            }
+            if main {
+                save(&adam, step, train_seconds)?;
+                let _ = crate::log::plot(&records, &out.join("loss.png"));
+            }
         }
         if stop {
             return Err(TrainError::Interrupted);
         }
+    }
+    if coll.is_some() && main {
+        let (_, hex) = weights_digest(&model, step)?;
+        mon.note(&format!("the {world} ranks' weights are identical (SHA-256 {})", &hex[..16]));
     }
     let model_dir = out.join("model");
     if main {
@@ -386,6 +415,25 @@ pub fn run(cfg: &TrainConfig, opts: &RunOptions, mon: &dyn Monitor) -> Result<Su
         let _ = crate::log::plot(&records, &out.join("loss.png"));
     }
     Ok(Summary { steps: step, last: records.last().cloned(), model_dir, train_seconds, lpips: lpips.is_some() })
+}
+
+/// The step and a SHA-256 of every trained weight (by name), as 32-bit words for [`crate::dist::check_agreement`],
+/// and the hash in hex.
+fn weights_digest(model: &Model, step: u64) -> Result<(Vec<u32>, String)> {
+    let mut vars = model.vars();
+    vars.sort_by(|a, b| a.0.cmp(&b.0));
+    let mut h = Sha256::new();
+    for (name, var) in &vars {
+        h.update(name.as_bytes());
+        let v: Vec<f32> = var.as_tensor().flatten_all()?.to_dtype(DType::F32)?.to_device(&Device::Cpu)?.to_vec1()?;
+        for x in v {
+            h.update(x.to_le_bytes());
+        }
+    }
+    let d = h.finalize();
+    let mut words = vec![step as u32, (step >> 32) as u32];
+    words.extend(d.chunks_exact(4).map(|c| u32::from_le_bytes(c.try_into().expect("4 bytes"))));
+    Ok((words, d.iter().map(|b| format!("{b:02x}")).collect()))
 }
 
 struct MicroResult {
