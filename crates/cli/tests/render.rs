@@ -291,3 +291,72 @@ fn the_model_folder_decides_the_scene_scale() {
     println!("5x units, --scene-scale none: {other:.1} dB from the original units' frames");
     assert!(other < 30.0, "--scene-scale none on 5× units: {other:.1} dB from the original frames, expected a different picture");
 }
+
+/// Files outside `.render/` (the transaction's own folder), by relative path, with their bytes.
+fn run_files(out: &Path) -> std::collections::BTreeMap<String, Vec<u8>> {
+    files(out)
+        .into_iter()
+        .filter_map(|p| {
+            let rel = p.strip_prefix(out).unwrap().to_string_lossy().into_owned();
+            (!rel.starts_with(".render")).then(|| (rel, std::fs::read(&p).unwrap()))
+        })
+        .collect()
+}
+
+/// A render killed (SIGKILL) during refinement leaves the previous render in `--out` byte for byte; `--resume`
+/// keeps the refined windows it finished and gives the frames of an uninterrupted run; `run.json` lists every
+/// file of the run with its SHA-256, and nothing else is there.
+#[test]
+fn a_killed_render_keeps_the_previous_one_and_resumes_to_the_same_frames() {
+    let tmp = tempfile::tempdir().unwrap();
+    let m = tiny_model(tmp.path());
+    let (out, reference) = (tmp.path().join("out"), tmp.path().join("ref"));
+    const WINDOWS: usize = 8;
+    let render = |dir: &Path, seed: &str, extra: &[&str]| {
+        let mut c = bin();
+        c.arg("render").arg(root().join("assets/woodbox")).arg("--ckpt").arg(&m);
+        c.args(["--orbit", "8", "--window", "1", "--steps", "2", "--num-context", "3", "--no-metrics", "--seed", seed, "--out"]).arg(dir).args(extra);
+        c
+    };
+    let ok = |mut c: Command| {
+        let o = c.output().unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        String::from_utf8_lossy(&o.stderr).into_owned()
+    };
+    ok(render(&out, "1", &["--no-video"]));
+    let previous = run_files(&out);
+    ok(render(&reference, "2", &[]));
+
+    let mut child = render(&out, "2", &[]).stdout(Stdio::null()).stderr(Stdio::null()).spawn().unwrap();
+    let windows = out.join(".render/resume/windows");
+    let count = || std::fs::read_dir(&windows).map(|d| d.flatten().filter(|e| e.path().extension().is_some_and(|x| x == "safetensors")).count()).unwrap_or(0);
+    let t = Instant::now();
+    while count() < 1 {
+        assert!(t.elapsed() < Duration::from_secs(120), "no refined window was saved");
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    child.kill().unwrap();
+    child.wait().unwrap();
+    let done = count();
+    assert!(done < WINDOWS, "the render finished refining before the kill ({done} windows): nothing left to resume");
+    assert!(run_files(&out) == previous, "the killed render changed the previous one");
+
+    let said = ok(render(&out, "2", &["--resume"]));
+    assert!(said.contains(&format!("keeping the {done} refined window(s)")), "{said}");
+    let (got, want) = (run_files(&out), run_files(&reference));
+    let frames = |m: &std::collections::BTreeMap<String, Vec<u8>>| {
+        m.iter().filter(|(k, _)| k.starts_with("frames/")).map(|(k, v)| (k.clone(), v.clone())).collect::<Vec<_>>()
+    };
+    assert_eq!(frames(&got).len(), 3 * WINDOWS, "gsplat, refined and final frames");
+    assert!(frames(&got) == frames(&want), "the resumed render's frames differ from an uninterrupted run's");
+    assert_eq!(got["video.mp4"], want["video.mp4"]);
+    // run.json names exactly the files there (the first render's are gone), each with its hash.
+    let run: serde_json::Value = serde_json::from_slice(&got["run.json"]).unwrap();
+    let listed = run["files"].as_object().unwrap();
+    let present: Vec<&String> = got.keys().filter(|k| *k != "run.json").collect();
+    assert_eq!(listed.keys().collect::<Vec<_>>(), present);
+    for (k, h) in listed {
+        assert_eq!(h.as_str().unwrap(), mvsplat360_dataset::atomic::sha256_file(&out.join(k)).unwrap(), "{k}");
+    }
+    assert!(!out.join(".render/resume").exists() && !out.join(".render/stage").exists());
+}

@@ -75,6 +75,78 @@ pub fn write_bytes_synced(path: &Path, bytes: &[u8]) -> io::Result<()> {
     })
 }
 
+/// The SHA-256 of a file's content, hex (streamed: any size).
+pub fn sha256_file(p: &Path) -> io::Result<String> {
+    use io::Read;
+    use sha2::Digest;
+    let mut f = std::fs::File::open(p)?;
+    let mut h = sha2::Sha256::new();
+    let mut buf = vec![0u8; 1 << 20];
+    loop {
+        let n = f.read(&mut buf)?;
+        if n == 0 {
+            break;
+        }
+        h.update(&buf[..n]);
+    }
+    Ok(h.finalize().iter().map(|b| format!("{b:02x}")).collect())
+}
+
+/// A lock file `PID HOST` created exclusively: one writer per folder (a training run, a render). Removed when
+/// dropped; a lock left by a dead process on this host is taken over; a live one's, or another host's (whose
+/// processes cannot be seen from here), is refused with a message naming the holder.
+#[derive(Debug)]
+pub struct DirLock {
+    path: PathBuf,
+}
+
+impl DirLock {
+    /// `what` names the writer in messages ("training run", "render"); `fix` says what else the user can do.
+    pub fn acquire(path: &Path, what: &str, fix: &str) -> Result<Self, String> {
+        for _ in 0..2 {
+            match std::fs::OpenOptions::new().write(true).create_new(true).open(path) {
+                Ok(mut f) => {
+                    use std::io::Write;
+                    writeln!(f, "{} {}", std::process::id(), host_name()).map_err(|e| format!("{}: {e}", path.display()))?;
+                    return Ok(Self { path: path.to_path_buf() });
+                }
+                Err(e) if e.kind() == io::ErrorKind::AlreadyExists => {
+                    // `PID HOST` (an older lock holds the pid only: this host's).
+                    let text = std::fs::read_to_string(path).unwrap_or_default();
+                    let mut parts = text.split_whitespace();
+                    let pid = parts.next().and_then(|s| s.parse::<u32>().ok());
+                    let host = parts.next().map(str::to_string).unwrap_or_else(host_name);
+                    if host != host_name() {
+                        return Err(format!(
+                            "{}: a {what} on {host} (process {}) holds this folder; its state cannot be seen from here — \
+                             wait for it, or delete the file if that {what} is gone",
+                            path.display(),
+                            pid.map_or("?".into(), |p| p.to_string())
+                        ));
+                    }
+                    if let Some(pid) = pid.filter(|&p| cfg!(target_os = "linux") && process_alive(p)) {
+                        return Err(format!(
+                            "{}: another {what} (process {pid}) is writing to this folder; wait for it, stop it, or {fix} \
+                             (delete the file if process {pid} is not a {what})",
+                            path.display()
+                        ));
+                    }
+                    // Left by a process that was killed: take it over.
+                    std::fs::remove_file(path).map_err(|e| format!("{}: {e}", path.display()))?;
+                }
+                Err(e) => return Err(format!("{}: {e}", path.display())),
+            }
+        }
+        Err(format!("{}: could not take the lock; retry", path.display()))
+    }
+}
+
+impl Drop for DirLock {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_file(&self.path);
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

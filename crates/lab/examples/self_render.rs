@@ -38,6 +38,7 @@ fn main() -> anyhow::Result<()> {
         video: false,
         fps: 8,
         out: std::env::temp_dir(),
+        resume: false,
     };
     let mut p = render::prepare(&req, &Silent)?;
     let ctx = p.choice.context.clone();

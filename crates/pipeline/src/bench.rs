@@ -95,6 +95,7 @@ pub fn run_scene_bench(o: &SceneBenchOpts) -> Result<serde_json::Value> {
             video: false,
             fps: 30,
             out: dir.join(format!("run{r}")),
+            resume: false,
         };
         let t = std::time::Instant::now();
         let s = pool.install(|| render::run(&req, &Silent))?;
@@ -268,6 +269,7 @@ pub fn run_fit_bench(o: &FitBenchOpts) -> Result<serde_json::Value> {
         video: false,
         fps: 30,
         out: std::env::temp_dir().join("mvsplat360-bench-fit-unused"),
+        resume: false,
     };
     let pool = rayon::ThreadPoolBuilder::new().num_threads(o.threads).build().map_err(|e| bad(e.to_string()))?;
     pool.install(|| {

@@ -62,6 +62,7 @@ pub fn protocol_prepared(scene: &Path, model: ModelArgs, num_context: usize, sce
         video: false,
         fps: 8,
         out: std::env::temp_dir(),
+        resume: false,
     };
     let mut p = render::prepare(&req, &Silent)?;
     let keep: Vec<usize> = (0..n).filter(|i| !p.choice.context.contains(i)).collect();

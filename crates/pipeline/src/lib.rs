@@ -20,6 +20,7 @@ pub mod progress;
 pub mod render;
 pub mod scale;
 pub mod setup;
+pub mod txn;
 pub mod video;
 pub mod views;
 

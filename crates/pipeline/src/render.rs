@@ -74,6 +74,8 @@ pub struct RenderRequest {
     pub video: bool,
     pub fps: u32,
     pub out: PathBuf,
+    /// Continue an interrupted render in `out`: its finished refined windows are kept (`render --resume`).
+    pub resume: bool,
 }
 
 /// What a finished run reports.
@@ -344,11 +346,12 @@ pub fn windows(n: usize, window: usize) -> Vec<(usize, usize)> {
 /// Refine all frames: windows of `s.window` frames (or one video-mode call), one initial noise reused;
 /// `weights` is the refiner safetensors ([`crate::model::refiner_safetensors`]). Frames are (3,H,W) in [0, 1].
 pub fn refine_frames(p: &Prepared, feats: &[Tensor], weights: &Path, s: &RefineSettings, progress: &dyn Progress) -> Result<Vec<Tensor>> {
-    refine_frames_timed(p, feats, weights, s, progress, &mut Vec::new())
+    refine_frames_timed(p, feats, weights, s, progress, &mut Vec::new(), None)
 }
 
 /// [`refine_frames`], adding the time of its parts to `times` (`refine.clip`, `refine.load`, `refine.sampling`,
-/// `refine.decode`).
+/// `refine.decode`). `saved_windows`: a folder where each window's frames are saved as it finishes and read back
+/// instead of refined again (a resumed render; not in video mode).
 pub fn refine_frames_timed(
     p: &Prepared,
     feats: &[Tensor],
@@ -356,6 +359,7 @@ pub fn refine_frames_timed(
     s: &RefineSettings,
     progress: &dyn Progress,
     times: &mut Vec<(String, f64)>,
+    saved_windows: Option<&Path>,
 ) -> Result<Vec<Tensor>> {
     let t = Instant::now();
     let ctx = clip_context(p, weights, progress)?;
@@ -384,7 +388,14 @@ pub fn refine_frames_timed(
         None => seeded_noise(s.seed, &shape, &p.device).map_err(compute("refiner"))?,
     };
     let mut out = Vec::with_capacity(n);
+    let saved_windows = saved_windows.filter(|_| !s.video_mode);
     for (start, len) in wins {
+        let saved = saved_windows.map(|d| crate::txn::window_file(d, start));
+        if let Some(frames) = saved.as_ref().and_then(|f| load_window(f, len, &p.device)) {
+            out.extend(frames);
+            progress.advance(s.steps as u64);
+            continue;
+        }
         let mut fr: Vec<&Tensor> = feats[start..start + len].iter().collect();
         while fr.len() < window {
             fr.push(fr[fr.len() - 1]);
@@ -400,14 +411,32 @@ pub fn refine_frames_timed(
         let frames = m.refiner.decode(&m.vae, &lat, window).map_err(compute("refiner (VAE decode)"))?;
         check_finite("refiner (VAE decode)", &frames)?;
         t_decode += t.elapsed().as_secs_f64();
+        let frames = frames.get(0).and_then(|f| f.narrow(0, 0, len)).map_err(compute("refiner"))?;
+        if let Some(f) = &saved {
+            // In the refiner's own dtype: read back, the frames are the same bits.
+            let host = frames.to_device(&Device::Cpu).and_then(|t| t.contiguous()).map_err(compute("refiner"))?;
+            crate::output::atomic_write(f, |tmp| {
+                candle_core::safetensors::save(&std::collections::HashMap::from([("frames".to_string(), host)]), tmp).map_err(|e| e.to_string())
+            })?;
+        }
         for i in 0..len {
-            out.push(frames.get(0).and_then(|f| f.get(i)).map_err(compute("refiner"))?);
+            out.push(frames.get(i).map_err(compute("refiner"))?);
         }
     }
     progress.end();
     times.push(("refine.sampling".into(), t_sample));
     times.push(("refine.decode".into(), t_decode));
     Ok(out)
+}
+
+/// A refined window saved by an interrupted render: its `len` frames, or None when unreadable (refined again).
+fn load_window(path: &Path, len: usize, dev: &Device) -> Option<Vec<Tensor>> {
+    let t = candle_core::safetensors::load(path, &Device::Cpu).ok()?.remove("frames")?;
+    if t.dims().first() != Some(&len) || t.dims().len() != 4 {
+        return None;
+    }
+    let t = t.to_device(dev).ok()?;
+    (0..len).map(|i| t.get(i).ok()).collect()
 }
 
 /// Colour-histogram matching of each refined frame to its 3DGS render, on 8-bit images as the official
@@ -460,6 +489,57 @@ fn fingerprint(p: &Prepared) -> String {
     format!("{h:016x}")
 }
 
+/// What this render is, for `--resume` ([`crate::txn::ResumeKey`]): input pixels and cameras, the model (its
+/// flags, description and the weight files' size and time), the settings, the targets, device and dtype.
+fn resume_key(req: &RenderRequest, p: &Prepared, refiner: Option<&Path>) -> crate::txn::ResumeKey {
+    let hash = |v: &serde_json::Value| {
+        let mut h: u64 = 0xcbf29ce484222325;
+        for &x in v.to_string().as_bytes() {
+            h ^= x as u64;
+            h = h.wrapping_mul(0x100000001b3);
+        }
+        format!("{h:016x}")
+    };
+    let file = |f: &Path| match std::fs::metadata(f) {
+        Ok(m) => {
+            json!([f.display().to_string(), m.len(), m.modified().ok().and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok()).map(|d| d.as_nanos() as u64)])
+        }
+        Err(_) => json!(f.display().to_string()),
+    };
+    let weights: Vec<serde_json::Value> = [req.model.ckpt.as_deref(), req.model.encoder.as_deref(), refiner].into_iter().flatten().map(file).collect();
+    let targets: Vec<serde_json::Value> = p.target_cameras.iter().map(|c| json!([c.c2w, c.fx, c.fy, c.cx, c.cy, c.width, c.height])).collect();
+    let noise = p.noise.as_ref().and_then(|n| n.flatten_all().and_then(|t| t.to_dtype(DType::F32)).and_then(|t| t.to_vec1::<f32>()).ok());
+    let settings = json!({
+        "refine": req.refine,
+        "fit": p.spec.fit,
+        "blend": p.spec.blend.as_ref().map(|(b, _)| b),
+        "preprocess": p.pre,
+        "scene_scale": p.scene_scale.0,
+        "noise": noise,
+    });
+    [
+        ("input", fingerprint(p)),
+        (
+            "model",
+            hash(&json!([
+                format!("{:?}", req.model.ckpt),
+                format!("{:?}", req.model.encoder),
+                format!("{:?}", req.model.refiner),
+                req.model.experiment,
+                p.spec.description,
+                weights
+            ])),
+        ),
+        ("settings", hash(&settings)),
+        ("targets", hash(&json!(targets))),
+        ("device", req.model.compute.device.to_string()),
+        ("dtype", p.refiner_dtype.as_str().to_string()),
+    ]
+    .into_iter()
+    .map(|(k, v)| (k.to_string(), v))
+    .collect()
+}
+
 /// The whole run. Outputs go to `req.out` (see the crate docs for the layout).
 pub fn run(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSummary> {
     let t_all = Instant::now();
@@ -476,18 +556,18 @@ pub fn run(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSummary
         Some((_, w)) => Some(crate::model::refiner_safetensors(w, &|m| progress.note(m))?),
         None => None,
     };
-    let dirs = ["gsplat", "blended", "refined", "final", "gt"];
-    for d in dirs {
-        // A re-run replaces the previous frames instead of mixing with them.
-        let _ = std::fs::remove_dir_all(out.join("frames").join(d));
+    // Everything goes to the transaction's stage; the run in `out` is replaced only when this one is complete.
+    let key = resume_key(req, &p, refine_file.as_deref());
+    let txn = crate::txn::Txn::begin(out, &key, req.resume, !req.refine.video_mode, &|m| progress.note(m))?;
+    if txn.resumed > 0 {
+        progress.note(&format!("--resume: keeping the {} refined window(s) the interrupted render finished", txn.resumed));
     }
-    for f in ["video.mp4", "compare.mp4", "metrics.json"] {
-        let _ = std::fs::remove_file(out.join(f));
-    }
+    let stage = txn.stage.clone();
+    let st = &stage;
     let mkdir = |d: &Path| std::fs::create_dir_all(d).map_err(|e| PipelineError::Write { path: d.to_path_buf(), msg: e.to_string() });
     times.push(("prepare".into(), t.elapsed().as_secs_f64()));
 
-    // Cameras first: the viewer and the user can see what will be rendered.
+    // Cameras first (in the stage, they describe what is being rendered).
     let mut cams = Vec::new();
     for (k, c) in p.context_cameras.iter().enumerate() {
         cams.push(camera_json(c, "context", Some(p.choice.context[k]), &p.scene));
@@ -496,7 +576,7 @@ pub fn run(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSummary
         cams.push(camera_json(c, "target", p.choice.targets[k].view, &p.scene));
     }
     write_json(
-        &out.join("cameras.json"),
+        &st.join("cameras.json"),
         &json!({
             "convention": "OpenCV camera-to-world (x right, y down, z forward), K in pixels",
             "scene_to_model": p.transform.to_json(),
@@ -517,9 +597,9 @@ pub fn run(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSummary
 
     let t = Instant::now();
     let eg = mvsplat360_splat::io::ExportGaussians::from_gaussians(&g).map_err(compute("export"))?;
-    output::atomic_write(&out.join("gaussians.ply"), |tmp| mvsplat360_splat::io::write_ply(tmp, &eg).map_err(|e| e.to_string()))?;
+    output::atomic_write(&st.join("gaussians.ply"), |tmp| mvsplat360_splat::io::write_ply(tmp, &eg).map_err(|e| e.to_string()))?;
     if req.splat {
-        output::atomic_write(&out.join("gaussians.splat"), |tmp| mvsplat360_splat::io::write_splat(tmp, &eg).map_err(|e| e.to_string()))?;
+        output::atomic_write(&st.join("gaussians.splat"), |tmp| mvsplat360_splat::io::write_splat(tmp, &eg).map_err(|e| e.to_string()))?;
     }
     drop(eg);
     times.push(("export".into(), t.elapsed().as_secs_f64()));
@@ -528,13 +608,13 @@ pub fn run(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSummary
     let (near, far) = (p.spec.encoder.near, p.spec.encoder.far);
     let renders = frames_3dgs(&p, &g, progress)?;
     drop(g);
-    let gs_dir = out.join("frames/gsplat");
+    let gs_dir = st.join("frames/gsplat");
     mkdir(&gs_dir)?;
     let mut gsplat = Vec::with_capacity(renders.len());
     let mut feats = Vec::with_capacity(renders.len());
     // The stage's output: the blender's frames when it ran (also in frames/blended), else the renders.
     let mut stage = Vec::with_capacity(renders.len());
-    let bd = out.join("frames/blended");
+    let bd = st.join("frames/blended");
     if renders.iter().any(|r| r.blended.is_some()) {
         mkdir(&bd)?;
     }
@@ -553,7 +633,7 @@ pub fn run(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSummary
     }
     let have_gt = p.target_photos.iter().any(|x| x.is_some());
     if have_gt {
-        let gt_dir = out.join("frames/gt");
+        let gt_dir = st.join("frames/gt");
         mkdir(&gt_dir)?;
         for (i, ph) in p.target_photos.iter().enumerate() {
             if let Some(img) = ph {
@@ -567,11 +647,11 @@ pub fn run(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSummary
         Some(wf) => {
             let t = Instant::now();
             let mut parts = Vec::new();
-            let refined = refine_frames_timed(&p, &feats, wf, &req.refine, progress, &mut parts)?;
+            let refined = refine_frames_timed(&p, &feats, wf, &req.refine, progress, &mut parts, txn.windows.as_deref())?;
             times.push(("refine".into(), t.elapsed().as_secs_f64()));
             times.extend(parts);
             let t = Instant::now();
-            let (rd, fd) = (out.join("frames/refined"), out.join("frames/final"));
+            let (rd, fd) = (st.join("frames/refined"), st.join("frames/final"));
             mkdir(&rd)?;
             mkdir(&fd)?;
             let mut finals = Vec::with_capacity(refined.len());
@@ -586,7 +666,7 @@ pub fn run(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSummary
             finals
         }
         None => {
-            let fd = out.join("frames/final");
+            let fd = st.join("frames/final");
             mkdir(&fd)?;
             for (i, img) in stage.iter().enumerate() {
                 write_png(&fd.join(frame_name(i)), img)?;
@@ -601,7 +681,7 @@ pub fn run(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSummary
         progress.begin("encoding video", 2);
         let frames: Vec<_> = final_frames.iter().map(output::video_frame).collect();
         let fps = req.fps;
-        output::atomic_write(&out.join("video.mp4"), |tmp| crate::video::write_mp4(tmp, &frames, fps).map_err(|e| e.to_string()))?;
+        output::atomic_write(&st.join("video.mp4"), |tmp| crate::video::write_mp4(tmp, &frames, fps).map_err(|e| e.to_string()))?;
         progress.advance(1);
         let compare: Vec<_> = (0..final_frames.len())
             .map(|i| {
@@ -613,7 +693,7 @@ pub fn run(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSummary
                 }
             })
             .collect();
-        output::atomic_write(&out.join("compare.mp4"), |tmp| crate::video::write_mp4(tmp, &compare, fps).map_err(|e| e.to_string()))?;
+        output::atomic_write(&st.join("compare.mp4"), |tmp| crate::video::write_mp4(tmp, &compare, fps).map_err(|e| e.to_string()))?;
         progress.advance(1);
         progress.end();
         times.push(("video".into(), t.elapsed().as_secs_f64()));
@@ -624,7 +704,7 @@ pub fn run(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSummary
         progress.begin("scoring", 0);
         let opts = mvsplat360_metrics::score::ScoreOptions { weights_dir: req.weights_dir.clone(), fid_variant: req.fid_variant, ..Default::default() };
         let score = |frames: &str| -> Result<serde_json::Value> {
-            let report = mvsplat360_metrics::score::score_dirs(&out.join("frames").join(frames), &out.join("frames/gt"), &opts).map_err(compute("metrics"))?;
+            let report = mvsplat360_metrics::score::score_dirs(&st.join("frames").join(frames), &st.join("frames/gt"), &opts).map_err(compute("metrics"))?;
             for w in &report.warnings {
                 progress.note(&format!("metrics ({frames}): {w}"));
             }
@@ -641,7 +721,7 @@ pub fn run(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSummary
             score("final")?
         };
         progress.end();
-        write_json(&out.join("metrics.json"), &metrics)?;
+        write_json(&st.join("metrics.json"), &metrics)?;
         times.push(("metrics".into(), t.elapsed().as_secs_f64()));
     }
     times.push(("total".into(), t_all.elapsed().as_secs_f64()));
@@ -679,7 +759,11 @@ pub fn run(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSummary
         "gaussians": n_gauss,
         "stage_seconds": times.iter().map(|(k, v)| (k.clone(), json!(v))).collect::<serde_json::Map<_, _>>(),
         "peak_mib": peak,
+        "resume_key": key,
+        // Every file of this run with its SHA-256: a folder holding files of two runs would show it.
+        "files": txn.hash_stage()?,
     });
-    write_json(&out.join("run.json"), &run)?;
+    write_json(&st.join("run.json"), &run)?;
+    txn.commit()?;
     Ok(RenderSummary { out: out.clone(), frames: final_frames.len(), gaussians: n_gauss, refined: refine_file.is_some(), stage_seconds: times, peak_mib: peak })
 }

@@ -139,6 +139,7 @@ fn render_one(m: &Path, out: &Path, no_blend: bool) -> (Vec<u8>, serde_json::Val
         video: false,
         fps: 8,
         out: out.to_path_buf(),
+        resume: false,
     };
     render::run(&req, &Silent).unwrap();
     let j: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("run.json")).unwrap()).unwrap();

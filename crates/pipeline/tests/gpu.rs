@@ -51,6 +51,7 @@ fn render_views(model_dir: &Path, out: &Path, compute: Compute, context: Vec<usi
         video: false,
         fps: 8,
         out: out.to_path_buf(),
+        resume: false,
     };
     render::run(&req, &Silent).unwrap();
 }

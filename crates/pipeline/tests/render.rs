@@ -39,6 +39,7 @@ fn request(model_dir: &Path, out: &Path, targets: TargetSpec) -> RenderRequest {
         video: true,
         fps: 8,
         out: out.to_path_buf(),
+        resume: false,
     }
 }
 

@@ -94,29 +94,13 @@ fn write_tmp(root: &Path, tmp: &Path, state: &State, model: &[(String, Tensor)],
         let p = tmp.join(name);
         candle_core::safetensors::save(&map, &p).map_err(|e| werr(&p, &e))?;
         std::fs::File::open(&p).and_then(|f| f.sync_all()).map_err(|e| werr(&p, &e))?;
-        state.files.insert(name.to_string(), sha256_file(&p).map_err(|e| werr(&p, &e))?);
+        state.files.insert(name.to_string(), mvsplat360_dataset::atomic::sha256_file(&p).map_err(|e| werr(&p, &e))?);
     }
     let js = serde_json::to_string_pretty(&state).map_err(|e| werr(tmp, &e))?;
     let sp = tmp.join("state.json");
     std::fs::write(&sp, js).and_then(|()| std::fs::File::open(&sp)?.sync_all()).map_err(|e| werr(&sp, &e))?;
     sync_dir(tmp);
     Ok(())
-}
-
-fn sha256_file(p: &Path) -> std::io::Result<String> {
-    use sha2::Digest;
-    use std::io::Read;
-    let mut f = std::fs::File::open(p)?;
-    let mut h = sha2::Sha256::new();
-    let mut buf = vec![0u8; 1 << 20];
-    loop {
-        let n = f.read(&mut buf)?;
-        if n == 0 {
-            break;
-        }
-        h.update(&buf[..n]);
-    }
-    Ok(h.finalize().iter().map(|b| format!("{b:02x}")).collect())
 }
 
 fn sync_dir(p: &Path) {
@@ -210,7 +194,7 @@ fn load(p: PathBuf) -> Result<Loaded> {
     let text = std::fs::read_to_string(p.join("state.json")).map_err(|e| cerr(&e))?;
     let state: State = serde_json::from_str(&text).map_err(|e| cerr(&e))?;
     for (name, want) in &state.files {
-        let got = sha256_file(&p.join(name)).map_err(|e| cerr(&format!("{name}: {e}")))?;
+        let got = mvsplat360_dataset::atomic::sha256_file(&p.join(name)).map_err(|e| cerr(&format!("{name}: {e}")))?;
         if &got != want {
             return Err(cerr(&format!("{name} does not match its SHA-256 in state.json (damaged or truncated)")));
         }
@@ -225,60 +209,15 @@ fn load(p: PathBuf) -> Result<Loaded> {
 /// `--resume` after SIGKILL works; a second run while the first is alive is refused instead of mixing two
 /// runs' checkpoints and logs.
 pub struct RunLock {
-    path: PathBuf,
+    _lock: mvsplat360_dataset::atomic::DirLock,
 }
 
 impl RunLock {
     pub fn acquire(out: &Path) -> Result<Self> {
-        let path = out.join("train.lock");
-        for _ in 0..2 {
-            match std::fs::OpenOptions::new().write(true).create_new(true).open(&path) {
-                Ok(mut f) => {
-                    use std::io::Write;
-                    let me = mvsplat360_dataset::atomic::host_name();
-                    writeln!(f, "{} {me}", std::process::id()).map_err(|e| TrainError::Write { path: path.clone(), msg: e.to_string() })?;
-                    return Ok(Self { path });
-                }
-                Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
-                    // `PID HOST` (an older lock holds the pid only: this host's).
-                    let text = std::fs::read_to_string(&path).unwrap_or_default();
-                    let mut parts = text.split_whitespace();
-                    let pid = parts.next().and_then(|s| s.parse::<u32>().ok());
-                    let host = parts.next().map(str::to_string).unwrap_or_else(mvsplat360_dataset::atomic::host_name);
-                    if host != mvsplat360_dataset::atomic::host_name() {
-                        return Err(TrainError::Checkpoint(format!(
-                            "{}: a training run on {host} (process {}) holds this folder; its state cannot be seen from here — \
-                             wait for it, or delete the file if that run is gone",
-                            path.display(),
-                            pid.map_or("?".into(), |p| p.to_string())
-                        )));
-                    }
-                    if let Some(pid) = pid.filter(|&p| process_alive(p)) {
-                        return Err(TrainError::Checkpoint(format!(
-                            "{}: another training run (process {pid}) is writing to this folder; wait for it, stop it, or \
-                             choose another `train.out` (delete the file if process {pid} is not a training run)",
-                            path.display()
-                        )));
-                    }
-                    // Left by a run that was killed: take it over.
-                    std::fs::remove_file(&path).map_err(|e| TrainError::Write { path: path.clone(), msg: e.to_string() })?;
-                }
-                Err(e) => return Err(TrainError::Write { path, msg: e.to_string() }),
-            }
-        }
-        Err(TrainError::Checkpoint(format!("{}: could not take the run lock; retry", path.display())))
+        mvsplat360_dataset::atomic::DirLock::acquire(&out.join("train.lock"), "training run", "choose another `train.out`")
+            .map(|l| Self { _lock: l })
+            .map_err(TrainError::Checkpoint)
     }
-}
-
-impl Drop for RunLock {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_file(&self.path);
-    }
-}
-
-/// Whether a process with this id runs (Linux: /proc; elsewhere a lock is always treated as stale).
-fn process_alive(pid: u32) -> bool {
-    cfg!(target_os = "linux") && mvsplat360_dataset::atomic::process_alive(pid)
 }
 
 #[cfg(test)]

@@ -57,6 +57,7 @@ pub fn run(a: Args, quiet: bool) -> anyhow::Result<()> {
         video: true,
         fps: 12,
         out: a.out.clone(),
+        resume: false,
     };
     super::progress::clean_partials_on_interrupt(&req.out);
     let bars = super::progress::Bars::new(quiet);

@@ -67,6 +67,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<()> {
         video: false,
         fps: 1,
         out: PathBuf::new(),
+        resume: false,
     };
     let bars = super::progress::Bars::new(quiet);
     let p = mvsplat360_pipeline::render::prepare(&req, &bars).with_context(|| format!("reading scene {}", args.scene.display()))?;

@@ -14,9 +14,16 @@ pub struct Args {
     /// a `.torch` chunk — or a video, or a folder of bare photos, which are first posed by COLMAP into
     /// OUT/scene (see `mvsplat360 pose`; reused while the input is unchanged).
     pub scene: PathBuf,
-    /// Output folder (created; a previous render there is replaced).
+    /// Output folder (created). A previous render there is replaced only when this one is complete: until then
+    /// it stays whole (the new one is written to OUT/.render/stage and swapped in at the end).
     #[arg(long, default_value = "out/render")]
     pub out: PathBuf,
+    /// Continue a render of the same scene, model, settings, targets, device and dtype into OUT that was
+    /// interrupted: the refined windows it finished are kept, the frames are the same as an uninterrupted
+    /// run's (another render there is refused, naming what differs). `--video-mode` refines in one call and
+    /// starts it again.
+    #[arg(long)]
+    pub resume: bool,
     #[command(flatten)]
     pub views: ContextArgs,
     /// Render at these views' cameras and sizes (sorted), e.g. `--targets 1,2,5`; their photos go to
@@ -132,6 +139,7 @@ pub fn request(a: &Args) -> RenderRequest {
         video: !a.no_video,
         fps: a.fps,
         out: a.out.clone(),
+        resume: a.resume,
     }
 }
 

@@ -32,6 +32,10 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
+    // A render swapped in halfway when it was killed: finish it, so the viewer shows one whole run.
+    if let Err(e) = mvsplat360_pipeline::txn::recover(&args.out_dir) {
+        eprintln!("warning: {}: a render was interrupted while being swapped in, and finishing it failed: {e}", args.out_dir.display());
+    }
     let out = mvsplat360_viewer::OutDir::open(&args.out_dir).context("cannot view this folder")?;
     if let Some(dest) = &args.static_dir {
         mvsplat360_viewer::write_static(&out, dest).context("cannot write the static site")?;
