@@ -2,8 +2,8 @@
 //! encoder → test-time fit → rasterizer (→ learned blender) → refiner → histogram matching, and the output writers.
 //!
 //! Output folder of a render: `gaussians.ply` (+ `gaussians.splat`), `frames/{gsplat,blended,refined,final,gt}/NNNN.png`,
-//! `video.mp4`, `compare.mp4` (gsplat | final | GT), `cameras.json`, `run.json`. Every file is written under a
-//! temporary name and renamed, so an interrupted run leaves only complete files.
+//! `video.mp4`, `compare.mp4` (gsplat | final | GT), `cameras.json`, `run.json`. A render is written to a stage
+//! and swapped in when complete ([`txn`]), so the folder holds one whole run, and `--resume` continues one.
 
 pub mod bench;
 pub mod blend;
