@@ -466,15 +466,21 @@ fn camera_json(c: &Camera, role: &str, view: Option<usize>, scene: &Scene) -> se
     })
 }
 
+const FNV_START: u64 = 0xcbf29ce484222325;
+
+/// FNV-1a of `b`, continuing from `h`.
+fn fnv1a(mut h: u64, b: &[u8]) -> u64 {
+    for &x in b {
+        h ^= x as u64;
+        h = h.wrapping_mul(0x100000001b3);
+    }
+    h
+}
+
 /// FNV-1a over the scene's camera data and image bytes' sizes and names (cheap, stable input fingerprint).
 fn fingerprint(p: &Prepared) -> String {
-    let mut h: u64 = 0xcbf29ce484222325;
-    let mut eat = |b: &[u8]| {
-        for &x in b {
-            h ^= x as u64;
-            h = h.wrapping_mul(0x100000001b3);
-        }
-    };
+    let mut h = FNV_START;
+    let mut eat = |b: &[u8]| h = fnv1a(h, b);
     for (i, c) in p.scene.cameras.iter().enumerate() {
         eat(p.scene.view_names[i].as_bytes());
         for v in c.c2w.iter().flatten().chain([c.fx, c.fy, c.cx, c.cy].iter()) {
@@ -492,14 +498,7 @@ fn fingerprint(p: &Prepared) -> String {
 /// What this render is, for `--resume` ([`crate::txn::ResumeKey`]): input pixels and cameras, the model (its
 /// flags, description and the weight files' size and time), the settings, the targets, device and dtype.
 fn resume_key(req: &RenderRequest, p: &Prepared, refiner: Option<&Path>) -> crate::txn::ResumeKey {
-    let hash = |v: &serde_json::Value| {
-        let mut h: u64 = 0xcbf29ce484222325;
-        for &x in v.to_string().as_bytes() {
-            h ^= x as u64;
-            h = h.wrapping_mul(0x100000001b3);
-        }
-        format!("{h:016x}")
-    };
+    let hash = |v: &serde_json::Value| format!("{:016x}", fnv1a(FNV_START, v.to_string().as_bytes()));
     let file = |f: &Path| match std::fs::metadata(f) {
         Ok(m) => {
             json!([f.display().to_string(), m.len(), m.modified().ok().and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok()).map(|d| d.as_nanos() as u64)])
