@@ -17,5 +17,5 @@ mod site;
 
 pub use error::{Result, ViewerError};
 pub use outdir::{Manifest, OutDir, FRAME_KINDS, REQUIRED_FILES};
-pub use server::{resolve, Resolved, Server};
+pub use server::{resolve, Limits, Resolved, Server};
 pub use site::{asset, write_static, ASSETS};

@@ -1,11 +1,13 @@
-//! The local server: GET/HEAD only, bound to 127.0.0.1, the page's assets from the binary and the render's files
-//! from an allow-list (the manifest) — a request can reach nothing else, whatever its encoding.
+//! The local server: GET/HEAD only, on 127.0.0.1 unless told otherwise, the page's assets from the binary and the
+//! render's files from an allow-list (the manifest) — a request can reach nothing else, whatever its encoding. A
+//! thread per connection, each with timeouts, so that no client can hold the others up.
 
-use std::io::{Read, Seek, SeekFrom};
+use std::io::{Read, Seek, SeekFrom, Write};
+use std::net::{Shutdown, TcpListener, TcpStream};
 use std::path::PathBuf;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
-
-use tiny_http::{Header, Method, Request, Response, StatusCode};
+use std::time::{Duration, Instant};
 
 use crate::error::{Result, ViewerError};
 use crate::outdir::OutDir;
@@ -74,29 +76,46 @@ fn content_type(name: &str) -> &'static str {
     }
 }
 
-fn header(k: &str, v: &str) -> Header {
-    Header::from_bytes(k.as_bytes(), v.as_bytes()).expect("header names and values built here are ASCII")
+/// A response: status, extra headers, and a body of known length.
+struct Reply {
+    status: u16,
+    headers: Vec<(&'static str, String)>,
+    body: Box<dyn Read + Send>,
+    len: u64,
 }
 
-type Reply = Response<Box<dyn Read + Send>>;
-
-fn reply(status: u16, ctype: &str, body: Box<dyn Read + Send>, len: u64, extra: Vec<Header>) -> Reply {
+fn reply(status: u16, ctype: &str, body: Box<dyn Read + Send>, len: u64, mut extra: Vec<(&'static str, String)>) -> Reply {
     let mut headers = vec![
-        header("Content-Type", ctype),
-        header("Cache-Control", "no-cache"),
-        header("X-Content-Type-Options", "nosniff"),
-        header("Referrer-Policy", "no-referrer"),
+        ("Content-Type", ctype.to_string()),
+        ("Cache-Control", "no-cache".into()),
+        ("X-Content-Type-Options", "nosniff".into()),
+        ("Referrer-Policy", "no-referrer".into()),
     ];
-    headers.extend(extra);
-    // The length is always known: send it as Content-Length (tiny_http would switch bodies over 32 KiB to chunked
-    // transfer), so the page can show how much of the Gaussians has arrived.
-    Response::new(StatusCode(status), headers, body, Some(len as usize), None).with_chunked_threshold(usize::MAX)
+    headers.append(&mut extra);
+    Reply { status, headers, body, len }
 }
 
 fn text(status: u16, msg: &str) -> Reply {
     let b = format!("{status} {msg}\n").into_bytes();
     let n = b.len() as u64;
     reply(status, "text/plain; charset=utf-8", Box::new(std::io::Cursor::new(b)), n, vec![])
+}
+
+fn reason(status: u16) -> &'static str {
+    match status {
+        200 => "OK",
+        206 => "Partial Content",
+        400 => "Bad Request",
+        403 => "Forbidden",
+        404 => "Not Found",
+        405 => "Method Not Allowed",
+        408 => "Request Timeout",
+        413 => "Content Too Large",
+        416 => "Range Not Satisfiable",
+        431 => "Request Header Fields Too Large",
+        503 => "Service Unavailable",
+        _ => "Internal Server Error",
+    }
 }
 
 /// `bytes=a-b`, `bytes=a-`, `bytes=-n` (one range; browsers ask for one when seeking in a video).
@@ -121,16 +140,16 @@ fn serve_file(path: &std::path::Path, range: Option<&str>) -> Reply {
     let ctype = content_type(&path.to_string_lossy());
     let Ok(mut f) = std::fs::File::open(path) else { return text(404, "not found") };
     let Ok(len) = f.metadata().map(|m| m.len()) else { return text(500, "cannot read file") };
-    let accept = header("Accept-Ranges", "bytes");
+    let accept = ("Accept-Ranges", "bytes".to_string());
     if let Some(r) = range {
         let Some((s, e)) = parse_range(r, len) else {
-            return reply(416, "text/plain", Box::new(std::io::empty()), 0, vec![header("Content-Range", &format!("bytes */{len}"))]);
+            return reply(416, "text/plain", Box::new(std::io::empty()), 0, vec![("Content-Range", format!("bytes */{len}"))]);
         };
         if f.seek(SeekFrom::Start(s)).is_err() {
             return text(500, "cannot read file");
         }
         let n = e - s + 1;
-        return reply(206, ctype, Box::new(f.take(n)), n, vec![accept, header("Content-Range", &format!("bytes {s}-{e}/{len}"))]);
+        return reply(206, ctype, Box::new(f.take(n)), n, vec![accept, ("Content-Range", format!("bytes {s}-{e}/{len}"))]);
     }
     reply(200, ctype, Box::new(f), len, vec![accept])
 }
@@ -175,15 +194,14 @@ impl HostPolicy {
 
     /// None when `req` may be answered, else the refusal.
     fn check(&self, req: &Request) -> Option<Reply> {
-        let get = |name: &str| req.headers().iter().find(|h| h.field.as_str().as_str().eq_ignore_ascii_case(name)).map(|h| h.value.as_str().to_string());
-        let Some(host) = get("Host") else { return Some(text(400, "no Host header")) };
-        if !self.accepts(&host) {
+        let Some(host) = req.header("Host") else { return Some(text(400, "no Host header")) };
+        if !self.accepts(host) {
             return Some(text(403, "this Host is not served (start `mvsplat360 view` with --allow-host NAME for a tunnel or proxy name)"));
         }
-        if get("Sec-Fetch-Site").is_some_and(|v| v.eq_ignore_ascii_case("cross-site")) {
+        if req.header("Sec-Fetch-Site").is_some_and(|v| v.eq_ignore_ascii_case("cross-site")) {
             return Some(text(403, "cross-site request refused"));
         }
-        if let Some(origin) = get("Origin") {
+        if let Some(origin) = req.header("Origin") {
             let o = origin.trim();
             let hostpart = o.strip_prefix("http://").or_else(|| o.strip_prefix("https://"));
             if !hostpart.is_some_and(|h| self.accepts(h.trim_end_matches('/'))) {
@@ -194,14 +212,39 @@ impl HostPolicy {
     }
 }
 
+/// A request's head, as parsed.
+struct Request {
+    method: String,
+    target: String,
+    /// HTTP/1.x minor version.
+    minor: u8,
+    headers: Vec<(String, String)>,
+}
+
+impl Request {
+    fn header(&self, name: &str) -> Option<&str> {
+        self.headers.iter().find(|(k, _)| k.eq_ignore_ascii_case(name)).map(|(_, v)| v.as_str())
+    }
+
+    /// Whether the client keeps the connection for another request.
+    fn keep_alive(&self) -> bool {
+        let conn = self.header("Connection").map(|v| v.to_ascii_lowercase()).unwrap_or_default();
+        if self.minor >= 1 {
+            !conn.contains("close")
+        } else {
+            conn.contains("keep-alive")
+        }
+    }
+}
+
 fn respond(out: &OutDir, policy: &HostPolicy, req: &Request) -> Reply {
     if let Some(refusal) = policy.check(req) {
         return refusal;
     }
-    if !matches!(req.method(), Method::Get | Method::Head) {
+    if req.method != "GET" && req.method != "HEAD" {
         return text(405, "method not allowed (read-only server)");
     }
-    match resolve(out, req.url()) {
+    match resolve(out, &req.target) {
         Resolved::Asset(name) => match asset(name) {
             Some((_, bytes)) => reply(200, content_type(name), Box::new(bytes), bytes.len() as u64, vec![]),
             None => text(404, "not found"),
@@ -213,20 +256,194 @@ fn respond(out: &OutDir, policy: &HostPolicy, req: &Request) -> Reply {
             }
             Err(_) => text(500, "cannot list the output folder"),
         },
-        Resolved::File(p) => {
-            let range = req.headers().iter().find(|h| h.field.equiv("Range")).map(|h| h.value.as_str().to_string());
-            serve_file(&p, range.as_deref())
-        }
+        Resolved::File(p) => serve_file(&p, req.header("Range")),
         Resolved::Refused(code, why) => text(code, why),
+    }
+}
+
+/// How long the server waits on a client before dropping it, and how many it holds at once.
+#[derive(Debug, Clone, Copy)]
+pub struct Limits {
+    /// From a request's first byte to the end of its head (slow senders).
+    pub head: Duration,
+    /// Between requests on a kept-alive connection, and before a new connection's first byte (idle clients).
+    pub idle: Duration,
+    /// Without any byte of a response taken by the client (stalled downloads).
+    pub write: Duration,
+    /// Connections served at once (one thread each); more are answered 503 and closed.
+    pub connections: usize,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Self { head: Duration::from_secs(10), idle: Duration::from_secs(15), write: Duration::from_secs(30), connections: 256 }
+    }
+}
+
+const MAX_HEAD: usize = 16 << 10;
+/// A request body the server reads and drops to keep the connection (it answers no request with a body).
+const MAX_DISCARD: u64 = 1 << 20;
+
+enum Head {
+    Request(Request, usize),
+    /// The client closed the connection or stayed silent: close without a word.
+    Gone,
+    /// Answer with this status, then close.
+    Refuse(u16, &'static str),
+}
+
+/// Read one request head into `buf` (which may already hold pipelined bytes): waiting at most `idle` for its
+/// first byte and `head` from there to its end.
+fn read_head(s: &mut TcpStream, buf: &mut Vec<u8>, lim: &Limits) -> Head {
+    let mut deadline = Instant::now() + if buf.is_empty() { lim.idle } else { lim.head };
+    let mut started = !buf.is_empty();
+    let mut chunk = [0u8; 4096];
+    loop {
+        if !buf.is_empty() {
+            let mut hs = [httparse::EMPTY_HEADER; 64];
+            let mut r = httparse::Request::new(&mut hs);
+            match r.parse(buf) {
+                Ok(httparse::Status::Complete(n)) => {
+                    let req = Request {
+                        method: r.method.unwrap_or("").to_string(),
+                        target: r.path.unwrap_or("").to_string(),
+                        minor: r.version.unwrap_or(1),
+                        headers: r.headers.iter().map(|h| (h.name.to_string(), String::from_utf8_lossy(h.value).into_owned())).collect(),
+                    };
+                    return Head::Request(req, n);
+                }
+                Ok(httparse::Status::Partial) if buf.len() < MAX_HEAD => {}
+                Ok(httparse::Status::Partial) | Err(httparse::Error::TooManyHeaders) => return Head::Refuse(431, "request head too large"),
+                Err(_) => return Head::Refuse(400, "malformed request"),
+            }
+        }
+        let left = deadline.saturating_duration_since(Instant::now());
+        if left.is_zero() {
+            return if started { Head::Refuse(408, "request head not received in time") } else { Head::Gone };
+        }
+        if s.set_read_timeout(Some(left)).is_err() {
+            return Head::Gone;
+        }
+        match s.read(&mut chunk) {
+            Ok(0) => return Head::Gone,
+            Ok(n) => {
+                if !started {
+                    started = true;
+                    deadline = Instant::now() + lim.head;
+                }
+                buf.extend_from_slice(&chunk[..n]);
+            }
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+            Err(e) if matches!(e.kind(), std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut) => {}
+            Err(_) => return Head::Gone,
+        }
+    }
+}
+
+/// Send `r`; false when the connection is no longer usable.
+fn send(s: &mut TcpStream, mut r: Reply, head_only: bool, keep: bool) -> bool {
+    let mut head = format!("HTTP/1.1 {} {}\r\n", r.status, reason(r.status));
+    for (k, v) in &r.headers {
+        head.push_str(&format!("{k}: {v}\r\n"));
+    }
+    // The length is always known, so the page can show how much of the Gaussians has arrived.
+    head.push_str(&format!("Content-Length: {}\r\n", r.len));
+    head.push_str(if keep { "Connection: keep-alive\r\n\r\n" } else { "Connection: close\r\n\r\n" });
+    if s.write_all(head.as_bytes()).is_err() {
+        return false;
+    }
+    if head_only {
+        return true;
+    }
+    // The write timeout bounds each write without progress, so a client that stops reading frees its thread.
+    let mut body = (&mut r.body).take(r.len);
+    matches!(std::io::copy(&mut body, s), Ok(n) if n == r.len)
+}
+
+/// Close after a refusal, letting the client read it: a close with unread input would reset the connection and
+/// could destroy the answer before the client saw it.
+fn linger_close(mut s: TcpStream) {
+    let _ = s.shutdown(Shutdown::Write);
+    let _ = s.set_read_timeout(Some(Duration::from_millis(500)));
+    let mut sink = [0u8; 4096];
+    let t0 = Instant::now();
+    while t0.elapsed() < Duration::from_secs(1) && matches!(s.read(&mut sink), Ok(n) if n > 0) {}
+}
+
+/// Drop a request body of `n` bytes (some of them already in `buf`); false when it cannot be done in time.
+fn discard_body(s: &mut TcpStream, buf: &mut Vec<u8>, n: u64, lim: &Limits) -> bool {
+    let have = (buf.len() as u64).min(n);
+    buf.drain(..have as usize);
+    let mut left = n - have;
+    let deadline = Instant::now() + lim.head;
+    let mut sink = [0u8; 4096];
+    while left > 0 {
+        let t = deadline.saturating_duration_since(Instant::now());
+        if t.is_zero() || s.set_read_timeout(Some(t)).is_err() {
+            return false;
+        }
+        match s.read(&mut sink[..left.min(4096) as usize]) {
+            Ok(0) | Err(_) => return false,
+            Ok(k) => left -= k as u64,
+        }
+    }
+    true
+}
+
+fn connection(mut s: TcpStream, out: &OutDir, policy: &HostPolicy, lim: &Limits) {
+    let _ = s.set_nodelay(true);
+    if s.set_write_timeout(Some(lim.write)).is_err() {
+        return;
+    }
+    let mut buf = Vec::new();
+    loop {
+        let (req, n) = match read_head(&mut s, &mut buf, lim) {
+            Head::Request(r, n) => (r, n),
+            Head::Gone => return,
+            Head::Refuse(code, why) => {
+                if send(&mut s, text(code, why), false, false) {
+                    linger_close(s);
+                }
+                return;
+            }
+        };
+        buf.drain(..n);
+        let body = match (req.header("Content-Length"), req.header("Transfer-Encoding")) {
+            (_, Some(_)) => None,
+            (Some(v), None) => v.trim().parse::<u64>().ok().filter(|&n| n <= MAX_DISCARD),
+            (None, None) => Some(0),
+        };
+        let keep = req.keep_alive() && body.is_some();
+        let r = respond(out, policy, &req);
+        if !send(&mut s, r, req.method == "HEAD", keep) {
+            return;
+        }
+        if !keep {
+            linger_close(s);
+            return;
+        }
+        if !discard_body(&mut s, &mut buf, body.unwrap_or(0), lim) {
+            return;
+        }
+    }
+}
+
+/// Counts a connection while its thread runs.
+struct Slot(Arc<AtomicUsize>);
+
+impl Drop for Slot {
+    fn drop(&mut self) {
+        self.0.fetch_sub(1, Ordering::AcqRel);
     }
 }
 
 /// The page's server for one output folder.
 pub struct Server {
-    http: Arc<tiny_http::Server>,
+    listener: TcpListener,
     out: OutDir,
     url: String,
     policy: HostPolicy,
+    limits: Limits,
 }
 
 impl Server {
@@ -238,10 +455,16 @@ impl Server {
     /// [`Server::bind`] on the address `host` (an IP), answering also to the `Host` names in `allow_hosts`.
     pub fn bind_on(out: OutDir, host: &str, port: u16, allow_hosts: Vec<String>) -> Result<Self> {
         let addr = if host.contains(':') { format!("[{host}]:{port}") } else { format!("{host}:{port}") };
-        let http = tiny_http::Server::http(&addr).map_err(|e| ViewerError::Bind { addr: addr.clone(), msg: e.to_string() })?;
-        let port = http.server_addr().to_ip().map(|a| a.port()).unwrap_or(port);
+        let listener = TcpListener::bind(&addr).map_err(|e| ViewerError::Bind { addr: addr.clone(), msg: e.to_string() })?;
+        let port = listener.local_addr().map(|a| a.port()).unwrap_or(port);
         let url = if host.contains(':') { format!("http://[{host}]:{port}/") } else { format!("http://{host}:{port}/") };
-        Ok(Self { http: Arc::new(http), out, url, policy: HostPolicy { port, allowed: allow_hosts } })
+        Ok(Self { listener, out, url, policy: HostPolicy { port, allowed: allow_hosts }, limits: Limits::default() })
+    }
+
+    /// Other timeouts and connection limit than [`Limits::default`].
+    pub fn with_limits(mut self, limits: Limits) -> Self {
+        self.limits = limits;
+        self
     }
 
     /// The page's address.
@@ -249,23 +472,35 @@ impl Server {
         &self.url
     }
 
-    /// Serve until the process ends, `threads` requests at a time (a large `gaussians.ply` download must not
-    /// hold up the frames and the video).
-    pub fn serve(self, threads: usize) {
-        let workers: Vec<_> = (0..threads.max(1))
-            .map(|_| {
-                let (http, out, policy) = (self.http.clone(), self.out.clone(), self.policy.clone());
-                std::thread::spawn(move || {
-                    for req in http.incoming_requests() {
-                        let resp = respond(&out, &policy, &req);
-                        // A client that went away mid-response is not our error.
-                        let _ = req.respond(resp);
-                    }
-                })
-            })
-            .collect();
-        for w in workers {
-            let _ = w.join();
+    /// Serve until the process ends: a thread per connection (a large `gaussians.ply` download must not hold up
+    /// the frames and the video), each dropped when its client is idle, slow or stops reading ([`Limits`]).
+    pub fn serve(self) {
+        let active = Arc::new(AtomicUsize::new(0));
+        let shared = Arc::new((self.out, self.policy, self.limits));
+        for conn in self.listener.incoming() {
+            let mut s = match conn {
+                Ok(s) => s,
+                // Out of file descriptors, or a connection reset before it was taken: wait a little, go on.
+                Err(_) => {
+                    std::thread::sleep(Duration::from_millis(20));
+                    continue;
+                }
+            };
+            if active.fetch_add(1, Ordering::AcqRel) >= shared.2.connections {
+                active.fetch_sub(1, Ordering::AcqRel);
+                let _ = s.set_write_timeout(Some(Duration::from_millis(200)));
+                let _ = send(&mut s, text(503, "too many connections"), false, false);
+                continue;
+            }
+            let slot = Slot(active.clone());
+            let shared = shared.clone();
+            let spawned = std::thread::Builder::new().name("view-conn".into()).spawn(move || {
+                let _slot = slot;
+                let (out, policy, limits) = &*shared;
+                connection(s, out, policy, limits);
+            });
+            // A thread that cannot start drops its connection (and its slot) with it.
+            drop(spawned);
         }
     }
 }

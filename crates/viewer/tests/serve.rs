@@ -35,7 +35,7 @@ fn out_dir(root: &Path) -> std::path::PathBuf {
 fn start(out: &Path) -> String {
     let server = Server::bind(OutDir::open(out).unwrap(), 0).unwrap();
     let url = server.url().trim_end_matches('/').trim_start_matches("http://").to_string();
-    std::thread::spawn(move || server.serve(2));
+    std::thread::spawn(move || server.serve());
     url
 }
 
@@ -195,7 +195,7 @@ fn foreign_hosts_and_origins_are_refused() {
     assert_eq!(raw_status(&addr, &format!("Host: {addr}\r\nSec-Fetch-Site: cross-site\r\n")), 403);
     let server = Server::bind_on(OutDir::open(&out).unwrap(), "127.0.0.1", 0, vec!["gpu-box.example".into()]).unwrap();
     let addr2 = server.url().trim_end_matches('/').trim_start_matches("http://").to_string();
-    std::thread::spawn(move || server.serve(1));
+    std::thread::spawn(move || server.serve());
     let port2 = addr2.rsplit(':').next().unwrap();
     assert_eq!(raw_status(&addr2, &format!("Host: gpu-box.example:{port2}\r\n")), 200);
     assert_eq!(raw_status(&addr2, &format!("Host: other.example:{port2}\r\n")), 403);
@@ -215,4 +215,111 @@ fn static_export_refuses_links_out_of_the_folder() {
         std::fs::read_dir(d).into_iter().flatten().flatten().any(|e| std::fs::read(e.path()).is_ok_and(|b| String::from_utf8_lossy(&b).contains(SECRET)))
     };
     assert!(!copied(&site.join("data/frames/gsplat")), "the secret was published");
+}
+
+/// Seconds a normal page request takes.
+fn page_secs(addr: &str) -> f64 {
+    let t0 = std::time::Instant::now();
+    assert_eq!(raw_get(addr, "/data/run.json", "").0, 200);
+    t0.elapsed().as_secs_f64()
+}
+
+/// Idle and stalled clients cannot hold the server: 50 connections open and silent, 4 requests sent halfway and
+/// 4 downloads of a `gaussians.ply` larger than the sockets' buffers that are never read do not delay a normal
+/// request by more than a second.
+#[test]
+fn idle_and_stalled_clients_do_not_hold_the_server() {
+    let t = tempfile::tempdir().unwrap();
+    let out = out_dir(t.path());
+    std::fs::write(out.join("gaussians.ply"), vec![7u8; 48 << 20]).unwrap();
+    let addr = start(&out);
+    let before = page_secs(&addr);
+    let idle: Vec<TcpStream> = (0..50).map(|_| TcpStream::connect(&addr).unwrap()).collect();
+    let half: Vec<TcpStream> = (0..4)
+        .map(|_| {
+            let mut s = TcpStream::connect(&addr).unwrap();
+            write!(s, "GET /data/run.json HTTP/1.1\r\nHost: {addr}\r\n").unwrap();
+            s
+        })
+        .collect();
+    let stalled: Vec<TcpStream> = (0..4)
+        .map(|_| {
+            let mut s = TcpStream::connect(&addr).unwrap();
+            write!(s, "GET /data/gaussians.ply HTTP/1.1\r\nHost: {addr}\r\n\r\n").unwrap();
+            s
+        })
+        .collect();
+    // Let the server take them all in and fill the stalled downloads' buffers.
+    std::thread::sleep(Duration::from_millis(500));
+    for _ in 0..3 {
+        let during = page_secs(&addr);
+        assert!(during < before + 1.0, "a normal request took {during:.2} s beside idle and stalled clients ({before:.3} s alone)");
+    }
+    drop((idle, half, stalled));
+}
+
+/// The limits act: a connection beyond the cap gets 503; a head sent too slowly gets 408 and the connection is
+/// closed; a silent connection is closed; a download the client stops reading is dropped; and a kept-alive
+/// connection serves several (pipelined) requests.
+#[test]
+fn slow_silent_and_stalled_clients_are_dropped() {
+    let t = tempfile::tempdir().unwrap();
+    let out = out_dir(t.path());
+    let size = 48usize << 20;
+    std::fs::write(out.join("gaussians.ply"), vec![7u8; size]).unwrap();
+    let limits = mvsplat360_viewer::Limits {
+        head: Duration::from_millis(800),
+        idle: Duration::from_millis(800),
+        write: Duration::from_millis(800),
+        connections: 6,
+    };
+    let server = Server::bind(OutDir::open(&out).unwrap(), 0).unwrap().with_limits(limits);
+    let addr = server.url().trim_end_matches('/').trim_start_matches("http://").to_string();
+    std::thread::spawn(move || server.serve());
+    let read_all = |s: &mut TcpStream| {
+        s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+        let mut b = Vec::new();
+        let _ = s.read_to_end(&mut b);
+        b
+    };
+
+    // Two requests on one connection, the second sent before the first is answered.
+    let mut s = TcpStream::connect(&addr).unwrap();
+    write!(s, "GET /data/run.json HTTP/1.1\r\nHost: {addr}\r\n\r\nGET /data/run.json HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n").unwrap();
+    let both = String::from_utf8_lossy(&read_all(&mut s)).to_string();
+    assert_eq!(both.matches("HTTP/1.1 200 OK").count(), 2, "{both}");
+
+    // A head trickling in: 408 once the head limit passes, then closed.
+    let mut slow = TcpStream::connect(&addr).unwrap();
+    let t0 = std::time::Instant::now();
+    for b in format!("GET /data/run.json HTTP/1.1\r\nHost: {addr}\r\n").bytes().take(12) {
+        if slow.write_all(&[b]).is_err() {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let got = String::from_utf8_lossy(&read_all(&mut slow)).to_string();
+    assert!(got.starts_with("HTTP/1.1 408"), "{got}");
+    assert!(t0.elapsed() < Duration::from_secs(5), "closed after {:?}", t0.elapsed());
+
+    // Silent: closed without a word.
+    let mut silent = TcpStream::connect(&addr).unwrap();
+    let t0 = std::time::Instant::now();
+    assert!(read_all(&mut silent).is_empty());
+    assert!(t0.elapsed() < Duration::from_secs(5), "closed after {:?}", t0.elapsed());
+
+    // A stalled download: after the write limit the server gives up, so the client gets less than the file.
+    let mut stalled = TcpStream::connect(&addr).unwrap();
+    write!(stalled, "GET /data/gaussians.ply HTTP/1.1\r\nHost: {addr}\r\n\r\n").unwrap();
+    std::thread::sleep(Duration::from_secs(3));
+    let got = read_all(&mut stalled);
+    assert!(got.starts_with(b"HTTP/1.1 200") && got.len() < size, "{} of {size} bytes", got.len());
+
+    // Over the cap: 503 at once (the dropped connections' slots are free again by now).
+    let held: Vec<TcpStream> = (0..6).map(|_| TcpStream::connect(&addr).unwrap()).collect();
+    std::thread::sleep(Duration::from_millis(200));
+    let mut extra = TcpStream::connect(&addr).unwrap();
+    let got = String::from_utf8_lossy(&read_all(&mut extra)).to_string();
+    assert!(got.starts_with("HTTP/1.1 503"), "{got}");
+    drop(held);
 }

@@ -59,6 +59,6 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             eprintln!("warning: could not open a browser ({e}); open {url} yourself");
         }
     }
-    server.serve(4);
+    server.serve();
     Ok(())
 }
