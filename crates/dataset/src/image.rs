@@ -128,9 +128,55 @@ impl ImageSource {
             // The JPEG decoder fills a cut-off scan with grey instead of failing.
             return Err(err("the JPEG is truncated (no end-of-image marker after its last scan)".into()));
         }
-        let dynimg = reader.decode().map_err(|e| err(e.to_string()))?;
+        let dynimg = decode_limited(reader, bytes.len() as u64).map_err(err)?;
         // Alpha is dropped: scenes are composited photos, not masked objects.
         Ok(ImageF32::from_rgb8(&dynimg.to_rgb8()))
+    }
+}
+
+/// The longest side a reader accepts (DL3DV's 4K frames and a 48 MP phone photo are well inside).
+pub const MAX_SIDE: u32 = 16384;
+/// Decoded bytes per byte of the file at most: deflate reaches 1032:1 and a 1-bit palette adds 32×, a progressive
+/// JPEG's DC-only scans ≈ 4096:1. A file claiming more is truncated or crafted.
+const MAX_RATIO: u64 = 1 << 15;
+
+/// The decoders' limits, set explicitly (not `image`'s defaults, which may change): [`MAX_SIDE`] a side, 1 GiB of
+/// decoded pixels.
+pub fn decode_limits() -> ::image::Limits {
+    let mut l = ::image::Limits::default();
+    l.max_image_width = Some(MAX_SIDE);
+    l.max_image_height = Some(MAX_SIDE);
+    l.max_alloc = Some(1 << 30);
+    l
+}
+
+/// A limited decoder for `reader`, refusing (before it allocates) an image whose claimed size a file of
+/// `file_len` bytes could not hold.
+pub fn limited_decoder<'a, R: std::io::BufRead + std::io::Seek + 'a>(
+    mut reader: ::image::ImageReader<R>,
+    file_len: u64,
+) -> Result<impl ::image::ImageDecoder + 'a, String> {
+    reader.limits(decode_limits());
+    let dec = reader.into_decoder().map_err(limit_msg)?;
+    let (w, h) = ::image::ImageDecoder::dimensions(&dec);
+    let need = ::image::ImageDecoder::total_bytes(&dec);
+    if need > MAX_RATIO.saturating_mul(file_len).saturating_add(1 << 20) {
+        return Err(format!(
+            "the header claims {w}x{h} pixels ({need} bytes decoded), more than a file of {file_len} bytes can hold: it is truncated or not a real image"
+        ));
+    }
+    Ok(dec)
+}
+
+/// [`limited_decoder`], decoded.
+pub fn decode_limited<R: std::io::BufRead + std::io::Seek>(reader: ::image::ImageReader<R>, file_len: u64) -> Result<::image::DynamicImage, String> {
+    ::image::DynamicImage::from_decoder(limited_decoder(reader, file_len)?).map_err(limit_msg)
+}
+
+fn limit_msg(e: ::image::ImageError) -> String {
+    match e {
+        ::image::ImageError::Limits(l) => format!("{l}: this reader takes at most {MAX_SIDE} pixels a side and 1 GiB of pixels; scale the image down first"),
+        e => e.to_string(),
     }
 }
 

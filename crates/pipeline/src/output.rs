@@ -38,6 +38,11 @@ pub fn write_bytes(path: &Path, bytes: &[u8]) -> Result<()> {
     atomic_write(path, |p| std::fs::write(p, bytes).map_err(|e| e.to_string()))
 }
 
+/// Whether an error's text is the OS's "no space left" (ENOSPC; also what a quota or a full tmpfs says).
+pub fn disk_full(msg: &str) -> bool {
+    msg.contains("No space left on device") || msg.contains("(os error 28)") || msg.contains("Disk quota exceeded")
+}
+
 /// Write a JSON value atomically (pretty-printed).
 pub fn write_json(path: &Path, v: &serde_json::Value) -> Result<()> {
     let text = serde_json::to_string_pretty(v).map_err(|e| PipelineError::Write { path: path.to_path_buf(), msg: e.to_string() })?;

@@ -391,10 +391,13 @@ pub fn refine_frames_timed(
     let saved_windows = saved_windows.filter(|_| !s.video_mode);
     for (start, len) in wins {
         let saved = saved_windows.map(|d| crate::txn::window_file(d, start));
-        if let Some(frames) = saved.as_ref().and_then(|f| load_window(f, len, &p.device)) {
-            out.extend(frames);
-            progress.advance(s.steps as u64);
-            continue;
+        if let Some(f) = saved.as_ref().filter(|f| f.exists()) {
+            if let Some(frames) = load_window(f, len, &p.device) {
+                out.extend(frames);
+                progress.advance(s.steps as u64);
+                continue;
+            }
+            progress.note(&format!("--resume: {} cannot be read; refining that window again", f.display()));
         }
         let mut fr: Vec<&Tensor> = feats[start..start + len].iter().collect();
         while fr.len() < window {
@@ -541,6 +544,19 @@ fn resume_key(req: &RenderRequest, p: &Prepared, refiner: Option<&Path>) -> crat
 
 /// The whole run. Outputs go to `req.out` (see the crate docs for the layout).
 pub fn run(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSummary> {
+    run_staged(req, progress).map_err(|e| match e {
+        PipelineError::Write { path, msg } if output::disk_full(&msg) => PipelineError::Write {
+            msg: format!(
+                "{msg}: the disk is full. Nothing of this render was kept and the previous render in {} is as it was; free some space or choose another --out",
+                req.out.display()
+            ),
+            path,
+        },
+        e => e,
+    })
+}
+
+fn run_staged(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSummary> {
     let t_all = Instant::now();
     let mut times: Vec<(String, f64)> = Vec::new();
     let t = Instant::now();

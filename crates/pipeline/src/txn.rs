@@ -122,6 +122,16 @@ impl Txn {
     }
 }
 
+/// A render that stops before its commit point (an error, Ctrl-C) takes its half-written stage with it: on a
+/// full disk that space is what the next attempt needs. The refined windows stay for `--resume`.
+impl Drop for Txn {
+    fn drop(&mut self) {
+        if self.stage.exists() {
+            let _ = std::fs::remove_dir_all(&self.stage);
+        }
+    }
+}
+
 /// Finishes a swap whose commit point has passed (true when there was one); nothing to do otherwise. Safe to
 /// repeat after a crash at any step.
 pub fn recover(out: &Path) -> Result<bool> {
@@ -287,9 +297,9 @@ mod tests {
             write_run(&t.stage, "new", false);
             // Before the commit point: the old run, whole.
             assert_eq!(tree(out), old);
-            drop(t);
             let dir = out.join(DIR);
             std::fs::rename(dir.join("stage"), dir.join("commit")).unwrap();
+            drop(t);
             let finished = swap_steps(out, crash_after).unwrap();
             assert!(finished);
             // What a crash left, then the next process's recovery (10 steps: 5 entries out, the marker, 4 in).
@@ -309,7 +319,10 @@ mod tests {
         let w = t.windows.clone().unwrap();
         std::fs::write(window_file(&w, 0), b"w").unwrap();
         std::fs::write(window_file(&w, 3), b"w").unwrap();
+        std::fs::write(t.stage.join("frame.png"), b"half").unwrap();
+        // Given up before the commit point (an error, Ctrl-C): the stage goes, the windows stay.
         drop(t);
+        assert!(!d.path().join(DIR).join("stage").exists());
         let t = Txn::begin(d.path(), &key, true, true, &|_| {}).unwrap();
         assert_eq!(t.resumed, 2);
         drop(t);

@@ -73,12 +73,9 @@ struct Decoded {
 
 fn decode(p: &Path) -> Result<Decoded, PoseError> {
     let bad = |msg: String| PoseError::input(p, format!("cannot decode this photo ({msg}); remove it or replace it with a readable JPEG/PNG"));
-    let mut dec = ImageReader::open(p)
-        .map_err(|e| PoseError::io(p, e))?
-        .with_guessed_format()
-        .map_err(|e| bad(e.to_string()))?
-        .into_decoder()
-        .map_err(|e| bad(e.to_string()))?;
+    let len = std::fs::metadata(p).map_err(|e| PoseError::io(p, e))?.len();
+    let reader = ImageReader::open(p).map_err(|e| PoseError::io(p, e))?.with_guessed_format().map_err(|e| bad(e.to_string()))?;
+    let mut dec = mvsplat360_dataset::image::limited_decoder(reader, len).map_err(bad)?;
     let orient = dec.orientation().unwrap_or(image::metadata::Orientation::NoTransforms);
     let taken = dec.exif_metadata().ok().flatten().and_then(exif_time);
     let mut img = DynamicImage::from_decoder(dec).map_err(|e| bad(e.to_string()))?;

@@ -1,16 +1,38 @@
 //! VideoUNet at latent sizes that do not divide by 2^(levels−1) (6×10 and 5×7 with 3 levels): upsampling to
-//! the skip connection's size as diffusers does, against diffusers' outputs with the shared tiny SVD weights
-//! (`tests/fixtures/unet_odd_size/`, made by `scripts/fixtures/unet_odd_size.py`). Those outputs belong to the
-//! shared fixture's weights: with another `svd/` folder (scripts/fixtures/official_svd.py) this test cannot pass
-//! and scripts/fixtures/check-parity-seeds skips it.
+//! the skip connection's size as diffusers does, against diffusers' outputs made with the fixture folder's own
+//! tiny SVD weights: `svd/svd_unet_odd_size.safetensors`, which scripts/fixtures/official_svd.py writes beside
+//! the weights of any seed. The shared folder predates that file: for its weights (checked by their SHA-256) the
+//! same outputs are in `tests/fixtures/unet_odd_size/`, made by scripts/fixtures/unet_odd_size.py.
 
 use candle_core::{Device, Tensor};
 use mvsplat360_refiner::unet::util::timestep_embedding;
 use mvsplat360_refiner::unet::{UNetInputs, VideoUNet, VideoUNetConfig};
 use mvsplat360_testkit::fixture;
 
-fn local(name: &str) -> std::collections::HashMap<String, Tensor> {
-    let p = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/unet_odd_size").join(name);
+/// The shared folder's `svd/svd_unet.safetensors`, which the crate's own outputs belong to.
+const SHARED_UNET_SHA256: &str = "87edf008a8d94969baa8d3229a784dfff4394e145b1cd1eebae0e2df99eebc65";
+
+fn sha256(p: &std::path::Path) -> String {
+    use sha2::Digest;
+    let bytes = std::fs::read(p).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
+    sha2::Sha256::digest(&bytes).iter().map(|b| format!("{b:02x}")).collect()
+}
+
+/// The odd-size outputs for the fixture folder's UNet weights.
+fn outputs() -> std::collections::HashMap<String, Tensor> {
+    let beside = mvsplat360_testkit::fixtures_dir().join("svd/svd_unet_odd_size.safetensors");
+    let p = if beside.is_file() {
+        beside
+    } else {
+        let weights = fixture("svd/svd_unet.safetensors");
+        assert_eq!(
+            sha256(&weights),
+            SHARED_UNET_SHA256,
+            "{} are not the shared weights and no svd_unet_odd_size.safetensors is beside them: make the folder with scripts/fixtures/official_svd.py, which writes it",
+            weights.display()
+        );
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/unet_odd_size/odd_size.safetensors")
+    };
     candle_core::safetensors::load(&p, &Device::Cpu).unwrap_or_else(|e| panic!("{}: {e}", p.display()))
 }
 
@@ -18,7 +40,7 @@ fn local(name: &str) -> std::collections::HashMap<String, Tensor> {
 fn odd_latent_sizes_match_diffusers() {
     let cfg = VideoUNetConfig::from_diffusers_json(&fixture("svd/svd_unet_config.json")).unwrap();
     let unet = VideoUNet::load(&fixture("svd/svd_unet.safetensors"), None, &cfg, &Device::Cpu).unwrap();
-    let fx = local("odd_size.safetensors");
+    let fx = outputs();
     for case in ["a", "b"] {
         let s = &fx[&format!("{case}.sample")]; // (1, F, 8, h, w)
         let (b, f, c, h, w) = s.dims5().unwrap();

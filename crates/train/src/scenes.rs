@@ -166,7 +166,10 @@ pub fn read_depths(dir: &Path, scene: &Scene, prepared: &[Camera]) -> Result<Opt
         }
         let stem = Path::new(name).file_stem().and_then(|s| s.to_str()).unwrap_or(name);
         let p = dir.join("depth").join(format!("{stem}.png"));
-        let map = image::open(&p).map_err(|e| bad(&p, format!("{e} (every view needs its depth map once depth/depth.json exists)")))?;
+        let need = |e: String| bad(&p, format!("{e} (every view needs its depth map once depth/depth.json exists)"));
+        let len = std::fs::metadata(&p).map_err(|e| need(e.to_string()))?.len();
+        let reader = image::ImageReader::open(&p).and_then(|r| r.with_guessed_format()).map_err(|e| need(e.to_string()))?;
+        let map = mvsplat360_dataset::image::decode_limited(reader, len).map_err(need)?;
         if map.color() != image::ColorType::L16 {
             return Err(bad(&p, format!("expected a 16-bit greyscale PNG, got {:?}", map.color())));
         }

@@ -267,12 +267,8 @@ fn slow_silent_and_stalled_clients_are_dropped() {
     let out = out_dir(t.path());
     let size = 48usize << 20;
     std::fs::write(out.join("gaussians.ply"), vec![7u8; size]).unwrap();
-    let limits = mvsplat360_viewer::Limits {
-        head: Duration::from_millis(800),
-        idle: Duration::from_millis(800),
-        write: Duration::from_millis(800),
-        connections: 6,
-    };
+    let limits =
+        mvsplat360_viewer::Limits { head: Duration::from_millis(800), idle: Duration::from_millis(800), write: Duration::from_millis(800), connections: 6 };
     let server = Server::bind(OutDir::open(&out).unwrap(), 0).unwrap().with_limits(limits);
     let addr = server.url().trim_end_matches('/').trim_start_matches("http://").to_string();
     std::thread::spawn(move || server.serve());

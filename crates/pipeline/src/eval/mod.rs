@@ -728,6 +728,16 @@ pub fn prepare(req: &EvalRequest, progress: &dyn Progress) -> Result<()> {
 
 /// The whole evaluation (see the module docs).
 pub fn run(req: &EvalRequest, progress: &dyn Progress) -> Result<EvalSummary> {
+    run_scenes(req, progress).map_err(|e| match e {
+        PipelineError::Write { path, msg } if crate::output::disk_full(&msg) => PipelineError::Write {
+            msg: format!("{msg}: the disk is full. The scenes finished so far are kept in {} (every file there is whole); free some space and run the same command again to go on", req.out.display()),
+            path,
+        },
+        e => e,
+    })
+}
+
+fn run_scenes(req: &EvalRequest, progress: &dyn Progress) -> Result<EvalSummary> {
     let t_all = Instant::now();
     let index = mvsplat360_dataset::read_evaluation_index(&req.index)?;
     let (data_dir, chunk_of) = chunk_map(&req.data, progress)?;
