@@ -101,7 +101,13 @@ fn partials(dir: &Path) -> Vec<PathBuf> {
 
 fn render(out: &Path, orbit: &str) -> std::process::Output {
     // The shipped model (no refiner): the run writes cameras, Gaussians, frames and the videos, in that order.
-    bin().args(["--quiet", "render"]).arg(root().join("assets/woodbox")).args(["--orbit", orbit, "--fit-steps", "0", "--out"]).arg(out).output().unwrap()
+    bin()
+        .args(["--quiet", "render"])
+        .arg(root().join("assets/woodbox"))
+        .args(["--orbit", orbit, "--num-context", "3", "--fit-steps", "0", "--out"])
+        .arg(out)
+        .output()
+        .unwrap()
 }
 
 fn ok(o: std::process::Output) {
@@ -128,24 +134,24 @@ fn a_render_on_a_full_disk_keeps_the_previous_one() {
     let out = disk.join("out");
     // The new render on a roomy disk, for its sizes and its bytes.
     let reference = dir.join("ref");
-    ok(render(&reference, "16"));
+    ok(render(&reference, "12"));
     let want = tree(&reference);
     let video = pages(&want, |k| k.ends_with(".mp4"));
     assert!(video >= 8 * PAGE, "the videos are too small to fill the disk part way: {video} bytes");
 
-    ok(render(&out, "8"));
+    ok(render(&out, "6"));
     let before = tree(&out);
     let base = used(&disk);
     // Room for the cameras and the Gaussians and half the frames: it fails writing a frame.
     let ahead = pages(&want, |k| !k.starts_with("frames/") && !k.ends_with(".mp4") && k != "run.json");
     resize(&disk, base + ahead + 4 * PAGE + pages(&want, |k| k.starts_with("frames/")) / 2);
-    fails_full(render(&out, "16"), &out, &before, "frames/");
+    fails_full(render(&out, "12"), &out, &before, "frames/");
     // Room for all but half the videos: it fails writing one.
     resize(&disk, base + pages(&want, |k| !k.ends_with(".mp4") && k != "run.json") + 4 * PAGE + video / 2);
-    fails_full(render(&out, "16"), &out, &before, ".mp4");
+    fails_full(render(&out, "12"), &out, &before, ".mp4");
     // Space again: the same command gives the roomy disk's render.
     resize(&disk, 64 << 20);
-    ok(render(&out, "16"));
+    ok(render(&out, "12"));
     let got = tree(&out);
     assert_eq!(got.keys().collect::<Vec<_>>(), want.keys().collect::<Vec<_>>());
     for (k, v) in &want {
