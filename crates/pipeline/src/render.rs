@@ -547,7 +547,7 @@ pub fn run(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSummary
     run_staged(req, progress).map_err(|e| match e {
         PipelineError::Write { path, msg } if output::disk_full(&msg) => PipelineError::Write {
             msg: format!(
-                "{msg}: the disk is full. Nothing of this render was kept and the previous render in {} is as it was; free some space or choose another --out",
+                "{msg}: the disk is full. This render was not installed and the previous render in {} is as it was; free some space (or choose another --out) and run it again, with --resume to keep the refined windows it finished",
                 req.out.display()
             ),
             path,
