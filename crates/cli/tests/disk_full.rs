@@ -8,6 +8,8 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
+mod common;
+
 const INNER: &str = "MVSPLAT360_DISK_FULL_DIR";
 const PAGE: u64 = 4096;
 
@@ -162,43 +164,20 @@ fn a_render_on_a_full_disk_keeps_the_previous_one() {
     }
 }
 
-fn chunk_dir() -> PathBuf {
-    root().join("crates/dataset/tests/data/chunk")
-}
-
-fn eval(data: &Path, index: &Path, m: &Path, empty: &Path, out: &Path) -> std::process::Output {
-    let mut c = bin();
-    c.env("MVSPLAT360_METRIC_WEIGHTS", empty).env("XDG_CACHE_HOME", empty).env("HOME", empty);
-    c.arg("--quiet").arg("eval").arg("--data").arg(data).arg("--index").arg(index).arg("--ckpt").arg(m);
-    c.args(["--steps", "1", "--window", "3", "--weights-dir"]).arg(empty).arg("--out").arg(out);
-    c.output().unwrap()
-}
-
 #[test]
 fn an_eval_on_a_full_disk_keeps_its_finished_scenes_and_goes_on() {
     let Some(dir) = in_namespace("an_eval_on_a_full_disk_keeps_its_finished_scenes_and_goes_on") else { return };
     let disk = dir.join("disk");
-    let (data, empty) = (dir.join("data"), dir.join("empty"));
-    std::fs::create_dir_all(&data).unwrap();
-    std::fs::create_dir_all(&empty).unwrap();
-    for f in ["000000.torch", "index.json"] {
-        std::fs::copy(chunk_dir().join(f), data.join(f)).unwrap();
-    }
-    let cfg = mvsplat360_pipeline::model::tiny_config(true);
-    let sd = mvsplat360_pipeline::model::random_state_dict(&cfg, 11).unwrap();
-    let m = dir.join("tiny");
-    mvsplat360_pipeline::model::write_model_dir(&m, &cfg, &sd).unwrap();
-    let index = dir.join("index.json");
-    std::fs::write(&index, r#"{"woodbox_a": {"context": [0, 2], "target": [0, 1, 2]}, "woodbox_b": {"context": [0, 1], "target": [0, 1]}}"#).unwrap();
-
+    let (data, empty, m, index) = common::setup(&dir);
+    let eval = |out: &Path| common::eval_cmd(&empty, &data, &index, &m, out).output().unwrap();
     let reference = dir.join("eval-ref");
-    ok(eval(&data, &index, &m, &empty, &reference));
+    ok(eval(&reference));
     let want = tree(&reference);
     let out = disk.join("eval");
     let base = used(&disk);
     // Room for about half of what the evaluation writes.
     resize(&disk, base + pages(&want, |_| true) / 2);
-    let o = eval(&data, &index, &m, &empty, &out);
+    let o = eval(&out);
     let err = String::from_utf8_lossy(&o.stderr);
     eprintln!("{err}");
     assert_eq!(o.status.code(), Some(1), "{err}");
@@ -216,7 +195,7 @@ fn an_eval_on_a_full_disk_keeps_its_finished_scenes_and_goes_on() {
         }
     }
     resize(&disk, 64 << 20);
-    ok(eval(&data, &index, &m, &empty, &out));
+    ok(eval(&out));
     let got = tree(&out);
     let pngs = |t: &BTreeMap<String, Vec<u8>>| t.iter().filter(|(k, _)| k.ends_with(".png")).map(|(k, v)| (k.clone(), v.clone())).collect::<Vec<_>>();
     assert!(pngs(&got) == pngs(&want), "the images differ from the roomy disk's");
