@@ -14,6 +14,7 @@ pub mod lens;
 pub mod resize;
 pub mod torch_chunk;
 pub mod transforms;
+pub mod weights;
 
 use std::path::{Path, PathBuf};
 

@@ -19,14 +19,7 @@ pub enum BenchError {
     Setup(String),
 }
 
-/// Peak resident memory of this process in MiB (`VmHWM`), 0 where /proc is unavailable.
-pub fn peak_rss_mib() -> f64 {
-    std::fs::read_to_string("/proc/self/status")
-        .ok()
-        .and_then(|s| s.lines().find(|l| l.starts_with("VmHWM:")).and_then(|l| l.split_whitespace().nth(1)?.parse::<f64>().ok()))
-        .map(|kb| kb / 1024.0)
-        .unwrap_or(0.0)
-}
+pub use mvsplat360_nn::bench::peak_rss_mib;
 
 /// Use `threads` worker threads (0 = all cores) for candle's CPU kernels and rayon. Call before any tensor work.
 pub fn set_threads(threads: usize) -> Result<(), BenchError> {

@@ -39,6 +39,7 @@ mod math;
 pub mod mode;
 pub mod norm;
 pub mod prof;
+pub mod rope;
 pub mod softmax;
 pub mod upsample;
 pub mod warp_correlation;

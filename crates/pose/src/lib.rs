@@ -8,6 +8,7 @@
 //! apart do not match (measured: 0 of 10 pairs); a video, or many overlapping photos, posed together does.
 
 pub mod colmap_log;
+pub mod colmap_writer;
 pub mod engine;
 pub mod error;
 pub mod photos;

@@ -193,6 +193,31 @@ enum What {
         #[command(flatten)]
         threads: Threads,
     },
+    /// VGGT forward (aggregator, camera, depth and point heads) with seeded random weights at the VGGT-1B shape
+    /// (or a model folder's config) on synthetic frames: median time, peak memory, TFLOP counted from the
+    /// shapes and the achieved GFLOP/s.
+    Vggt {
+        /// Where it runs: `cpu`, `cuda` or `cuda:N` (CUDA needs a `--features cuda` build).
+        #[arg(long, default_value = "cpu")]
+        device: mvsplat360_pipeline::compute::DeviceSpec,
+        /// Frames (photos) in the forward.
+        #[arg(long, default_value_t = 5)]
+        frames: usize,
+        /// Frame size WIDTHxHEIGHT, both multiples of 14 (518x294: a 16:9 photo as VGGT's loader prepares it).
+        #[arg(long, default_value = "518x294")]
+        size: String,
+        /// Take the shape from this VGGT model folder's config.json instead of VGGT-1B (weights stay random).
+        #[arg(long)]
+        config: Option<std::path::PathBuf>,
+        /// Timed runs; the median is reported.
+        #[arg(long, default_value_t = 3)]
+        runs: usize,
+        /// Untimed runs before the timed ones.
+        #[arg(long, default_value_t = 1)]
+        warmup: usize,
+        #[command(flatten)]
+        threads: Threads,
+    },
     /// Image metrics at 256×448: images (pairs) per second of PSNR, SSIM, LPIPS, DISTS and FID features
     /// (the networks only when their weights are installed, see scripts/metric-weights/fetch).
     Metrics {
@@ -283,6 +308,20 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 threads: threads.count(),
                 device,
             })?
+        }
+        What::Vggt { device, frames, size, config, runs, warmup, threads } => {
+            let (width, height) = size
+                .split_once('x')
+                .and_then(|(w, h)| Some((w.parse::<usize>().ok()?, h.parse::<usize>().ok()?)))
+                .ok_or_else(|| anyhow::anyhow!("bench vggt: --size `{size}` is not WIDTHxHEIGHT (e.g. 518x294)"))?;
+            let cfg = match config {
+                Some(dir) => mvsplat360_vggt::weights::read_config(&dir.join("config.json"))?,
+                None => mvsplat360_vggt::VggtConfig::default(),
+            };
+            let device = device.open()?;
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads.count()).build()?;
+            let b = mvsplat360_vggt::bench::VggtBench { frames, height, width, runs, warmup, seed: 0 };
+            pool.install(|| mvsplat360_vggt::bench::run(&cfg, &b, &device))?
         }
         What::Metrics { width, height, runs, threads } => {
             if width < 11 || height < 11 {

@@ -1,0 +1,224 @@
+//! `DPTHead` (Ranftl et al., "Vision Transformers for Dense Prediction") on four of the aggregator's layers:
+//! per layer LayerNorm, a 1×1 projection, the UV positional embedding, a resize to 4×, 2×, 1× and ½× the
+//! patch grid; RefineNet-style fusion from coarse to fine; a 3×3 conv; bilinear (align_corners) to the image
+//! size; the embedding again; a 3×3 conv, ReLU, 1×1 conv to the outputs. Runs in f32 whatever the trunk's
+//! dtype (upstream disables autocast for the heads).
+
+use candle_core::{Result, Tensor};
+use candle_nn::VarBuilder;
+use mvsplat360_nn::{conv2d, Conv2dConfig};
+
+use super::head_act::{activate_head, Activation};
+use super::utils::{create_uv_grid, position_embed_channels_first};
+use crate::config::DptConfig;
+use crate::layers::{LayerNorm, TORCH_LN_EPS};
+use crate::models::aggregator::AggregatedTokens;
+
+#[derive(Debug, Clone)]
+pub struct Conv {
+    pub weight: Tensor,
+    pub bias: Option<Tensor>,
+    pub cfg: Conv2dConfig,
+}
+
+impl Conv {
+    pub fn new(vb: VarBuilder, c_in: usize, c_out: usize, k: usize, stride: usize, padding: usize, bias: bool) -> Result<Self> {
+        let weight = vb.get((c_out, c_in, k, k), "weight")?;
+        let bias = if bias { Some(vb.get(c_out, "bias")?) } else { None };
+        Ok(Self { weight, bias, cfg: Conv2dConfig { padding, stride, dilation: 1 } })
+    }
+
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        conv2d(x, &self.weight, self.bias.as_ref(), self.cfg)
+    }
+}
+
+/// `nn.ConvTranspose2d` with kernel = stride, no padding: patches do not overlap, so each input pixel's
+/// `k × k` output block is one row of a gemm with the weight `(C_in, C_out·k·k)`.
+#[derive(Debug, Clone)]
+pub struct ConvTransposePatch {
+    /// `(C_out·k·k, C_in)`: the transposed-convolution weight `(C_in, C_out, k, k)` as a linear layer.
+    pub weight: Tensor,
+    pub bias: Tensor,
+    pub k: usize,
+    pub c_out: usize,
+}
+
+impl ConvTransposePatch {
+    pub fn new(vb: VarBuilder, c_in: usize, c_out: usize, k: usize) -> Result<Self> {
+        let w = vb.get((c_in, c_out, k, k), "weight")?;
+        Ok(Self { weight: w.reshape((c_in, c_out * k * k))?.t()?.contiguous()?, bias: vb.get(c_out, "bias")?, k, c_out })
+    }
+
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let (n, c, h, w) = x.dims4()?;
+        let k = self.k;
+        let rows = x.permute((0, 2, 3, 1))?.contiguous()?.reshape((n * h * w, c))?;
+        let y = mvsplat360_nn::linear::linear_fused(&rows, &self.weight, None, 1.0, &[])?;
+        let y = y.reshape((n, h, w, self.c_out, k, k))?.permute((0, 3, 1, 4, 2, 5))?.reshape((n, self.c_out, h * k, w * k))?;
+        y.broadcast_add(&self.bias.reshape((1, self.c_out, 1, 1))?)
+    }
+}
+
+#[derive(Debug, Clone)]
+pub enum Resize {
+    Up(ConvTransposePatch),
+    Identity,
+    Down(Conv),
+}
+
+/// `ResidualConvUnit`: upstream's activation is `ReLU(inplace=True)` applied to the input first, so the skip
+/// adds the *rectified* input: `conv2(relu(conv1(relu(x)))) + relu(x)`.
+#[derive(Debug, Clone)]
+pub struct ResidualConvUnit {
+    pub conv1: Conv,
+    pub conv2: Conv,
+}
+
+impl ResidualConvUnit {
+    pub fn new(vb: VarBuilder, f: usize) -> Result<Self> {
+        Ok(Self { conv1: Conv::new(vb.pp("conv1"), f, f, 3, 1, 1, true)?, conv2: Conv::new(vb.pp("conv2"), f, f, 3, 1, 1, true)? })
+    }
+
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let x = x.relu()?;
+        let out = self.conv2.forward(&self.conv1.forward(&x)?.relu()?)?;
+        out + x
+    }
+}
+
+/// `FeatureFusionBlock`: `(x0 [+ rcu1(x1)]) → rcu2 → bilinear resize (align_corners) → 1×1 conv`.
+#[derive(Debug, Clone)]
+pub struct FeatureFusionBlock {
+    pub res_conf_unit1: Option<ResidualConvUnit>,
+    pub res_conf_unit2: ResidualConvUnit,
+    pub out_conv: Conv,
+}
+
+impl FeatureFusionBlock {
+    pub fn new(vb: VarBuilder, f: usize, has_residual: bool) -> Result<Self> {
+        Ok(Self {
+            res_conf_unit1: if has_residual { Some(ResidualConvUnit::new(vb.pp("resConfUnit1"), f)?) } else { None },
+            res_conf_unit2: ResidualConvUnit::new(vb.pp("resConfUnit2"), f)?,
+            out_conv: Conv::new(vb.pp("out_conv"), f, f, 1, 1, 0, true)?,
+        })
+    }
+
+    /// `size`: the output size; None doubles the input's (`scale_factor=2`).
+    pub fn forward(&self, x0: &Tensor, x1: Option<&Tensor>, size: Option<(usize, usize)>) -> Result<Tensor> {
+        let mut out = x0.clone();
+        if let (Some(u), Some(x1)) = (&self.res_conf_unit1, x1) {
+            out = (out + u.forward(x1)?)?;
+        }
+        let out = self.res_conf_unit2.forward(&out)?;
+        let (_, _, h, w) = out.dims4()?;
+        let size = size.unwrap_or((2 * h, 2 * w));
+        let out = mvsplat360_nn::upsample::upsample_bilinear(&out, size)?;
+        self.out_conv.forward(&out)
+    }
+}
+
+#[derive(Debug, Clone)]
+pub struct DptHead {
+    pub norm: LayerNorm,
+    pub projects: Vec<Conv>,
+    pub resize_layers: Vec<Resize>,
+    /// `scratch.layer{1..4}_rn`: 3×3, no bias.
+    pub layer_rn: Vec<Conv>,
+    /// `scratch.refinenet{1..4}` (refinenet4 has no residual input).
+    pub refinenet: Vec<FeatureFusionBlock>,
+    pub output_conv1: Conv,
+    pub output_conv2a: Conv,
+    pub output_conv2b: Conv,
+    pub activation: Activation,
+    pub patch_size: usize,
+    pub cfg: DptConfig,
+}
+
+impl DptHead {
+    pub fn new(vb: VarBuilder, dim_in: usize, patch_size: usize, output_dim: usize, activation: Activation, cfg: &DptConfig) -> Result<Self> {
+        let oc = cfg.out_channels;
+        let f = cfg.features;
+        let projects = (0..4).map(|i| Conv::new(vb.pp("projects").pp(i), dim_in, oc[i], 1, 1, 0, true)).collect::<Result<Vec<_>>>()?;
+        let rl = vb.pp("resize_layers");
+        let resize_layers = vec![
+            Resize::Up(ConvTransposePatch::new(rl.pp(0), oc[0], oc[0], 4)?),
+            Resize::Up(ConvTransposePatch::new(rl.pp(1), oc[1], oc[1], 2)?),
+            Resize::Identity,
+            Resize::Down(Conv::new(rl.pp(3), oc[3], oc[3], 3, 2, 1, true)?),
+        ];
+        let sc = vb.pp("scratch");
+        let layer_rn = (0..4).map(|i| Conv::new(sc.pp(format!("layer{}_rn", i + 1)), oc[i], f, 3, 1, 1, false)).collect::<Result<Vec<_>>>()?;
+        let refinenet = (0..4).map(|i| FeatureFusionBlock::new(sc.pp(format!("refinenet{}", i + 1)), f, i != 3)).collect::<Result<Vec<_>>>()?;
+        let head2 = 32;
+        Ok(Self {
+            norm: LayerNorm::new(vb.pp("norm"), dim_in, TORCH_LN_EPS)?,
+            projects,
+            resize_layers,
+            layer_rn,
+            refinenet,
+            output_conv1: Conv::new(sc.pp("output_conv1"), f, f / 2, 3, 1, 1, true)?,
+            output_conv2a: Conv::new(sc.pp("output_conv2").pp(0), f / 2, head2, 3, 1, 1, true)?,
+            output_conv2b: Conv::new(sc.pp("output_conv2").pp(2), head2, output_dim, 1, 1, 0, true)?,
+            activation,
+            patch_size,
+            cfg: cfg.clone(),
+        })
+    }
+
+    /// `x (N, C, h, w) + 0.1 · embed(uv grid of (h, w) with the image's aspect W/H)`.
+    fn apply_pos_embed(x: &Tensor, img_w: usize, img_h: usize) -> Result<Tensor> {
+        let (_, c, h, w) = x.dims4()?;
+        let grid = create_uv_grid(w, h, img_w as f64 / img_h as f64);
+        let pe = Tensor::from_vec(position_embed_channels_first(&grid, c, 0.1), (1, c, h, w), x.device())?.to_dtype(x.dtype())?;
+        x.broadcast_add(&pe)
+    }
+
+    /// Predictions `(S, H, W, out)` and confidence `(S, H, W)` for images of `H × W`, in frame chunks.
+    pub fn forward(&self, tokens: &AggregatedTokens, img_h: usize, img_w: usize, patch_start_idx: usize) -> Result<(Tensor, Tensor)> {
+        let first = tokens.get(&self.cfg.intermediate_layer_idx[0]).ok_or_else(|| candle_core::Error::Msg("DPT head: layer not kept".into()))?;
+        let s = first.dim(0)?;
+        let chunk = self.cfg.frames_chunk_size.max(1);
+        let mut preds = Vec::new();
+        let mut confs = Vec::new();
+        for start in (0..s).step_by(chunk) {
+            let (p, c) = self.forward_frames(tokens, img_h, img_w, patch_start_idx, start, chunk.min(s - start))?;
+            preds.push(p);
+            confs.push(c);
+        }
+        Ok((Tensor::cat(&preds, 0)?, Tensor::cat(&confs, 0)?))
+    }
+
+    fn forward_frames(&self, tokens: &AggregatedTokens, img_h: usize, img_w: usize, patch_start_idx: usize, f0: usize, nf: usize) -> Result<(Tensor, Tensor)> {
+        let p = self.patch_size;
+        let (ph, pw) = (img_h / p, img_w / p);
+        let mut feats = Vec::with_capacity(4);
+        for (i, layer) in self.cfg.intermediate_layer_idx.iter().enumerate() {
+            let t = tokens.get(layer).ok_or_else(|| candle_core::Error::Msg(format!("DPT head: aggregated layer {layer} not kept")))?;
+            let n_tok = t.dim(1)?;
+            let x = t.narrow(0, f0, nf)?.narrow(1, patch_start_idx, n_tok - patch_start_idx)?.to_dtype(candle_core::DType::F32)?;
+            let x = self.norm.forward(&x)?;
+            let c = x.dim(2)?;
+            let x = x.permute((0, 2, 1))?.contiguous()?.reshape((nf, c, ph, pw))?;
+            let x = self.projects[i].forward(&x)?;
+            let x = Self::apply_pos_embed(&x, img_w, img_h)?;
+            let x = match &self.resize_layers[i] {
+                Resize::Up(u) => u.forward(&x)?,
+                Resize::Identity => x,
+                Resize::Down(d) => d.forward(&x)?,
+            };
+            feats.push(x);
+        }
+        let rn: Vec<Tensor> = feats.iter().zip(&self.layer_rn).map(|(x, c)| c.forward(x)).collect::<Result<_>>()?;
+        let size = |t: &Tensor| -> Result<(usize, usize)> { Ok((t.dim(2)?, t.dim(3)?)) };
+        let out = self.refinenet[3].forward(&rn[3], None, Some(size(&rn[2])?))?;
+        let out = self.refinenet[2].forward(&out, Some(&rn[2]), Some(size(&rn[1])?))?;
+        let out = self.refinenet[1].forward(&out, Some(&rn[1]), Some(size(&rn[0])?))?;
+        let out = self.refinenet[0].forward(&out, Some(&rn[0]), None)?;
+        let out = self.output_conv1.forward(&out)?;
+        let out = mvsplat360_nn::upsample::upsample_bilinear(&out, (ph * p, pw * p))?;
+        let out = Self::apply_pos_embed(&out, img_w, img_h)?;
+        let out = self.output_conv2b.forward(&self.output_conv2a.forward(&out)?.relu()?)?;
+        activate_head(&out, self.activation)
+    }
+}

@@ -1,0 +1,83 @@
+//! `VGGT`: the aggregator, then the camera head on the last layer and the DPT depth and point heads on four
+//! layers. One scene per call (upstream's B = 1).
+
+use candle_core::{Result, Tensor};
+use candle_nn::VarBuilder;
+
+use super::aggregator::Aggregator;
+use crate::config::VggtConfig;
+use crate::heads::camera_head::CameraHead;
+use crate::heads::dpt_head::DptHead;
+use crate::heads::head_act::Activation;
+
+#[derive(Debug, Clone)]
+pub struct Vggt {
+    pub aggregator: Aggregator,
+    pub camera_head: Option<CameraHead>,
+    pub depth_head: Option<DptHead>,
+    pub point_head: Option<DptHead>,
+    pub cfg: VggtConfig,
+}
+
+/// What one forward pass predicts for `S` frames of `H × W`.
+#[derive(Debug, Clone)]
+pub struct Predictions {
+    /// Activated `absT_quaR_FoV` encoding of each camera-head iteration, `(S, 9)` each; the last is the answer.
+    pub pose_enc_list: Vec<Tensor>,
+    /// `(S, H, W, 1)` and `(S, H, W)`.
+    pub depth: Option<(Tensor, Tensor)>,
+    /// World points `(S, H, W, 3)` and their confidence `(S, H, W)`.
+    pub world_points: Option<(Tensor, Tensor)>,
+    /// The DINOv2 patch tokens `(S, h·w, C)` when asked for (parity tests).
+    pub patch_tokens: Option<Tensor>,
+    /// Aggregated tokens `(S, P, 2C)` of the layers asked for (parity tests).
+    pub tokens: Vec<(usize, Tensor)>,
+}
+
+impl Predictions {
+    pub fn pose_enc(&self) -> Option<&Tensor> {
+        self.pose_enc_list.last()
+    }
+}
+
+impl Vggt {
+    pub fn new(vb: VarBuilder, cfg: &VggtConfig) -> Result<Self> {
+        cfg.validate().map_err(candle_core::Error::Msg)?;
+        let dim = 2 * cfg.embed_dim;
+        Ok(Self {
+            aggregator: Aggregator::new(vb.pp("aggregator"), cfg)?,
+            camera_head: if cfg.enable_camera { Some(CameraHead::new(vb.pp("camera_head"), dim, &cfg.camera_head)?) } else { None },
+            point_head: if cfg.enable_point { Some(DptHead::new(vb.pp("point_head"), dim, cfg.patch_size, 4, Activation::InvLog, &cfg.dpt)?) } else { None },
+            depth_head: if cfg.enable_depth { Some(DptHead::new(vb.pp("depth_head"), dim, cfg.patch_size, 2, Activation::Exp, &cfg.dpt)?) } else { None },
+            cfg: cfg.clone(),
+        })
+    }
+
+    /// `images (S, 3, H, W)` in [0, 1], H and W multiples of the patch size. `extra_layers`: aggregated layers
+    /// to return besides what the heads need (tests).
+    pub fn forward(&self, images: &Tensor, extra_layers: &[usize]) -> Result<Predictions> {
+        let (_, c, h, w) = images.dims4()?;
+        let p = self.cfg.patch_size;
+        if c != 3 || h % p != 0 || w % p != 0 || h == 0 || w == 0 {
+            candle_core::bail!("VGGT: images {:?} must be (S, 3, H, W) with H and W positive multiples of {p}", images.dims());
+        }
+        let last = self.cfg.depth - 1;
+        let mut keep: Vec<usize> = extra_layers.to_vec();
+        if self.camera_head.is_some() {
+            keep.push(last);
+        }
+        if self.depth_head.is_some() || self.point_head.is_some() {
+            keep.extend(self.cfg.dpt.intermediate_layer_idx);
+        }
+        let tokens = self.aggregator.forward(images, &keep)?;
+        let pose_enc_list = match &self.camera_head {
+            Some(head) => head.forward(tokens.get(&last).ok_or_else(|| candle_core::Error::Msg("last layer not kept".into()))?)?,
+            None => Vec::new(),
+        };
+        let psi = self.cfg.patch_start_idx();
+        let depth = self.depth_head.as_ref().map(|hd| hd.forward(&tokens, h, w, psi)).transpose()?;
+        let world_points = self.point_head.as_ref().map(|hd| hd.forward(&tokens, h, w, psi)).transpose()?;
+        let tokens = extra_layers.iter().filter_map(|i| tokens.get(i).map(|t| (*i, t.clone()))).collect();
+        Ok(Predictions { pose_enc_list, depth, world_points, patch_tokens: None, tokens })
+    }
+}

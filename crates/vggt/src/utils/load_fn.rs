@@ -1,0 +1,1 @@
+//! The official `load_and_preprocess_images` (being written).
