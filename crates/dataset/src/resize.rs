@@ -37,6 +37,10 @@
 //!      The fixture's Pillow version is in its metadata.
 //! 3. **Back to float**: `q / 255` in `f64`, rounded to `f32` (for every level this equals the `f32` division).
 //!
+//! The same resampler serves VGGT's loader (`load_and_preprocess_images`, `Image.resize(..., BICUBIC)`):
+//! [`resize_pil_u8`] takes the filter ([`PilFilter`]); only the kernel and its support differ, everything
+//! above (windows, 22-bit weights, pass order, 8-bit intermediate) is shared, as it is in Pillow.
+//!
 //! Where the official code calls `rescale` with the image's own size (DL3DV's 480×270 frames at 480×270),
 //! Pillow returns a copy, so only the (lossless) quantisation happens; callers may skip the call then.
 //!
@@ -69,8 +73,33 @@ use crate::ImageF32;
 
 /// Pillow's `PRECISION_BITS` (`32 − 8 − 2`): fractional bits of the integer filter weights.
 const PRECISION_BITS: u32 = 22;
-/// Lanczos-3 support radius (Pillow's `LANCZOS.support`).
-const LANCZOS_SUPPORT: f64 = 3.0;
+
+/// A Pillow resampling filter (`Image.Resampling.*`) for [`resize_pil_u8`]: its kernel and support radius are
+/// Pillow's (`src/libImaging/Resample.c`), evaluated in `f64` with the same operation order.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PilFilter {
+    /// `Image.LANCZOS`: `sinc(x)·sinc(x/3)` on `[-3, 3)`, support 3.
+    Lanczos,
+    /// `Image.BICUBIC`: Keys' cubic convolution with `a = −0.5`, support 2.
+    Bicubic,
+}
+
+impl PilFilter {
+    /// The kernel's support radius at scale 1 (Pillow's `filter.support`).
+    pub fn support(self) -> f64 {
+        match self {
+            PilFilter::Lanczos => 3.0,
+            PilFilter::Bicubic => 2.0,
+        }
+    }
+
+    fn kernel(self, x: f64) -> f64 {
+        match self {
+            PilFilter::Lanczos => lanczos(x),
+            PilFilter::Bicubic => bicubic(x),
+        }
+    }
+}
 
 /// `(v * 255).clip(0, 255).type(torch.uint8)` for one float32 value: float32 multiply, clamp, truncation
 /// toward zero. (NaN, for which torch's cast is undefined, maps to 0.)
@@ -95,18 +124,55 @@ pub fn resize_pil_lanczos(img: &ImageF32, width: u32, height: u32) -> ImageF32 {
 /// (earlier versions differ where [`vertical_pass_first`] holds, see the module docs). Panics on an empty size
 /// or a buffer of the wrong length.
 pub fn resize_pil_lanczos_u8(src: &[u8], channels: usize, src_width: u32, src_height: u32, width: u32, height: u32) -> Vec<u8> {
+    resize_pil_u8(src, channels, src_width, src_height, width, height, PilFilter::Lanczos)
+}
+
+/// Pillow's `Image.resize((width, height), filter)` of an 8-bit image held as `channels` planes of
+/// `src_width`×`src_height` (layout C, H, W); returns the planes of the result. Bit-exact against Pillow 13
+/// (see the module docs for the pass order of earlier versions). Panics on an empty size or a buffer of the
+/// wrong length.
+pub fn resize_pil_u8(src: &[u8], channels: usize, src_width: u32, src_height: u32, width: u32, height: u32, filter: PilFilter) -> Vec<u8> {
+    resize_pil_u8_rows(src, channels, src_width, src_height, width, height, 0..height, filter)
+}
+
+/// Rows `rows` of [`resize_pil_u8`]'s result (planes of `rows.len()`×`width`), computing only those: the
+/// vertical pass's output rows are independent of each other, so this equals cropping the full result, bit
+/// for bit, without its cost (a centre crop of a tall image). Panics as [`resize_pil_u8`] does, and on a row
+/// range outside `0..height`.
+#[allow(clippy::too_many_arguments)]
+pub fn resize_pil_u8_rows(
+    src: &[u8],
+    channels: usize,
+    src_width: u32,
+    src_height: u32,
+    width: u32,
+    height: u32,
+    rows: std::ops::Range<u32>,
+    filter: PilFilter,
+) -> Vec<u8> {
     let (w, h, ow, oh) = (src_width as usize, src_height as usize, width as usize, height as usize);
     assert!(w > 0 && h > 0 && ow > 0 && oh > 0, "resize {src_width}x{src_height} -> {width}x{height}: sizes must be positive");
     assert_eq!(src.len(), channels * w * h, "resize: buffer holds {} bytes, expected {channels}x{h}x{w}", src.len());
+    assert!(rows.start <= rows.end && rows.end <= height, "resize: rows {rows:?} outside 0..{height}");
+    let rows = rows.start as usize..rows.end as usize;
+    let n = rows.len();
     match (ow != w, oh != h) {
-        (false, false) => src.to_vec(),
-        (true, false) => horizontal_pass(src, channels * h, w, ow),
-        (false, true) => vertical_pass(src, channels, w, h, oh),
+        (false, false) => plane_rows(src, channels, w, h, rows).into_owned(),
+        (true, false) => horizontal_pass(&plane_rows(src, channels, w, h, rows), channels * n, w, ow, filter),
+        (false, true) => vertical_pass(src, channels, w, h, oh, rows, filter),
         (true, true) if vertical_pass_first(src_width, src_height, width, height) => {
-            horizontal_pass(&vertical_pass(src, channels, w, h, oh), channels * oh, w, ow)
+            horizontal_pass(&vertical_pass(src, channels, w, h, oh, rows, filter), channels * n, w, ow, filter)
         }
-        (true, true) => vertical_pass(&horizontal_pass(src, channels * h, w, ow), channels, ow, h, oh),
+        (true, true) => vertical_pass(&horizontal_pass(src, channels * h, w, ow, filter), channels, ow, h, oh, rows, filter),
     }
+}
+
+/// Rows `rows` of each of `channels` planes of `w`×`h` (borrowed when that is all of them).
+fn plane_rows(src: &[u8], channels: usize, w: usize, h: usize, rows: std::ops::Range<usize>) -> std::borrow::Cow<'_, [u8]> {
+    if rows == (0..h) {
+        return src.into();
+    }
+    (0..channels).flat_map(|c| &src[(c * h + rows.start) * w..(c * h + rows.end) * w]).copied().collect::<Vec<u8>>().into()
 }
 
 /// Whether Pillow 13 runs the vertical pass first for a `src_width`×`src_height` → `width`×`height` resize:
@@ -143,11 +209,25 @@ fn lanczos(x: f64) -> f64 {
     }
 }
 
-fn coeffs(in_size: usize, out_size: usize) -> Coeffs {
+/// Pillow's `bicubic_filter` (`a = −0.5`), with its expression order: `((a + 2)·x − (a + 3))·x·x + 1` inside
+/// one pixel, `(((x − 5)·x + 8)·x − 4)·a` out to two.
+fn bicubic(x: f64) -> f64 {
+    const A: f64 = -0.5;
+    let x = x.abs();
+    if x < 1.0 {
+        ((A + 2.0) * x - (A + 3.0)) * x * x + 1.0
+    } else if x < 2.0 {
+        (((x - 5.0) * x + 8.0) * x - 4.0) * A
+    } else {
+        0.0
+    }
+}
+
+fn coeffs(in_size: usize, out_size: usize, filter: PilFilter) -> Coeffs {
     // Pillow passes the box as C floats; `in1 - in0` = `in_size` exactly (sizes < 2^24).
     let scale = in_size as f32 as f64 / out_size as f64;
     let filterscale = scale.max(1.0);
-    let support = LANCZOS_SUPPORT * filterscale;
+    let support = filter.support() * filterscale;
     let ksize = support.ceil() as usize * 2 + 1;
     let inv_filterscale = 1.0 / filterscale;
     let (mut start, mut len) = (Vec::with_capacity(out_size), Vec::with_capacity(out_size));
@@ -162,7 +242,7 @@ fn coeffs(in_size: usize, out_size: usize) -> Coeffs {
         let n = xmax.max(0) as usize;
         let mut ww = 0.0;
         for (x, wx) in w[..n].iter_mut().enumerate() {
-            *wx = lanczos(((x as i64 + xmin) as f64 - center + 0.5) * inv_filterscale);
+            *wx = filter.kernel(((x as i64 + xmin) as f64 - center + 0.5) * inv_filterscale);
             ww += *wx;
         }
         let row = &mut k[xx * ksize..xx * ksize + n];
@@ -187,8 +267,8 @@ fn clip8(acc: i32) -> u8 {
 const HALF: i32 = 1 << (PRECISION_BITS - 1);
 
 /// Resample each of `rows` rows from `w` to `ow` samples.
-fn horizontal_pass(src: &[u8], rows: usize, w: usize, ow: usize) -> Vec<u8> {
-    let c = coeffs(w, ow);
+fn horizontal_pass(src: &[u8], rows: usize, w: usize, ow: usize, filter: PilFilter) -> Vec<u8> {
+    let c = coeffs(w, ow, filter);
     let mut out = vec![0u8; rows * ow];
     out.par_chunks_mut(ow).zip(src.par_chunks(w)).for_each(|(line_out, line_in)| {
         for (xx, o) in line_out.iter_mut().enumerate() {
@@ -203,14 +283,15 @@ fn horizontal_pass(src: &[u8], rows: usize, w: usize, ow: usize) -> Vec<u8> {
     out
 }
 
-/// Resample each of `channels` planes of `w`×`h` to `w`×`oh`.
-fn vertical_pass(src: &[u8], channels: usize, w: usize, h: usize, oh: usize) -> Vec<u8> {
-    let c = coeffs(h, oh);
-    let mut out = vec![0u8; channels * oh * w];
+/// Resample each of `channels` planes of `w`×`h` to `w`×`oh`, keeping output rows `rows`.
+fn vertical_pass(src: &[u8], channels: usize, w: usize, h: usize, oh: usize, rows: std::ops::Range<usize>, filter: PilFilter) -> Vec<u8> {
+    let c = coeffs(h, oh, filter);
+    let n = rows.len();
+    let mut out = vec![0u8; channels * n * w];
     out.par_chunks_mut(w).enumerate().for_each_init(
         || vec![0i32; w],
         |acc, (i, line_out)| {
-            let (plane, yy) = (i / oh, i % oh);
+            let (plane, yy) = (i / n, rows.start + i % n);
             let (s, n) = (c.start[yy], c.len[yy]);
             let k = &c.k[yy * c.ksize..yy * c.ksize + n];
             acc.fill(HALF);
@@ -235,12 +316,14 @@ mod tests {
     #[test]
     fn weights_sum_to_one_in_fixed_point() {
         // Normalised weights round to integers summing to 2^22 within a few units (one rounding each).
-        for (i, o) in [(960, 455), (540, 256), (37, 80), (23, 1), (250, 31)] {
-            let c = coeffs(i, o);
-            for xx in 0..o {
-                let s: i64 = c.k[xx * c.ksize..xx * c.ksize + c.len[xx]].iter().map(|&k| k as i64).sum();
-                assert!((s - (1 << PRECISION_BITS)).abs() <= c.len[xx] as i64, "{i}->{o} sample {xx}: {s}");
-                assert!(c.start[xx] + c.len[xx] <= i);
+        for filter in [PilFilter::Lanczos, PilFilter::Bicubic] {
+            for (i, o) in [(960, 455), (540, 256), (37, 80), (23, 1), (250, 31), (61, 518)] {
+                let c = coeffs(i, o, filter);
+                for xx in 0..o {
+                    let s: i64 = c.k[xx * c.ksize..xx * c.ksize + c.len[xx]].iter().map(|&k| k as i64).sum();
+                    assert!((s - (1 << PRECISION_BITS)).abs() <= c.len[xx] as i64, "{filter:?} {i}->{o} sample {xx}: {s}");
+                    assert!(c.start[xx] + c.len[xx] <= i);
+                }
             }
         }
     }
@@ -258,9 +341,40 @@ mod tests {
     }
 
     #[test]
+    fn bicubic_kernel_is_keys_a_minus_half() {
+        // Interpolating at the taps, a partition of unity, zero from 2 on.
+        assert_eq!(bicubic(0.0), 1.0);
+        assert_eq!(bicubic(1.0), 0.0);
+        assert_eq!(bicubic(-2.0), 0.0);
+        assert_eq!(bicubic(0.5), 0.5625);
+        assert_eq!(bicubic(1.5), -0.0625);
+        for t in [0.1, 0.25, 0.7] {
+            let s: f64 = (-2..=2).map(|k| bicubic(t + k as f64)).sum();
+            assert!((s - 1.0).abs() < 1e-12, "{t}: {s}");
+        }
+    }
+
+    #[test]
+    fn row_windows_equal_the_cropped_result() {
+        let src: Vec<u8> = (0..3 * 23 * 9).map(|i| (i * 37 % 251) as u8).collect();
+        // Vertical first, horizontal first, vertical only, horizontal only, copy.
+        for (ow, oh) in [(40, 5), (40, 60), (9, 60), (40, 23), (9, 23)] {
+            for filter in [PilFilter::Lanczos, PilFilter::Bicubic] {
+                let full = resize_pil_u8(&src, 3, 9, 23, ow, oh, filter);
+                let (a, b) = (oh as usize / 3, oh as usize - 1);
+                let part = resize_pil_u8_rows(&src, 3, 9, 23, ow, oh, a as u32..b as u32, filter);
+                let ow = ow as usize;
+                let want: Vec<u8> = (0..3).flat_map(|c| &full[(c * oh as usize + a) * ow..(c * oh as usize + b) * ow]).copied().collect();
+                assert_eq!(part, want, "{ow}x{oh} {filter:?}");
+            }
+        }
+    }
+
+    #[test]
     fn constant_and_identity() {
         let src = vec![77u8; 3 * 13 * 9];
         assert!(resize_pil_lanczos_u8(&src, 3, 13, 9, 5, 20).iter().all(|&p| p == 77));
+        assert!(resize_pil_u8(&src, 3, 13, 9, 518, 294, PilFilter::Bicubic).iter().all(|&p| p == 77));
         let ramp: Vec<u8> = (0..3 * 13 * 9).map(|i| (i * 7 % 256) as u8).collect();
         assert_eq!(resize_pil_lanczos_u8(&ramp, 3, 13, 9, 13, 9), ramp);
         let img = ImageF32 { width: 13, height: 9, data: ramp.iter().map(|&p| p as f32 / 255.0).collect() };

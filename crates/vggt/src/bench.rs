@@ -17,6 +17,8 @@ pub struct VggtBench {
     pub runs: usize,
     pub warmup: usize,
     pub seed: u64,
+    /// The aggregator's dtype (the heads stay f32).
+    pub trunk: candle_core::DType,
 }
 
 /// Smooth synthetic frames in [0, 1], `(S, 3, H, W)`.
@@ -100,7 +102,7 @@ pub fn run(cfg: &VggtConfig, b: &VggtBench, device: &Device) -> candle_core::Res
         );
     }
     let t = Instant::now();
-    let model = crate::weights::random_model(cfg, b.seed, device)?;
+    let model = crate::weights::random_model(cfg, b.seed, device, b.trunk)?;
     let build_ms = t.elapsed().as_secs_f64() * 1e3;
     let images = synthetic_frames(b.frames, b.height, b.width, device)?;
     let mut times = Vec::with_capacity(b.runs);
@@ -120,6 +122,7 @@ pub fn run(cfg: &VggtConfig, b: &VggtBench, device: &Device) -> candle_core::Res
     Ok(json!({
         "bench": "vggt",
         "device": format!("{device:?}"),
+        "dtype": format!("{:?}", b.trunk).to_lowercase(),
         "frames": b.frames,
         "size": format!("{}x{}", b.width, b.height),
         "threads": rayon::current_num_threads(),

@@ -81,13 +81,14 @@ pub struct LoadReport {
 /// Build the model from a folder or file, strictly (f32 on `device`).
 pub fn load(path: &Path, device: &Device) -> Result<(Vggt, LoadReport), VggtError> {
     let src = VggtSource::resolve(path)?;
-    load_source(&src, device)
+    load_source(&src, device, DType::F32)
 }
 
-pub fn load_source(src: &VggtSource, device: &Device) -> Result<(Vggt, LoadReport), VggtError> {
+/// [`load`] with the aggregator in `trunk` (see [`Vggt::with_trunk_dtype`]).
+pub fn load_source(src: &VggtSource, device: &Device, trunk: DType) -> Result<(Vggt, LoadReport), VggtError> {
     let loader = StrictLoader::new(Checkpoint::open(&src.weights)?, "")?;
     let vb = loader.var_builder(DType::F32, device);
-    let model = Vggt::new(vb, &src.config);
+    let model = Vggt::with_trunk_dtype(vb, &src.config, trunk);
     // Key problems first: a shape problem usually makes the build itself fail later on.
     let skipped = loader.finish_ignoring(&[SKIPPED_PREFIX])?;
     if !skipped.is_empty() {
@@ -99,11 +100,11 @@ pub fn load_source(src: &VggtSource, device: &Device) -> Result<(Vggt, LoadRepor
 
 /// The model with seeded random weights under the official names, made as the model asks for them (no second
 /// copy: benchmarks at the full VGGT-1B shape).
-pub fn random_model(cfg: &VggtConfig, seed: u64, device: &Device) -> candle_core::Result<Vggt> {
-    Vggt::new(mvsplat360_dataset::weights::random_var_builder(seed, device), cfg)
+pub fn random_model(cfg: &VggtConfig, seed: u64, device: &Device, trunk: DType) -> candle_core::Result<Vggt> {
+    Vggt::with_trunk_dtype(mvsplat360_dataset::weights::random_var_builder(seed, device), cfg, trunk)
 }
 
 /// Build from tensors in memory under the official names.
-pub fn from_tensors(tensors: HashMap<String, Tensor>, cfg: &VggtConfig, device: &Device) -> candle_core::Result<Vggt> {
-    Vggt::new(VarBuilder::from_tensors(tensors, DType::F32, device), cfg)
+pub fn from_tensors(tensors: HashMap<String, Tensor>, cfg: &VggtConfig, device: &Device, trunk: DType) -> candle_core::Result<Vggt> {
+    Vggt::with_trunk_dtype(VarBuilder::from_tensors(tensors, DType::F32, device), cfg, trunk)
 }

@@ -171,7 +171,7 @@ fn mutation_first_frame_tokens_swapped_fails() {
         let swapped = Tensor::cat(&[&t.narrow(1, 1, 1).unwrap(), &t.narrow(1, 0, 1).unwrap()], 1).unwrap();
         tensors.insert(k.into(), swapped);
     }
-    let model = weights::from_tensors(tensors, &cfg, &Device::Cpu).unwrap();
+    let model = weights::from_tensors(tensors, &cfg, &Device::Cpu, DType::F32).unwrap();
     for case in cases(0) {
         let pred = model.forward(case.get("images"), &[]).unwrap();
         assert!(case.compare("pose_enc.3", pred.pose_enc().unwrap()).is_some(), "{}: swapped first-frame tokens still pass", case.name);
@@ -242,4 +242,32 @@ fn pos_embed_interpolation_antialias() {
         checked += 1;
     }
     assert!(checked >= 4, "only {checked} antialiased sizes in the fixture");
+}
+
+/// The bf16 trunk (what a GPU runs, upstream's autocast) on the CPU through candle's bf16 ops: the aggregator's
+/// weights and tokens in bf16, the heads in f32. bf16 keeps 8 significant bits (u = 2⁻⁸); each block rounds
+/// its inputs, weights and outputs, and ~10 blocks compound that, so the outputs are compared by their RMS
+/// error against 0.05 × the reference's RMS (≈ 13 u): a wrong cast, a head left in bf16 or a token taken from
+/// the wrong place gives O(1) errors.
+#[test]
+fn bf16_trunk_within_bf16_error() {
+    let (_, cfg, _tmp, tensors) = load_model(0);
+    let model = weights::from_tensors(tensors, &cfg, &Device::Cpu, DType::BF16).unwrap();
+    assert_eq!(model.aggregator.frame_blocks[0].attn.qkv.weight.dtype(), DType::BF16);
+    assert_eq!(model.depth_head.as_ref().unwrap().norm.weight.dtype(), DType::F32);
+    for case in cases(0) {
+        let pred = model.forward(case.get("images"), &[]).unwrap();
+        let d = &pred.depth.as_ref().unwrap().0;
+        assert_eq!(d.dtype(), DType::F32, "heads run in f32");
+        for (k, t) in [("pose_enc.3", pred.pose_enc().unwrap()), ("depth", d), ("world_points", &pred.world_points.as_ref().unwrap().0)] {
+            let e = case.get(k);
+            let rms = |v: &[f64]| (v.iter().map(|x| x * x).sum::<f64>() / v.len() as f64).sqrt();
+            let a = to_f64(&t.reshape(e.dims()).unwrap());
+            let r = to_f64(e);
+            let err: Vec<f64> = a.iter().zip(&r).map(|(x, y)| x - y).collect();
+            let (re, rr) = (rms(&err), rms(&r));
+            eprintln!("{}/{k} bf16: rms err {re:.3e}, rms ref {rr:.3e}, ratio {:.3e}", case.name, re / rr);
+            assert!(re <= 0.05 * rr, "{}/{k}: bf16 trunk rms error {re:.3e} over 0.05 × rms ref {rr:.3e}", case.name);
+        }
+    }
 }

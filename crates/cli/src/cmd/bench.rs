@@ -200,6 +200,9 @@ enum What {
         /// Where it runs: `cpu`, `cuda` or `cuda:N` (CUDA needs a `--features cuda` build).
         #[arg(long, default_value = "cpu")]
         device: mvsplat360_pipeline::compute::DeviceSpec,
+        /// Precision of the aggregator: `f32`, or `bf16` on a GPU (the heads stay f32, as upstream).
+        #[arg(long, default_value = "f32", value_parser = mvsplat360_pipeline::compute::parse_dtype)]
+        dtype: candle_core::DType,
         /// Frames (photos) in the forward.
         #[arg(long, default_value_t = 5)]
         frames: usize,
@@ -309,7 +312,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 device,
             })?
         }
-        What::Vggt { device, frames, size, config, runs, warmup, threads } => {
+        What::Vggt { device, dtype, frames, size, config, runs, warmup, threads } => {
+            if device == mvsplat360_pipeline::compute::DeviceSpec::Cpu && dtype != candle_core::DType::F32 {
+                anyhow::bail!("bench vggt: --dtype {dtype:?} needs --device cuda (the CPU kernels are f32)");
+            }
             let (width, height) = size
                 .split_once('x')
                 .and_then(|(w, h)| Some((w.parse::<usize>().ok()?, h.parse::<usize>().ok()?)))
@@ -320,7 +326,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             };
             let device = device.open()?;
             let pool = rayon::ThreadPoolBuilder::new().num_threads(threads.count()).build()?;
-            let b = mvsplat360_vggt::bench::VggtBench { frames, height, width, runs, warmup, seed: 0 };
+            let b = mvsplat360_vggt::bench::VggtBench { frames, height, width, runs, warmup, seed: 0, trunk: dtype };
             pool.install(|| mvsplat360_vggt::bench::run(&cfg, &b, &device))?
         }
         What::Metrics { width, height, runs, threads } => {

@@ -65,7 +65,8 @@ impl DinoVisionTransformer {
         let c = self.embed_dim;
         let m = self.grid;
         let dev = self.pos_embed.device();
-        let patch = self.pos_embed.narrow(1, 1, m * m)?.reshape((m * m, c))?.t()?.contiguous()?.to_vec2::<f32>()?;
+        // Upstream interpolates in float32 whatever the model's dtype (`pos_embed.float()`).
+        let patch = self.pos_embed.narrow(1, 1, m * m)?.reshape((m * m, c))?.t()?.to_dtype(candle_core::DType::F32)?.contiguous()?.to_vec2::<f32>()?;
         let mut out = Vec::with_capacity(h * w * c);
         let planes: Vec<Vec<f32>> = patch.iter().map(|plane| interpolate_bicubic_aa(plane, m, m, h, w)).collect();
         for i in 0..h * w {
@@ -73,7 +74,7 @@ impl DinoVisionTransformer {
                 out.push(plane[i]);
             }
         }
-        let patch = Tensor::from_vec(out, (1, h * w, c), dev)?;
+        let patch = Tensor::from_vec(out, (1, h * w, c), dev)?.to_dtype(self.pos_embed.dtype())?;
         Tensor::cat(&[&self.pos_embed.narrow(1, 0, 1)?, &patch], 1)
     }
 

@@ -60,6 +60,7 @@ impl Aggregator {
     /// The normalised images' DINOv2 patch tokens, `(S, h·w, C)`, from images `(S, 3, H, W)` in [0, 1].
     pub fn patch_tokens(&self, images: &Tensor) -> Result<Tensor> {
         let dev = images.device();
+        let images = &images.to_dtype(self.camera_token.dtype())?;
         let mean = Tensor::new(&RESNET_MEAN, dev)?.to_dtype(images.dtype())?.reshape((1, 3, 1, 1))?;
         let std = Tensor::new(&RESNET_STD, dev)?.to_dtype(images.dtype())?.reshape((1, 3, 1, 1))?;
         let x = images.broadcast_sub(&mean)?.broadcast_div(&std)?;

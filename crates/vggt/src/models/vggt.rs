@@ -1,7 +1,7 @@
 //! `VGGT`: the aggregator, then the camera head on the last layer and the DPT depth and point heads on four
 //! layers. One scene per call (upstream's B = 1).
 
-use candle_core::{Result, Tensor};
+use candle_core::{DType, Result, Tensor};
 use candle_nn::VarBuilder;
 
 use super::aggregator::Aggregator;
@@ -42,10 +42,18 @@ impl Predictions {
 
 impl Vggt {
     pub fn new(vb: VarBuilder, cfg: &VggtConfig) -> Result<Self> {
+        Self::with_trunk_dtype(vb, cfg, DType::F32)
+    }
+
+    /// The aggregator's weights and tokens in `trunk` (bf16 on a GPU, as upstream's autocast); the heads stay
+    /// f32 whatever the trunk's dtype, as upstream runs them with autocast disabled.
+    pub fn with_trunk_dtype(vb: VarBuilder, cfg: &VggtConfig, trunk: DType) -> Result<Self> {
         cfg.validate().map_err(candle_core::Error::Msg)?;
         let dim = 2 * cfg.embed_dim;
+        let heads = vb.clone().set_dtype(DType::F32);
+        let vb = heads.clone();
         Ok(Self {
-            aggregator: Aggregator::new(vb.pp("aggregator"), cfg)?,
+            aggregator: Aggregator::new(vb.pp("aggregator").set_dtype(trunk), cfg)?,
             camera_head: if cfg.enable_camera { Some(CameraHead::new(vb.pp("camera_head"), dim, &cfg.camera_head)?) } else { None },
             point_head: if cfg.enable_point { Some(DptHead::new(vb.pp("point_head"), dim, cfg.patch_size, 4, Activation::InvLog, &cfg.dpt)?) } else { None },
             depth_head: if cfg.enable_depth { Some(DptHead::new(vb.pp("depth_head"), dim, cfg.patch_size, 2, Activation::Exp, &cfg.dpt)?) } else { None },
