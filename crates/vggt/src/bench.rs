@@ -1,6 +1,7 @@
 //! `mvsplat360 bench vggt`: one forward of VGGT (aggregator, camera, depth and point heads) with seeded random
 //! weights at the configured shape (VGGT-1B by default) on synthetic frames: median time, peak memory, and the
-//! multiply-adds counted from the shapes (so the line also gives the achieved GFLOP/s).
+//! multiply-adds counted from the shapes (so the line also gives the achieved GFLOP/s). With MVSPLAT360_PROFILE=1
+//! the line also has `profile`: totals per part (DINOv2, frame blocks, global blocks, heads) over the timed runs.
 
 use std::time::Instant;
 
@@ -106,7 +107,11 @@ pub fn run(cfg: &VggtConfig, b: &VggtBench, device: &Device) -> candle_core::Res
     let build_ms = t.elapsed().as_secs_f64() * 1e3;
     let images = synthetic_frames(b.frames, b.height, b.width, device)?;
     let mut times = Vec::with_capacity(b.runs);
+    mvsplat360_nn::prof::sync_with(device);
     for i in 0..b.warmup + b.runs.max(1) {
+        if i == b.warmup {
+            let _ = mvsplat360_nn::prof::take_report();
+        }
         let t = Instant::now();
         let pred = model.forward(&images, &[])?;
         // Wait for the device: read one value of every output.
@@ -118,6 +123,8 @@ pub fn run(cfg: &VggtConfig, b: &VggtBench, device: &Device) -> candle_core::Res
         }
     }
     let ms = median(times.clone());
+    let profile: serde_json::Map<String, serde_json::Value> =
+        mvsplat360_nn::prof::take_report().into_iter().map(|(n, ms, calls)| (n.to_string(), json!({ "ms": ms, "calls": calls }))).collect();
     let flops = forward_flops(cfg, b.frames, b.height, b.width);
     Ok(json!({
         "bench": "vggt",
@@ -132,6 +139,7 @@ pub fn run(cfg: &VggtConfig, b: &VggtBench, device: &Device) -> candle_core::Res
         "tflop": flops / 1e12,
         "gflop_per_s": flops / (ms / 1e3) / 1e9,
         "peak_mib": peak_rss_mib(),
+        "profile": profile,
         "config": if *cfg == VggtConfig::default() { "VGGT-1B".to_string() } else { "custom".to_string() },
     }))
 }

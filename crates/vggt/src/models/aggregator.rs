@@ -86,7 +86,10 @@ impl Aggregator {
         let (s, _, hh, ww) = images.dims4()?;
         let p = self.cfg.patch_size;
         let (h, w) = (hh / p, ww / p);
-        let patch = self.patch_tokens(images)?;
+        let patch = {
+            let _p = mvsplat360_nn::prof::scope("vggt.dinov2");
+            self.patch_tokens(images)?
+        };
         let mut tokens = Tensor::cat(&[&self.special_tokens(s)?.to_dtype(patch.dtype())?, &patch], 1)?;
         let (_, n_tok, c) = tokens.dims3()?;
         let head_dim = c / self.cfg.num_heads;
@@ -106,10 +109,12 @@ impl Aggregator {
             for kind in &self.cfg.aa_order {
                 for _ in 0..self.cfg.aa_block_size {
                     if kind == "frame" {
+                        let _p = mvsplat360_nn::prof::scope("vggt.frame_blocks");
                         tokens = self.frame_blocks[fi].forward(&tokens.reshape((s, n_tok, c))?, frame_rope.as_ref())?;
                         fi += 1;
                         frame_out.push(tokens.clone());
                     } else {
+                        let _p = mvsplat360_nn::prof::scope("vggt.global_blocks");
                         tokens = self.global_blocks[gi].forward(&tokens.reshape((1, s * n_tok, c))?, global_rope.as_ref())?;
                         gi += 1;
                         global_out.push(tokens.clone());

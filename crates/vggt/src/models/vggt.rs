@@ -78,13 +78,19 @@ impl Vggt {
             keep.extend(self.cfg.dpt.intermediate_layer_idx);
         }
         let tokens = self.aggregator.forward(images, &keep)?;
+        let _p = mvsplat360_nn::prof::scope("vggt.camera_head");
         let pose_enc_list = match &self.camera_head {
             Some(head) => head.forward(tokens.get(&last).ok_or_else(|| candle_core::Error::Msg("last layer not kept".into()))?)?,
             None => Vec::new(),
         };
+        drop(_p);
         let psi = self.cfg.patch_start_idx();
+        let _p = mvsplat360_nn::prof::scope("vggt.depth_head");
         let depth = self.depth_head.as_ref().map(|hd| hd.forward(&tokens, h, w, psi)).transpose()?;
+        drop(_p);
+        let _p = mvsplat360_nn::prof::scope("vggt.point_head");
         let world_points = self.point_head.as_ref().map(|hd| hd.forward(&tokens, h, w, psi)).transpose()?;
+        drop(_p);
         let tokens = extra_layers.iter().filter_map(|i| tokens.get(i).map(|t| (*i, t.clone()))).collect();
         Ok(Predictions { pose_enc_list, depth, world_points, patch_tokens: None, tokens })
     }
