@@ -38,7 +38,11 @@ fn fmt_list(title: &str, keys: &[String]) -> String {
 }
 
 fn fmt_shapes(m: &[(String, Vec<usize>, Vec<usize>)]) -> String {
-    m.iter().map(|(k, want, got)| format!("\n  shape mismatch `{k}`: model expects {want:?}, file has {got:?}")).collect()
+    let mut s: String = m.iter().take(12).map(|(k, want, got)| format!("\n  shape mismatch `{k}`: model expects {want:?}, file has {got:?}")).collect();
+    if m.len() > 12 {
+        s += &format!("\n  … and {} more shape mismatches", m.len() - 12);
+    }
+    s
 }
 
 enum Store {

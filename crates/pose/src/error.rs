@@ -16,6 +16,10 @@ pub enum PoseError {
     /// COLMAP ran but the scene could not be posed; the message says what it found and what to do.
     #[error("{0}")]
     NotPosed(String),
+    /// The VGGT model: its weights (missing: where to get them; of another shape: the keys named), or a
+    /// prediction that cannot be used.
+    #[error("{0}")]
+    Vggt(String),
     #[error("{stage} was stopped (Ctrl-C); the finished stages are kept in {work} and a rerun continues from them")]
     Interrupted { stage: String, work: PathBuf },
 }

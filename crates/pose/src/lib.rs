@@ -6,6 +6,8 @@
 //! and renamed into place at the end: an interrupted run leaves no half scene, and a rerun on the same input
 //! reuses the stages it finished (frames, features, matches). Classical SfM needs overlap: five photos far
 //! apart do not match (measured: 0 of 10 pairs); a video, or many overlapping photos, posed together does.
+//! For a few photos, [`vggt::pose_vggt`] runs the VGGT model instead (cameras and depth in one forward pass)
+//! and writes the same layout.
 
 pub mod colmap_log;
 pub mod colmap_writer;
@@ -13,6 +15,7 @@ pub mod engine;
 pub mod error;
 pub mod photos;
 pub mod sfm;
+pub mod vggt;
 pub mod video;
 
 use std::io::Read;
@@ -183,12 +186,12 @@ pub fn read_report(scene: &Path) -> Option<PoseReport> {
     serde_json::from_str(&std::fs::read_to_string(scene.join("pose.json")).ok()?).ok()
 }
 
-fn write_json<T: Serialize>(path: &Path, v: &T) -> Result<(), PoseError> {
+pub(crate) fn write_json<T: Serialize>(path: &Path, v: &T) -> Result<(), PoseError> {
     let text = serde_json::to_string_pretty(v).map_err(|e| PoseError::io(path, std::io::Error::other(e)))?;
     mvsplat360_dataset::atomic::write_atomic(path, |tmp| std::fs::write(tmp, text + "\n")).map_err(|e| PoseError::io(path, e))
 }
 
-fn remove_if_exists(p: &Path) -> Result<(), PoseError> {
+pub(crate) fn remove_if_exists(p: &Path) -> Result<(), PoseError> {
     if p.is_dir() {
         std::fs::remove_dir_all(p).map_err(|e| PoseError::io(p, e))
     } else if p.exists() {

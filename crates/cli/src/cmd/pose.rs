@@ -1,18 +1,45 @@
-//! `mvsplat360 pose`: a video or a folder of overlapping photos → a posed scene folder, by COLMAP.
+//! `mvsplat360 pose`: a video or a folder of photos → a posed scene folder, by COLMAP or, for a few photos,
+//! by the VGGT model; `--engine auto` chooses ([`plan`]).
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
-use mvsplat360_pose::{PoseOptions, PoseReport};
+use anyhow::Context;
+use mvsplat360_pose::vggt::{VggtPoseOptions, VggtPoseReport, AUTO_MAX_PHOTOS, MIN_PHOTOS, WEIGHTS_HELP};
+use mvsplat360_pose::{InputKind, PoseError, PoseOptions, PoseReport};
 
-/// COLMAP and ffmpeg settings shared by `pose` and by `render` on a video or a photo folder.
+/// Which engine poses the input.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum EngineChoice {
+    /// A video → COLMAP; a photo folder with fewer than 20 photos and --vggt-weights → VGGT; otherwise COLMAP,
+    /// with VGGT as the fallback (when --vggt-weights is given) if COLMAP registers too few views.
+    Auto,
+    /// The VGGT model on a photo folder (needs --vggt-weights).
+    Vggt,
+    /// COLMAP only.
+    Colmap,
+}
+
+/// COLMAP, ffmpeg and VGGT settings shared by `pose` and by `render` on a video or a photo folder.
 #[derive(clap::Args, Clone, Debug)]
 pub struct PoseFlags {
+    /// How the cameras are estimated. `auto` (default): a video goes to COLMAP; a photo folder with fewer than
+    /// 20 photos goes to VGGT when --vggt-weights is given; anything else goes to COLMAP, and when COLMAP
+    /// registers fewer views than needed on a photo folder, VGGT takes over if --vggt-weights is given.
+    /// `vggt`: the VGGT model (a photo folder only; needs --vggt-weights). `colmap`: COLMAP only.
+    #[arg(long, value_enum, default_value_t = EngineChoice::Auto)]
+    pub engine: EngineChoice,
+    /// VGGT weights: the official model.pt of VGGT-1B (https://huggingface.co/facebook/VGGT-1B, CC BY-NC 4.0,
+    /// non-commercial) or of VGGT-1B-Commercial (gated by Meta), or a VGGT model folder (config.json +
+    /// model.safetensors or model.pt). VGGT runs on the CPU in f32 (about 5 GB of weights for VGGT-1B).
+    #[arg(long)]
+    pub vggt_weights: Option<PathBuf>,
     /// Frames sampled from a video: the sharpest frame of each of this many equal intervals (at least 60 for a
     /// full orbit).
     #[arg(long, default_value_t = 150)]
     pub frames: u64,
     /// Long side, in pixels, of the frames and photos COLMAP poses and the scene keeps (never scaled up); a 4K
-    /// video stays tractable on a CPU.
+    /// video stays tractable on a CPU. (VGGT always sees the photos 518 pixels wide; this sets what the scene
+    /// keeps.)
     #[arg(long, default_value_t = 1000)]
     pub max_size: u32,
     /// COLMAP camera model, one camera shared by all images of one size: SIMPLE_RADIAL (default; steady on
@@ -39,21 +66,27 @@ impl PoseFlags {
             min_views,
         }
     }
+
+    fn vggt_options(&self, weights: &Path) -> VggtPoseOptions {
+        VggtPoseOptions::new(weights, self.max_size)
+    }
 }
 
 #[derive(clap::Args)]
 pub struct Args {
-    /// A video file (whatever ffmpeg reads: mp4, mov, mkv; H.264, HEVC) or a folder of overlapping photos
-    /// (.jpg/.jpeg/.png). Five photos far apart cannot be posed by COLMAP: record a video around the scene or
-    /// take many photos, each sharing most of its view with the next.
+    /// A video file (whatever ffmpeg reads: mp4, mov, mkv; H.264, HEVC) or a folder of photos
+    /// (.jpg/.jpeg/.png). Five photos far apart cannot be posed by COLMAP: give --vggt-weights (VGGT poses
+    /// them), or record a video around the scene, or take many photos, each sharing most of its view with the
+    /// next.
     pub input: PathBuf,
-    /// The scene folder to create: images/ (undistorted), sparse/0 (a PINHOLE COLMAP model), pose.json (the
-    /// report), logs/ (COLMAP's logs). It must not exist, unless it was posed from this same input.
+    /// The scene folder to create: images/ (undistorted by COLMAP; as decoded by VGGT), sparse/0 (a PINHOLE
+    /// COLMAP model), pose.json (the report), logs/ (COLMAP's logs). It must not exist, unless it was posed from
+    /// this same input.
     #[arg(long)]
     pub out: PathBuf,
     #[command(flatten)]
     pub flags: PoseFlags,
-    /// Fewer registered images than this is a failure (the context views `render` will take).
+    /// Fewer images registered by COLMAP than this is a failure (the context views `render` will take).
     #[arg(long, default_value_t = 5)]
     pub min_views: usize,
     /// Print pose.json on stdout when done.
@@ -61,8 +94,130 @@ pub struct Args {
     pub json: bool,
 }
 
-/// Runs `pose`, with bars and the Ctrl-C handling that stops COLMAP and ffmpeg.
-pub fn pose_scene(input: &std::path::Path, out: &std::path::Path, opts: &PoseOptions, quiet: bool) -> anyhow::Result<PoseReport> {
+/// A scene posed by either engine.
+#[derive(Debug, Clone)]
+pub enum Posed {
+    Colmap(Box<PoseReport>),
+    Vggt(Box<VggtPoseReport>),
+}
+
+impl Posed {
+    pub fn to_json(&self) -> serde_json::Result<String> {
+        match self {
+            Posed::Colmap(r) => serde_json::to_string(r),
+            Posed::Vggt(r) => serde_json::to_string(r),
+        }
+    }
+}
+
+/// What runs: COLMAP (with VGGT as its fallback when weights are given) or VGGT.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Plan {
+    Colmap { fallback: Option<PathBuf> },
+    Vggt { weights: PathBuf },
+}
+
+/// The engine for `input` under `--engine`, and why (said on stderr). `auto`: a video → COLMAP; a photo
+/// folder with fewer than [`AUTO_MAX_PHOTOS`] photos and `--vggt-weights` → VGGT; otherwise COLMAP, with
+/// VGGT as the fallback when weights are given.
+pub fn plan(input: &Path, flags: &PoseFlags) -> anyhow::Result<(Plan, String)> {
+    let kind = mvsplat360_pose::input_kind(input)?;
+    let weights = flags.vggt_weights.clone();
+    Ok(match (flags.engine, kind) {
+        (EngineChoice::Vggt, InputKind::Video) => anyhow::bail!(
+            "{}: --engine vggt poses a folder of photos, not a video; use --engine colmap (or auto) for a video, or extract a few frames into a folder",
+            input.display()
+        ),
+        (EngineChoice::Vggt, InputKind::Photos) => match weights {
+            Some(w) => (Plan::Vggt { weights: w }, "--engine vggt".into()),
+            None => anyhow::bail!("--engine vggt needs the VGGT weights. {WEIGHTS_HELP}"),
+        },
+        (EngineChoice::Colmap, _) => (Plan::Colmap { fallback: None }, "--engine colmap".into()),
+        (EngineChoice::Auto, InputKind::Video) => (Plan::Colmap { fallback: None }, "auto: a video goes to COLMAP".into()),
+        (EngineChoice::Auto, InputKind::Photos) => {
+            let n = mvsplat360_pose::photos::list(input)?.0.len();
+            let photos = if n == 1 { "1 photo".to_string() } else { format!("{n} photos") };
+            match weights {
+                Some(w) if n < AUTO_MAX_PHOTOS => {
+                    (Plan::Vggt { weights: w }, format!("auto: {photos} (fewer than {AUTO_MAX_PHOTOS}) and --vggt-weights → VGGT"))
+                }
+                Some(w) => {
+                    (Plan::Colmap { fallback: Some(w) }, format!("auto: {photos} ({AUTO_MAX_PHOTOS} or more) → COLMAP, VGGT if COLMAP cannot pose them"))
+                }
+                None => (Plan::Colmap { fallback: None }, format!("auto: {photos}, no --vggt-weights → COLMAP")),
+            }
+        }
+    })
+}
+
+/// Whether the scene folder `scene` was posed from `input` with these settings by an engine this plan allows
+/// (checked by that engine's fingerprint).
+pub fn reusable(input: &Path, scene: &Path, flags: &PoseFlags, min_views: usize) -> anyhow::Result<bool> {
+    let Some((engine, fp)) = mvsplat360_pose::vggt::read_engine(scene) else { return Ok(false) };
+    let (plan, _) = plan(input, flags)?;
+    Ok(match (engine.as_str(), &plan) {
+        ("vggt", Plan::Vggt { weights } | Plan::Colmap { fallback: Some(weights) }) => {
+            mvsplat360_pose::vggt::fingerprint(input, &flags.vggt_options(weights))? == fp
+        }
+        ("colmap", _) if flags.engine != EngineChoice::Vggt => mvsplat360_pose::fingerprint(input, &flags.options(min_views))? == fp,
+        _ => false,
+    })
+}
+
+/// Runs `pose` with the engine [`plan`] picks, with bars and the Ctrl-C handling that stops COLMAP and ffmpeg.
+pub fn pose_scene(input: &Path, out: &Path, flags: &PoseFlags, min_views: usize, quiet: bool) -> anyhow::Result<Posed> {
+    let (plan, why) = plan(input, flags)?;
+    // A scene VGGT posed is checked against VGGT's fingerprint (COLMAP's would refuse it).
+    let existing = mvsplat360_pose::vggt::read_engine(out).map(|(e, _)| e);
+    let vggt_weights = match &plan {
+        Plan::Vggt { weights } | Plan::Colmap { fallback: Some(weights) } => Some(weights.clone()),
+        Plan::Colmap { fallback: None } => None,
+    };
+    if let (Some("vggt"), Some(w)) = (existing.as_deref(), &vggt_weights) {
+        return run_vggt(input, out, flags, w, quiet);
+    }
+    if !quiet {
+        eprintln!("posing {} ({why})", input.display());
+    }
+    match plan {
+        Plan::Vggt { weights } => run_vggt(input, out, flags, &weights, quiet),
+        Plan::Colmap { fallback } => {
+            let kind = mvsplat360_pose::input_kind(input)?;
+            match run_colmap(input, out, &flags.options(min_views), quiet) {
+                Ok(r) => Ok(Posed::Colmap(Box::new(r))),
+                Err(PoseError::NotPosed(msg)) if kind == InputKind::Photos => match fallback {
+                    Some(w) => {
+                        eprintln!("{msg}\nfalling back to VGGT ({}), as --engine auto does when COLMAP cannot pose a photo folder", w.display());
+                        run_vggt(input, out, flags, &w, quiet)
+                    }
+                    None => Err(anyhow::anyhow!(
+                        "{msg}\nFor a few photos far apart, the VGGT model estimates the cameras without COLMAP's overlap: {WEIGHTS_HELP}{}",
+                        engine_hint(flags)
+                    )),
+                },
+                // Too few photos for COLMAP (it refuses before running): say VGGT's way too.
+                Err(e @ PoseError::Input { .. })
+                    if kind == InputKind::Photos
+                        && flags.vggt_weights.is_none()
+                        && mvsplat360_pose::photos::list(input).is_ok_and(|(p, _)| p.len() >= MIN_PHOTOS && p.len() < min_views.max(2)) =>
+                {
+                    Err(anyhow::anyhow!("{e}\nFor a few photos, the VGGT model estimates the cameras: {WEIGHTS_HELP}{}", engine_hint(flags)))
+                }
+                Err(e) => Err(e.into()),
+            }
+        }
+    }
+}
+
+fn engine_hint(flags: &PoseFlags) -> &'static str {
+    if flags.engine == EngineChoice::Colmap {
+        " (with --engine auto or vggt)"
+    } else {
+        ""
+    }
+}
+
+fn run_colmap(input: &Path, out: &Path, opts: &PoseOptions, quiet: bool) -> Result<PoseReport, PoseError> {
     let bars = super::progress::Bars::new(quiet);
     // Every PoseError names the input or the program already.
     let report = mvsplat360_pose::pose(input, out, opts, &bars)?;
@@ -81,16 +236,40 @@ pub fn pose_scene(input: &std::path::Path, out: &std::path::Path, opts: &PoseOpt
     Ok(report)
 }
 
+fn run_vggt(input: &Path, out: &Path, flags: &PoseFlags, weights: &Path, quiet: bool) -> anyhow::Result<Posed> {
+    let bars = super::progress::Bars::new(quiet);
+    let r = mvsplat360_pose::vggt::pose_vggt(input, out, &flags.vggt_options(weights), &bars)?;
+    if !quiet {
+        let conf: Vec<String> = r.views.iter().map(|v| format!("{:.1}", v.mean_depth_confidence)).collect();
+        eprintln!(
+            "posed {} photos with VGGT (the model saw {}x{}; mean depth confidence per view {}; {} points, {}) in {:.0} s → {} (images/, sparse/0, pose.json). \
+             The world is in VGGT's normalised units and the first camera is as predicted.",
+            r.images_total,
+            r.model_input.width,
+            r.model_input.height,
+            conf.join(", "),
+            r.points.count,
+            r.points.selection,
+            r.seconds.total,
+            out.display()
+        );
+        if r.images_total < 5 {
+            eprintln!("note: {} photos; MVSplat360 takes 5 context views: render needs --num-context {} or fewer", r.images_total, r.images_total);
+        }
+    }
+    Ok(Posed::Vggt(Box::new(r)))
+}
+
 pub fn run(a: Args, quiet: bool) -> anyhow::Result<()> {
     let _ = ctrlc::set_handler(|| {
         // COLMAP and ffmpeg run in their own process groups, which the terminal's Ctrl-C does not reach.
         mvsplat360_pose::stop_children();
-        eprintln!("interrupted: nothing was written to the scene folder; the finished stages are kept and a rerun continues from them");
+        eprintln!("interrupted: nothing was written to the scene folder; a rerun continues from COLMAP's finished stages (VGGT starts again)");
         std::process::exit(130);
     });
-    let report = pose_scene(&a.input, &a.out, &a.flags.options(a.min_views), quiet)?;
+    let posed = pose_scene(&a.input, &a.out, &a.flags, a.min_views, quiet)?;
     if a.json {
-        println!("{}", serde_json::to_string(&report)?);
+        println!("{}", posed.to_json().context("writing pose.json to stdout")?);
     }
     Ok(())
 }

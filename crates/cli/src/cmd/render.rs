@@ -11,8 +11,8 @@ use super::views::{view_list, ContextArgs, ModelFlags, RefineFlags, ViewList};
 #[derive(clap::Args)]
 pub struct Args {
     /// Scene: a folder with transforms.json, a transforms*.json file, a COLMAP folder (sparse/0 + images/),
-    /// a `.torch` chunk — or a video, or a folder of bare photos, which are first posed by COLMAP into
-    /// OUT/scene (see `mvsplat360 pose`; reused while the input is unchanged).
+    /// a `.torch` chunk — or a video, or a folder of bare photos, which are first posed (COLMAP, or VGGT for a
+    /// few photos with --vggt-weights) into OUT/scene (see `mvsplat360 pose`; reused while the input is unchanged).
     pub scene: PathBuf,
     /// Output folder (created). A previous render there is replaced only when this one is complete: until then
     /// it stays whole (the new one is written to OUT/.render/stage and swapped in at the end).
@@ -76,31 +76,28 @@ fn needs_posing(p: &Path) -> bool {
         && mvsplat360_pose::photos::list(p).is_ok_and(|(photos, _)| !photos.is_empty())
 }
 
-/// Poses a video or photo folder into OUT/scene, or reuses the scene posed there from the same input (COLMAP
-/// is not deterministic: a rerun must not move the cameras).
+/// Poses a video or photo folder into OUT/scene (the engine as `mvsplat360 pose --engine` picks it), or reuses
+/// the scene posed there from the same input (COLMAP is not deterministic: a rerun must not move the cameras).
 fn posed_scene(a: &Args, quiet: bool) -> anyhow::Result<PathBuf> {
     let scene = a.out.join("scene");
-    let opts = a.pose.options(a.views.num_context.max(2));
-    let fp = mvsplat360_pose::fingerprint(&a.scene, &opts)?;
-    if let Some(r) = mvsplat360_pose::read_report(&scene) {
-        if r.fingerprint == fp {
+    let min_views = a.views.num_context.max(2);
+    if scene.exists() {
+        if super::pose::reusable(&a.scene, &scene, &a.pose, min_views)? {
             if !quiet {
-                eprintln!("{}: posed before into {} ({} of {} images); reusing it", a.scene.display(), scene.display(), r.registered, r.images_total);
+                eprintln!("{}: posed before into {}; reusing it", a.scene.display(), scene.display());
             }
             return Ok(scene);
         }
         if !quiet {
             eprintln!("{}: the input or the pose settings changed since {} was posed; posing again", a.scene.display(), scene.display());
         }
-    }
-    if scene.exists() {
         std::fs::remove_dir_all(&scene).with_context(|| format!("removing the old {}", scene.display()))?;
     }
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     if !quiet {
-        eprintln!("{} has no camera poses: posing it with COLMAP into {} first (minutes on a CPU)", a.scene.display(), scene.display());
+        eprintln!("{} has no camera poses: posing it into {} first (minutes on a CPU)", a.scene.display(), scene.display());
     }
-    super::pose::pose_scene(&a.scene, &scene, &opts, quiet)?;
+    super::pose::pose_scene(&a.scene, &scene, &a.pose, min_views, quiet)?;
     Ok(scene)
 }
 
