@@ -150,7 +150,7 @@ pub fn prepare(req: &RenderRequest, progress: &dyn Progress) -> Result<Prepared>
         context_images.push(img);
         context_cameras_raw.push(cam);
     }
-    let scene_scale = crate::scale::resolve(req.scene_scale, spec.scene_scale);
+    let scene_scale = crate::scale::resolve(req.scene_scale, crate::scale::pose_engine_scale(&req.scene), spec.scene_scale);
     let (transform, warning) = crate::scale::scene_transform(scene_scale.0, &context_cameras_raw, spec.data.near, spec.data.far);
     if let Some(w) = warning {
         progress.note(&format!("warning: {w}"));

@@ -3,7 +3,10 @@
 //! COLMAP and nerfstudio give users. Other sources (unit-cube NeRF scenes, millimetre CAD units) may lie far
 //! outside that range; `--scene-scale auto` then scales the scene so the context cameras' median distance to
 //! the point they look at becomes 10, the geometric middle of [1, 100] (the cost volume samples inverse depth
-//! uniformly between 1/far and 1/near).
+//! uniformly between 1/far and 1/near). Scenes whose pose engine states its units take that engine's rule
+//! ([`pose_engine_scale`]: VGGT's normalised world → `auto`).
+
+use std::path::Path;
 
 use mvsplat360_camera::{trajectory, Camera};
 
@@ -19,13 +22,31 @@ pub enum SceneScale {
     Factor(f64),
 }
 
-/// The scaling that applies to a run and why: `--scene-scale` when given, else the model folder's
-/// `scene_scale`, else scene units (the official protocol).
-pub fn resolve(flag: Option<SceneScale>, model: Option<SceneScale>) -> (SceneScale, &'static str) {
-    match (flag, model) {
-        (Some(s), _) => (s, "--scene-scale"),
-        (None, Some(s)) => (s, "the model's config.json"),
-        (None, None) => (SceneScale::None, "default: scene units, the official protocol (the model sets no scene_scale)"),
+/// The scaling that applies to a run and why: `--scene-scale` when given, else what the scene's pose engine
+/// states ([`pose_engine_scale`]), else the model folder's `scene_scale`, else scene units (the official protocol).
+pub fn resolve(flag: Option<SceneScale>, scene: Option<(SceneScale, &'static str)>, model: Option<SceneScale>) -> (SceneScale, &'static str) {
+    match (flag, scene, model) {
+        (Some(s), _, _) => (s, "--scene-scale"),
+        (None, Some(s), _) => s,
+        (None, None, Some(s)) => (s, "the model's config.json"),
+        (None, None, None) => (SceneScale::None, "default: scene units, the official protocol (the model sets no scene_scale)"),
+    }
+}
+
+/// Where [`pose_engine_scale`]'s rule for VGGT-posed scenes is recorded from (`run.json`'s `scene_scale_source`).
+pub const VGGT_SOURCE: &str = "the scene's pose engine (vggt: normalised units)";
+
+/// The scaling a scene's units call for, read from the `pose.json` that `mvsplat360 pose` writes in the scene
+/// folder (`scene` itself, or the folder of a scene file). VGGT's world is normalised (mean point distance 1), so
+/// its content sits near depth 1, the cost volume's near plane, for every model: such scenes take `auto`.
+/// COLMAP's units are the ones the official model learned (docs/cameras.md §4) and state nothing; so do scenes
+/// without a `pose.json`, or with one that cannot be read.
+pub fn pose_engine_scale(scene: &Path) -> Option<(SceneScale, &'static str)> {
+    let dir = if scene.is_dir() { scene } else { scene.parent()? };
+    let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.join("pose.json")).ok()?).ok()?;
+    match report.get("engine")?.as_str()? {
+        "vggt" => Some((SceneScale::Auto, VGGT_SOURCE)),
+        _ => None,
     }
 }
 
@@ -146,10 +167,29 @@ mod tests {
     }
 
     #[test]
-    fn the_flag_wins_over_the_model_which_wins_over_scene_units() {
-        assert_eq!(resolve(Some(SceneScale::Factor(2.0)), Some(SceneScale::Auto)), (SceneScale::Factor(2.0), "--scene-scale"));
-        assert_eq!(resolve(Some(SceneScale::None), Some(SceneScale::Auto)).0, SceneScale::None);
-        assert_eq!(resolve(None, Some(SceneScale::Auto)), (SceneScale::Auto, "the model's config.json"));
-        assert_eq!(resolve(None, None).0, SceneScale::None);
+    fn the_flag_wins_over_the_pose_engine_over_the_model_over_scene_units() {
+        let vggt = Some((SceneScale::Auto, VGGT_SOURCE));
+        assert_eq!(resolve(Some(SceneScale::Factor(2.0)), vggt, Some(SceneScale::Auto)), (SceneScale::Factor(2.0), "--scene-scale"));
+        assert_eq!(resolve(Some(SceneScale::None), vggt, Some(SceneScale::Auto)).0, SceneScale::None);
+        assert_eq!(resolve(None, vggt, Some(SceneScale::None)), (SceneScale::Auto, VGGT_SOURCE));
+        assert_eq!(resolve(None, vggt, None), (SceneScale::Auto, VGGT_SOURCE));
+        assert_eq!(resolve(None, None, Some(SceneScale::Auto)), (SceneScale::Auto, "the model's config.json"));
+        assert_eq!(resolve(None, None, None).0, SceneScale::None);
+    }
+
+    #[test]
+    fn only_a_vggt_pose_report_states_a_scale() {
+        let dir = tempfile::tempdir().unwrap();
+        let tmp = dir.path();
+        let report = |text: &str| {
+            std::fs::write(tmp.join("pose.json"), text).unwrap();
+            (pose_engine_scale(tmp), pose_engine_scale(&tmp.join("transforms.json")))
+        };
+        assert_eq!(pose_engine_scale(tmp), None, "no pose.json");
+        let vggt = Some((SceneScale::Auto, VGGT_SOURCE));
+        assert_eq!(report(r#"{"engine": "vggt", "views": 5}"#), (vggt, vggt));
+        assert_eq!(report(r#"{"engine": "colmap"}"#), (None, None));
+        assert_eq!(report(r#"{"input": "video.mp4"}"#), (None, None));
+        assert_eq!(report("not json"), (None, None));
     }
 }

@@ -31,8 +31,8 @@ pub struct Args {
     #[arg(long)]
     size: Option<InputSize>,
     /// Scene units → model units: `none` (the official protocol), `auto` (median camera distance to the
-    /// looked-at point becomes 10) or a factor. Default: the model folder's `scene_scale` (the shipped model:
-    /// `auto`), else `none`. See docs/cameras.md.
+    /// looked-at point becomes 10) or a factor. Default: `auto` for scenes posed by VGGT (its normalised units),
+    /// else the model folder's `scene_scale` (the shipped model: `auto`), else `none`. See docs/cameras.md.
     #[arg(long)]
     scene_scale: Option<mvsplat360_pipeline::scale::SceneScale>,
     /// Data conventions for weights without a config (`dl3dv` or `re10k`).

@@ -71,8 +71,9 @@ pub struct ModelFlags {
     pub size: Option<InputSize>,
     /// Scene units → model units: `none` (the official protocol: the model expects content between its near and
     /// far planes in the scene's own units), `auto` (median camera distance to the looked-at point becomes
-    /// √(near·far) of the official model, 10) or a factor. Default: the model folder's `scene_scale` (the shipped
-    /// model: `auto`), else `none` (official checkpoints). See docs/cameras.md.
+    /// √(near·far) of the official model, 10) or a factor. Default: `auto` for scenes posed by VGGT (its
+    /// normalised units), else the model folder's `scene_scale` (the shipped model: `auto`), else `none` (official
+    /// checkpoints). See docs/cameras.md.
     #[arg(long)]
     pub scene_scale: Option<SceneScale>,
     /// Where the model runs: `auto` (GPU 0 when this binary has CUDA and a GPU is present, else the CPU),

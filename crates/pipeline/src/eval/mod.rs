@@ -394,7 +394,7 @@ fn settings_json(req: &EvalRequest, spec: &crate::model::ModelSpec, size: InputS
         "refiner": refiner_file,
         "size": size,
         // What applies, not how it was asked for: a folder resumes whichever way the same scaling was chosen.
-        "scene_scale": crate::scale::resolve(req.scene_scale, spec.scene_scale).0,
+        "scene_scale": crate::scale::resolve(req.scene_scale, None, spec.scene_scale).0,
         "refine": spec.refiner.as_ref().map(|_| &req.refine),
     });
     // Given noise changes every refined frame; none adds nothing, so folders of earlier runs still resume.
@@ -830,7 +830,8 @@ fn run_scenes(req: &EvalRequest, progress: &dyn Progress) -> Result<EvalSummary>
     let description = spec.description.clone();
     let experiment = spec.data.experiment.clone();
     let device = if req.merge_only { Device::Cpu } else { req.model.compute.open()? };
-    let scene_scale = crate::scale::resolve(req.scene_scale, spec.scene_scale);
+    // `.torch` chunks come with no pose engine to state their units.
+    let scene_scale = crate::scale::resolve(req.scene_scale, None, spec.scene_scale);
     let noise = match &req.noise {
         Some(f) => {
             let m = candle_core::safetensors::load(f, &Device::Cpu).map_err(|e| flag("--noise", format!("{}: {e}", f.display())))?;
