@@ -123,7 +123,7 @@ simd_dispatch! {
 }
 
 simd_dispatch! {
-    fn gelu_inplace(x: &mut [f32]) {
+    pub(crate) fn gelu_inplace(x: &mut [f32]) {
         for v in x {
             *v = gelu_f32(*v);
         }

@@ -77,6 +77,36 @@ pub fn linear_fused(x: &Tensor, w: &Tensor, bias: Option<&Tensor>, scale: f32, a
     Tensor::from_vec(dst, od, x.device())
 }
 
+/// `GELU(x @ wᵀ + bias)` (erf GELU, as `nn.GELU()`): on CPU f32 the activation runs in place on the gemm's output
+/// (no second buffer); elsewhere candle's ops.
+pub fn linear_gelu(x: &Tensor, w: &Tensor, bias: Option<&Tensor>) -> Result<Tensor> {
+    let dims = x.dims().to_vec();
+    let k = *dims.last().unwrap_or(&1);
+    let (o, wk) = w.dims2()?;
+    if wk != k {
+        candle_core::bail!("linear: input width {k}, weight {:?}", w.dims());
+    }
+    if !is_cpu_f32(x) {
+        return linear_fused_composed(x, w, bias, 1.0, &[])?.gelu_erf();
+    }
+    let rows = x.elem_count() / k.max(1);
+    let mut od = dims;
+    if let Some(l) = od.last_mut() {
+        *l = o;
+    }
+    let mut dst = vec![0f32; rows * o];
+    let bias_v = match bias {
+        Some(b) => Some(b.to_vec1::<f32>()?),
+        None => None,
+    };
+    if bias_v.is_some() {
+        init_rows(&mut dst, o, bias_v.as_deref(), 1.0, &[])?;
+    }
+    with_f32(x, |xd| with_f32(w, |wd| gemm_xwt(xd, rows, k, wd, o, &mut dst, bias_v.is_some(), 1.0)))??;
+    dst.par_chunks_mut(1 << 14).for_each(crate::activation::gelu_inplace);
+    Tensor::from_vec(dst, od, x.device())
+}
+
 /// [`linear_fused`] from tensor ops (differentiable, any device).
 pub(crate) fn linear_fused_composed(x: &Tensor, w: &Tensor, bias: Option<&Tensor>, scale: f32, adds: &[(&Tensor, f32)]) -> Result<Tensor> {
     let mut od = x.dims().to_vec();

@@ -22,6 +22,6 @@ impl Mlp {
 
     /// GELU(fc1(x)).
     pub fn hidden(&self, x: &Tensor) -> Result<Tensor> {
-        mvsplat360_nn::activation::gelu_inference(&self.fc1.forward(x)?)
+        mvsplat360_nn::linear::linear_gelu(x, &self.fc1.weight, self.fc1.bias.as_ref())
     }
 }
