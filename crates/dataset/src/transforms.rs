@@ -2,7 +2,8 @@
 //! frame (`fl_x`/`fl_y`/`cx`/`cy`/`w`/`h`, or `camera_angle_x`/`camera_angle_y`), image paths relative to the file.
 //! `camera_model` (default `OPENCV`) must be one of nerfstudio's perspective models; their distortion `k1`…`k4`,
 //! `p1`, `p2` (top level or per frame, per key the frame's value wins) is removed as the photos load
-//! ([`crate::lens`]). Fisheye, equirectangular and unknown models are refused.
+//! ([`crate::lens`]). Fisheye (nerfstudio's models, and instant-ngp's `"is_fisheye": true`), equirectangular and
+//! unknown models are refused.
 
 use std::path::{Path, PathBuf};
 
@@ -51,6 +52,27 @@ fn check_camera_model(path: &Path, obj: &Value, top: &Value, frame: usize, rel: 
     })
 }
 
+/// instant-ngp's `is_fisheye` (per frame, else top level): `true` makes its k1–k4 the terms of an OpenCV fisheye
+/// lens (instant-ngp's `OpenCVFisheye` mode), which read as a perspective lens would put every ray in the wrong
+/// place, so it is refused as nerfstudio's `OPENCV_FISHEYE` is.
+fn check_is_fisheye(path: &Path, obj: &Value, top: &Value, frame: usize, rel: &str) -> Result<(), DatasetError> {
+    let (v, loc) = match (obj.get("is_fisheye"), top.get("is_fisheye")) {
+        (Some(v), _) => (v, format!("frames[{frame}].is_fisheye")),
+        (None, Some(v)) => (v, "is_fisheye".to_string()),
+        (None, None) => return Ok(()),
+    };
+    match v.as_bool() {
+        Some(false) => Ok(()),
+        Some(true) => Err(DatasetError::UnsupportedLens {
+            path: path.to_path_buf(),
+            what: format!("{loc} (frame {frame}, {rel})"),
+            model: "OPENCV_FISHEYE (instant-ngp's `\"is_fisheye\": true`)".to_string(),
+            why: "a fisheye lens, which this reader does not undistort (read as a pinhole, every ray would be wrong)".to_string(),
+        }),
+        None => Err(field(path, loc, format!("expected true or false, got {v}"))),
+    }
+}
+
 /// nerfstudio's perspective distortion of a frame; `None` when every coefficient is zero or absent.
 fn distortion(path: &Path, obj: &Value, top: &Value, frame: usize) -> Result<Option<Distortion>, DatasetError> {
     let k = |key: &str| num(path, obj, top, key, frame).map(|v| v.unwrap_or(0.0));
@@ -86,6 +108,7 @@ pub fn read(path: &Path) -> Result<Scene, DatasetError> {
     let mut scene = Scene { name: base.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "scene".into()), ..Scene::default() };
     for (i, f) in frames.iter().enumerate() {
         let rel = f.get("file_path").and_then(Value::as_str).ok_or_else(|| field(path, format!("frames[{i}].file_path"), "missing or not a string"))?;
+        check_is_fisheye(path, f, &top, i, rel)?;
         check_camera_model(path, f, &top, i, rel)?;
         let img_path = resolve_image(path, base, rel, i)?;
         let m = f

@@ -399,6 +399,41 @@ fn transforms_json_fisheye_equirectangular_unknown_refused() {
     assert!(err_of(&d.join("num.json")).contains("camera_model: expected a string"));
 }
 
+/// instant-ngp's `"is_fisheye": true` (top level or per frame, the frame's value winning) is refused as a fisheye,
+/// naming the file, the field and the fix, whatever `camera_model` says; `false` reads as before.
+#[test]
+fn transforms_json_instant_ngp_is_fisheye_refused() {
+    let tmp = tempfile::tempdir().unwrap();
+    let d = tmp.path();
+    image::RgbImage::new(8, 6).save(d.join("a.png")).unwrap();
+    let frame = |extra: &str| format!(r#"{{"file_path": "a.png", "transform_matrix": {IDENT}{extra}}}"#);
+    let cases = [
+        ("top.json", format!(r#"{{"is_fisheye": true, "fl_x": 5, "k1": 0.1, "frames": [{}]}}"#, frame("")), "is_fisheye (frame 0, a.png)"),
+        ("frame.json", format!(r#"{{"fl_x": 5, "frames": [{}, {}]}}"#, frame(""), frame(r#", "is_fisheye": true"#)), "frames[1].is_fisheye (frame 1, a.png)"),
+        (
+            "override.json",
+            format!(r#"{{"is_fisheye": false, "camera_model": "PINHOLE", "fl_x": 5, "frames": [{}]}}"#, frame(r#", "is_fisheye": true"#)),
+            "frames[0].is_fisheye",
+        ),
+    ];
+    for (file, json, what) in cases {
+        std::fs::write(d.join(file), json).unwrap();
+        let e = err_of(&d.join(file));
+        assert_refusal(&e, file, what, "is_fisheye");
+        assert!(e.contains("fisheye lens"), "{e}");
+    }
+    // `false`, top level or per frame, is a perspective lens as before.
+    std::fs::write(d.join("no.json"), format!(r#"{{"is_fisheye": false, "fl_x": 5, "frames": [{}]}}"#, frame(r#", "is_fisheye": false"#))).unwrap();
+    assert!(read_scene(&d.join("no.json")).unwrap().lens(0).is_none());
+    // A frame's `false` wins over a top-level `true`.
+    std::fs::write(d.join("mixed.json"), format!(r#"{{"is_fisheye": true, "fl_x": 5, "frames": [{}]}}"#, frame(r#", "is_fisheye": false"#))).unwrap();
+    assert_eq!(read_scene(&d.join("mixed.json")).unwrap().len(), 1);
+    // Not a boolean: the field is named.
+    std::fs::write(d.join("num.json"), format!(r#"{{"is_fisheye": 1, "fl_x": 5, "frames": [{}]}}"#, frame(""))).unwrap();
+    let e = err_of(&d.join("num.json"));
+    assert!(e.contains("is_fisheye") && e.contains("expected true or false"), "{e}");
+}
+
 /// COLMAP `cameras.bin` with one camera of `model_id` and `params`.
 fn cameras_bin(model_id: i32, params: &[f64]) -> Vec<u8> {
     let mut b = Vec::new();

@@ -154,61 +154,131 @@ fn serve_file(path: &std::path::Path, range: Option<&str>) -> Reply {
     reply(200, ctype, Box::new(f), len, vec![accept])
 }
 
+/// A `Host` header's or an origin's authority: `name`, `name:port`, `[v6]` or `[v6]:port`, nothing else.
+#[derive(Debug, Clone, PartialEq, Eq)]
+struct Authority {
+    /// Lower case, without a trailing dot; an IP literal in its canonical form (a v6 one without brackets), so
+    /// two spellings of one address compare equal.
+    name: String,
+    ip: bool,
+    port: Option<u16>,
+}
+
+impl Authority {
+    /// None unless `s` is exactly an authority: after a bracketed address only `:PORT` may follow, a port is
+    /// 1–5 ASCII digits, a name is letters, digits, `-`, `_` and dots.
+    fn parse(s: &str) -> Option<Self> {
+        let (host, port) = match s.strip_prefix('[') {
+            Some(rest) => {
+                let (v6, after) = rest.split_once(']')?;
+                let port = match after {
+                    "" => None,
+                    _ => Some(parse_port(after.strip_prefix(':')?)?),
+                };
+                let ip = v6.parse::<std::net::Ipv6Addr>().ok()?;
+                return Some(Self { name: ip.to_string(), ip: true, port });
+            }
+            None => match s.split_once(':') {
+                Some((h, p)) => (h, Some(parse_port(p)?)),
+                None => (s, None),
+            },
+        };
+        if let Ok(ip) = host.parse::<std::net::Ipv4Addr>() {
+            return Some(Self { name: ip.to_string(), ip: true, port });
+        }
+        let name = host.strip_suffix('.').unwrap_or(host).to_ascii_lowercase();
+        let label_ok = |l: &str| !l.is_empty() && l.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'-' || b == b'_');
+        name.split('.').all(label_ok).then_some(Self { name, ip: false, port })
+    }
+}
+
+/// `:PORT`'s digits (no sign, no spaces).
+fn parse_port(p: &str) -> Option<u16> {
+    if p.is_empty() || p.len() > 5 || !p.bytes().all(|b| b.is_ascii_digit()) {
+        return None;
+    }
+    p.parse().ok()
+}
+
 /// Which `Host` headers the server answers: against DNS rebinding (a foreign site's name pointed at 127.0.0.1
 /// reaches the server with its own name in `Host`, as Vite and webpack-dev-server refuse), only IP literals,
 /// `localhost` and `*.localhost`, and the names given with `--allow-host` (a tunnel's or proxy's), each with the
-/// server's port or none.
+/// server's port or none. An `Origin` must be the page's own: the accepted `Host`'s name and port.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct HostPolicy {
     pub port: u16,
     pub allowed: Vec<String>,
 }
 
-impl HostPolicy {
-    /// `Host`'s name when it is one this server answers to.
-    fn accepts(&self, host: &str) -> bool {
-        let host = host.trim().to_ascii_lowercase();
-        // `[v6]:port`, `[v6]`, `name:port`, `name`.
-        let (name, port) = if let Some(rest) = host.strip_prefix('[') {
-            let Some((v6, after)) = rest.split_once(']') else { return false };
-            if v6.parse::<std::net::Ipv6Addr>().is_err() {
-                return false;
-            }
-            (v6.to_string(), after.strip_prefix(':'))
-        } else {
-            match host.rsplit_once(':') {
-                Some((n, p)) => (n.to_string(), Some(p)),
-                None => (host.clone(), None),
-            }
-        };
-        if port.is_some_and(|p| p.parse::<u16>().ok() != Some(self.port)) {
-            return false;
+/// Why a request is refused before its target is looked at.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Refusal {
+    /// 400: no `Host`, several, or one that is not exactly an authority.
+    BadHost,
+    /// 403: a well-formed `Host` this server does not answer to.
+    ForeignHost,
+    /// 403: `Sec-Fetch-Site: cross-site`.
+    CrossSite,
+    /// 403: an `Origin` other than the accepted `Host`'s.
+    ForeignOrigin,
+}
+
+impl Refusal {
+    fn reply(self) -> Reply {
+        match self {
+            Refusal::BadHost => text(400, "missing, repeated or malformed Host header"),
+            Refusal::ForeignHost => text(403, "this Host is not served (start `mvsplat360 view` with --allow-host NAME for a tunnel or proxy name)"),
+            Refusal::CrossSite => text(403, "cross-site request refused"),
+            Refusal::ForeignOrigin => text(403, "cross-origin request refused"),
         }
-        let name = name.trim_end_matches('.');
-        name.parse::<std::net::IpAddr>().is_ok()
-            || host.starts_with('[')
-            || name == "localhost"
-            || name.ends_with(".localhost")
-            || self.allowed.iter().any(|a| a.eq_ignore_ascii_case(name))
+    }
+}
+
+impl HostPolicy {
+    /// `Host`'s authority when it is one this server answers to.
+    fn host(&self, value: &str) -> std::result::Result<Authority, Refusal> {
+        let a = Authority::parse(value.trim()).ok_or(Refusal::BadHost)?;
+        if a.port.is_some_and(|p| p != self.port) {
+            return Err(Refusal::ForeignHost);
+        }
+        let served = a.ip
+            || a.name == "localhost"
+            || a.name.ends_with(".localhost")
+            || self.allowed.iter().any(|n| n.trim_end_matches('.').eq_ignore_ascii_case(&a.name));
+        if served {
+            Ok(a)
+        } else {
+            Err(Refusal::ForeignHost)
+        }
     }
 
-    /// None when `req` may be answered, else the refusal.
-    fn check(&self, req: &Request) -> Option<Reply> {
-        let Some(host) = req.header("Host") else { return Some(text(400, "no Host header")) };
-        if !self.accepts(host) {
-            return Some(text(403, "this Host is not served (start `mvsplat360 view` with --allow-host NAME for a tunnel or proxy name)"));
+    /// Whether `origin` (`scheme://authority`, as browsers serialise it) is the page's own, served under `host`:
+    /// same name and port, a missing port being the scheme's default (80 for http; 443 for https, the scheme a
+    /// TLS tunnel or proxy in front of the server gives the page). `null` and any path are refused.
+    fn same_origin(origin: &str, host: &Authority) -> bool {
+        let origin = origin.trim();
+        let Some((scheme, rest)) = origin.split_once("://") else { return false };
+        let default = match scheme.to_ascii_lowercase().as_str() {
+            "http" => 80,
+            "https" => 443,
+            _ => return false,
+        };
+        let Some(o) = Authority::parse(rest) else { return false };
+        o.name == host.name && o.port.unwrap_or(default) == host.port.unwrap_or(default)
+    }
+
+    /// Ok when `req` may be answered.
+    fn check(&self, req: &Request) -> std::result::Result<(), Refusal> {
+        let mut hosts = req.headers_named("Host");
+        let (Some(host), None) = (hosts.next(), hosts.next()) else { return Err(Refusal::BadHost) };
+        let host = self.host(host)?;
+        if req.headers_named("Sec-Fetch-Site").any(|v| v.trim().eq_ignore_ascii_case("cross-site")) {
+            return Err(Refusal::CrossSite);
         }
-        if req.header("Sec-Fetch-Site").is_some_and(|v| v.eq_ignore_ascii_case("cross-site")) {
-            return Some(text(403, "cross-site request refused"));
+        if !req.headers_named("Origin").all(|o| Self::same_origin(o, &host)) {
+            return Err(Refusal::ForeignOrigin);
         }
-        if let Some(origin) = req.header("Origin") {
-            let o = origin.trim();
-            let hostpart = o.strip_prefix("http://").or_else(|| o.strip_prefix("https://"));
-            if !hostpart.is_some_and(|h| self.accepts(h.trim_end_matches('/'))) {
-                return Some(text(403, "cross-origin request refused"));
-            }
-        }
-        None
+        Ok(())
     }
 }
 
@@ -226,6 +296,11 @@ impl Request {
         self.headers.iter().find(|(k, _)| k.eq_ignore_ascii_case(name)).map(|(_, v)| v.as_str())
     }
 
+    /// Every value of the header `name`, in order.
+    fn headers_named<'a>(&'a self, name: &'a str) -> impl Iterator<Item = &'a str> + 'a {
+        self.headers.iter().filter(move |(k, _)| k.eq_ignore_ascii_case(name)).map(|(_, v)| v.as_str())
+    }
+
     /// Whether the client keeps the connection for another request.
     fn keep_alive(&self) -> bool {
         let conn = self.header("Connection").map(|v| v.to_ascii_lowercase()).unwrap_or_default();
@@ -238,8 +313,8 @@ impl Request {
 }
 
 fn respond(out: &OutDir, policy: &HostPolicy, req: &Request) -> Reply {
-    if let Some(refusal) = policy.check(req) {
-        return refusal;
+    if let Err(refusal) = policy.check(req) {
+        return refusal.reply();
     }
     if req.method != "GET" && req.method != "HEAD" {
         return text(405, "method not allowed (read-only server)");
@@ -512,13 +587,92 @@ mod tests {
     #[test]
     fn hosts_answered() {
         let p = HostPolicy { port: 8080, allowed: vec!["gpu-box.tail1234.ts.net".into()] };
-        for ok in
-            ["127.0.0.1:8080", "127.0.0.1", "localhost:8080", "LOCALHOST", "app.localhost:8080", "[::1]:8080", "10.1.2.3:8080", "gpu-box.tail1234.ts.net:8080"]
-        {
-            assert!(p.accepts(ok), "{ok}");
+        for ok in [
+            "127.0.0.1:8080",
+            "127.0.0.1",
+            "localhost:8080",
+            "LOCALHOST",
+            "localhost.",
+            "app.localhost:8080",
+            "[::1]:8080",
+            "[::1]",
+            "[0:0::1]:8080",
+            "10.1.2.3:8080",
+            "gpu-box.tail1234.ts.net:8080",
+            " localhost:8080 ",
+        ] {
+            assert!(p.host(ok).is_ok(), "{ok}");
         }
-        for bad in ["evil.example", "evil.example:8080", "127.0.0.1:9999", "localhost.evil.example:8080", "[::1", "[nothost]:8080", "", "127.0.0.1:80:80"] {
-            assert!(!p.accepts(bad), "{bad}");
+        // Well formed, not served: 403.
+        for foreign in ["evil.example", "evil.example:8080", "127.0.0.1:9999", "localhost.evil.example:8080", "[::1]:9999", "127.1:8080"] {
+            assert_eq!(p.host(foreign), Err(Refusal::ForeignHost), "{foreign}");
+        }
+        // Not exactly an authority: 400. After `]` only `:PORT` may follow.
+        for bad in [
+            "[::1]evil.example",
+            "[::1]evil.example:8080",
+            "[::1]:8080evil.example",
+            "[::1]:8080/",
+            "[::1]:8080:8080",
+            "[::1]:",
+            "[::1]]",
+            "[::1",
+            "[nothost]:8080",
+            "[127.0.0.1]:8080",
+            "[fe80::1%25eth0]:8080",
+            "::1",
+            "",
+            "127.0.0.1:80:80",
+            "127.0.0.1:",
+            "127.0.0.1:+8080",
+            "127.0.0.1:08080x",
+            "127.0.0.1:99999",
+            "local host:8080",
+            "localhost..:8080",
+            "user@localhost:8080",
+            "localhost/evil:8080",
+        ] {
+            assert_eq!(p.host(bad), Err(Refusal::BadHost), "{bad}");
+        }
+    }
+
+    #[test]
+    fn origins_match_the_host() {
+        let host = |h: &str| Authority::parse(h).unwrap();
+        let same = [
+            ("http://127.0.0.1:8080", "127.0.0.1:8080"),
+            ("HTTP://LOCALHOST:8080", "localhost:8080"),
+            ("http://[::1]:8080", "[0:0::1]:8080"),
+            ("http://gpu-box.example", "gpu-box.example"),
+            ("http://gpu-box.example:80", "gpu-box.example"),
+            ("http://gpu-box.example", "gpu-box.example:80"),
+            // A TLS tunnel in front: the page is https, the Host it forwards has no port.
+            ("https://gpu-box.example", "gpu-box.example"),
+            ("https://gpu-box.example:443", "gpu-box.example"),
+        ];
+        for (o, h) in same {
+            assert!(HostPolicy::same_origin(o, &host(h)), "{o} for {h}");
+        }
+        let foreign = [
+            ("http://203.0.113.5", "127.0.0.1:8080"),
+            ("http://127.0.0.1", "127.0.0.1:8080"),
+            ("http://127.0.0.1:9999", "127.0.0.1:8080"),
+            ("http://localhost:8080", "127.0.0.1:8080"),
+            ("http://127.0.0.1:8080", "localhost:8080"),
+            ("http://evil.example:8080", "127.0.0.1:8080"),
+            ("http://[::1]evil.example", "[::1]"),
+            ("http://127.0.0.1:8080/", "127.0.0.1:8080"),
+            ("http://127.0.0.1:8080/x", "127.0.0.1:8080"),
+            ("http://user@127.0.0.1:8080", "127.0.0.1:8080"),
+            ("https://gpu-box.example", "gpu-box.example:80"),
+            ("http://gpu-box.example", "gpu-box.example:443"),
+            ("ftp://127.0.0.1:8080", "127.0.0.1:8080"),
+            ("127.0.0.1:8080", "127.0.0.1:8080"),
+            ("null", "127.0.0.1:8080"),
+            ("", "127.0.0.1:8080"),
+        ];
+        for (o, h) in foreign {
+            assert!(!HostPolicy::same_origin(o, &host(h)), "{o} for {h}");
         }
     }
 

@@ -176,8 +176,9 @@ fn raw_status(addr: &str, headers: &str) -> u16 {
     buf.split(' ').nth(1).and_then(|c| c.parse().ok()).expect("status code")
 }
 
-/// DNS rebinding: a foreign name in `Host` (a web page's own domain pointed at 127.0.0.1) is refused, as are
-/// cross-site and foreign-origin requests; the server's address, localhost and --allow-host names are answered.
+/// DNS rebinding: a foreign name in `Host` (a web page's own domain pointed at 127.0.0.1) is refused, as is a
+/// malformed one, and cross-site and foreign-origin requests (an `Origin` other than the `Host`'s own); the
+/// server's address, localhost and --allow-host names are answered.
 #[test]
 fn foreign_hosts_and_origins_are_refused() {
     let t = tempfile::tempdir().unwrap();
@@ -193,12 +194,29 @@ fn foreign_hosts_and_origins_are_refused() {
     assert_eq!(raw_status(&addr, ""), 400);
     assert_eq!(raw_status(&addr, &format!("Host: {addr}\r\nOrigin: http://evil.example\r\n")), 403);
     assert_eq!(raw_status(&addr, &format!("Host: {addr}\r\nSec-Fetch-Site: cross-site\r\n")), 403);
+    // Bracketed IPv6: after `]` only `:PORT` may follow.
+    assert_eq!(raw_status(&addr, &format!("Host: [::1]:{port}\r\n")), 200);
+    assert!(matches!(raw_status(&addr, "Host: [::1]evil.example\r\n"), 400 | 403));
+    assert!(matches!(raw_status(&addr, &format!("Host: [::1]:{port}evil.example\r\n")), 400 | 403));
+    // Two Host headers are one too many.
+    assert_eq!(raw_status(&addr, &format!("Host: {addr}\r\nHost: evil.example\r\n")), 400);
+    // The Origin must be the accepted Host's own (scheme, name and port; no port = 80).
+    assert_eq!(raw_status(&addr, &format!("Host: {addr}\r\nOrigin: http://203.0.113.5\r\n")), 403);
+    assert_eq!(raw_status(&addr, &format!("Host: {addr}\r\nOrigin: http://127.0.0.1\r\n")), 403);
+    assert_eq!(raw_status(&addr, &format!("Host: {addr}\r\nOrigin: http://localhost:{port}\r\n")), 403);
+    assert_eq!(raw_status(&addr, &format!("Host: {addr}\r\nOrigin: null\r\n")), 403);
+    assert_eq!(raw_status(&addr, &format!("Host: {addr}\r\nOrigin: http://{addr}\r\nOrigin: http://203.0.113.5\r\n")), 403);
+    assert_eq!(raw_status(&addr, &format!("Host: localhost:{port}\r\nOrigin: http://localhost:{port}\r\n")), 200);
+    assert_eq!(raw_status(&addr, &format!("Host: [::1]:{port}\r\nOrigin: http://[::1]:{port}\r\n")), 200);
     let server = Server::bind_on(OutDir::open(&out).unwrap(), "127.0.0.1", 0, vec!["gpu-box.example".into()]).unwrap();
     let addr2 = server.url().trim_end_matches('/').trim_start_matches("http://").to_string();
     std::thread::spawn(move || server.serve());
     let port2 = addr2.rsplit(':').next().unwrap();
     assert_eq!(raw_status(&addr2, &format!("Host: gpu-box.example:{port2}\r\n")), 200);
     assert_eq!(raw_status(&addr2, &format!("Host: other.example:{port2}\r\n")), 403);
+    // Behind a TLS tunnel: the page's origin is https, the Host forwarded without a port.
+    assert_eq!(raw_status(&addr2, "Host: gpu-box.example\r\nOrigin: https://gpu-box.example\r\n"), 200);
+    assert_eq!(raw_status(&addr2, "Host: gpu-box.example\r\nOrigin: https://other.example\r\n"), 403);
 }
 
 /// A link out of the render folder is refused by the static export, named, and nothing of it is copied.
