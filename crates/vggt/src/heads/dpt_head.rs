@@ -4,6 +4,8 @@
 //! size; the embedding again; a 3×3 conv, ReLU, 1×1 conv to the outputs. Runs in f32 whatever the trunk's
 //! dtype (upstream disables autocast for the heads).
 
+use std::collections::BTreeMap;
+
 use candle_core::{Result, Tensor};
 use candle_nn::VarBuilder;
 use mvsplat360_nn::{conv2d, Conv2dConfig};
@@ -12,7 +14,6 @@ use super::head_act::{activate_head, Activation};
 use super::utils::{create_uv_grid, position_embed_channels_first};
 use crate::config::DptConfig;
 use crate::layers::{LayerNorm, TORCH_LN_EPS};
-use crate::models::aggregator::AggregatedTokens;
 
 #[derive(Debug, Clone)]
 pub struct Conv {
@@ -175,7 +176,7 @@ impl DptHead {
     }
 
     /// Predictions `(S, H, W, out)` and confidence `(S, H, W)` for images of `H × W`, in frame chunks.
-    pub fn forward(&self, tokens: &AggregatedTokens, img_h: usize, img_w: usize, patch_start_idx: usize) -> Result<(Tensor, Tensor)> {
+    pub fn forward(&self, tokens: &BTreeMap<usize, Tensor>, img_h: usize, img_w: usize, patch_start_idx: usize) -> Result<(Tensor, Tensor)> {
         let first = tokens.get(&self.cfg.intermediate_layer_idx[0]).ok_or_else(|| candle_core::Error::Msg("DPT head: layer not kept".into()))?;
         let s = first.dim(0)?;
         let chunk = self.cfg.frames_chunk_size.max(1);
@@ -189,7 +190,15 @@ impl DptHead {
         Ok((Tensor::cat(&preds, 0)?, Tensor::cat(&confs, 0)?))
     }
 
-    fn forward_frames(&self, tokens: &AggregatedTokens, img_h: usize, img_w: usize, patch_start_idx: usize, f0: usize, nf: usize) -> Result<(Tensor, Tensor)> {
+    fn forward_frames(
+        &self,
+        tokens: &BTreeMap<usize, Tensor>,
+        img_h: usize,
+        img_w: usize,
+        patch_start_idx: usize,
+        f0: usize,
+        nf: usize,
+    ) -> Result<(Tensor, Tensor)> {
         let p = self.patch_size;
         let (ph, pw) = (img_h / p, img_w / p);
         let mut feats = Vec::with_capacity(4);
