@@ -183,6 +183,33 @@ fn eval_ranks_started_by_srun_share_one_out() {
     assert!(!part.join("metrics.json").exists());
 }
 
+/// Two processes started as `mpirun` starts them (`OMPI_COMM_WORLD_*`, no MASTER_ADDR/MASTER_PORT: evaluation
+/// needs no rendezvous) on one --out: both run, each scene rendered once, the tables written.
+#[test]
+fn eval_ranks_started_by_mpirun_need_no_rendezvous_address() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (data, empty, m, index) = setup(tmp.path());
+    let out = tmp.path().join("out");
+    let rank = |k: usize| {
+        let mut c = eval_cmd(&empty, &data, &index, &m, &out);
+        c.env("RAYON_NUM_THREADS", "1").env_remove("MASTER_ADDR").env_remove("MASTER_PORT");
+        c.env("OMPI_COMM_WORLD_RANK", k.to_string()).env("OMPI_COMM_WORLD_SIZE", "2").env("OMPI_COMM_WORLD_LOCAL_RANK", k.to_string());
+        c.env("OMPI_COMM_WORLD_LOCAL_SIZE", "2").stderr(std::process::Stdio::piped()).spawn().unwrap()
+    };
+    let (r0, r1) = (rank(0), rank(1));
+    let mut err = String::new();
+    for c in [r0, r1] {
+        let o = c.wait_with_output().unwrap();
+        let e = String::from_utf8_lossy(&o.stderr).into_owned();
+        assert!(o.status.success(), "{e}");
+        err.push_str(&e);
+    }
+    assert!(err.contains("via mpirun"), "{err}");
+    let rendered: usize = err.lines().filter_map(|l| l.split("] rendered ").nth(1)?.split(',').next()?.parse::<usize>().ok()).sum();
+    assert_eq!(rendered, 2, "{err}");
+    assert!(out.join("metrics.json").is_file());
+}
+
 fn files_under(dir: &Path) -> Vec<PathBuf> {
     let mut v = Vec::new();
     for e in std::fs::read_dir(dir).unwrap().flatten() {

@@ -95,13 +95,7 @@ impl Place {
         } else if let Some(rank) = num("OMPI_COMM_WORLD_RANK")? {
             let world = need("OMPI_COMM_WORLD_SIZE", "mpirun")?;
             let local_rank = need("OMPI_COMM_WORLD_LOCAL_RANK", "mpirun")?;
-            let missing: Vec<&str> = ["MASTER_ADDR", "MASTER_PORT"].into_iter().filter(|k| get(k).is_none()).collect();
-            if !missing.is_empty() {
-                return Err(LaunchError::Io(format!(
-                    "{} not set: mpirun passes no rendezvous address; start it as `mpirun -x MASTER_ADDR=<rank 0's host> -x MASTER_PORT=<free port> …`",
-                    missing.join(" and ")
-                )));
-            }
+            // No rendezvous address here: `eval` needs none, and training's rendezvous asks for its own.
             Self { rank, world, local_rank, local_world: num("OMPI_COMM_WORLD_LOCAL_SIZE")?, launcher: Launcher::Mpi }
         } else {
             return Ok(None);
@@ -118,6 +112,11 @@ impl Place {
             )));
         }
         Ok(Some(place))
+    }
+
+    /// Whether the ranks span more than one machine, as far as the launcher says (more ranks than run here).
+    pub fn multi_node(&self) -> bool {
+        self.local_world.is_some_and(|l| l < self.world)
     }
 
     /// The GPU index this rank uses among the `visible` ones: the only one when the launcher gave each rank its own
@@ -305,11 +304,22 @@ mod tests {
         let batch: Vec<_> = SLURM_STEP.iter().filter(|(k, _)| *k != "SLURM_STEP_ID").copied().collect();
         assert_eq!(place(&batch).unwrap(), None);
         let mpi = [("OMPI_COMM_WORLD_RANK", "3"), ("OMPI_COMM_WORLD_SIZE", "4"), ("OMPI_COMM_WORLD_LOCAL_RANK", "1"), ("OMPI_COMM_WORLD_LOCAL_SIZE", "2")];
-        let e = place(&mpi).unwrap_err().to_string();
-        assert!(e.contains("MASTER_ADDR and MASTER_PORT not set") && e.contains("mpirun -x MASTER_ADDR"), "{e}");
-        let with: Vec<_> = mpi.iter().copied().chain([("MASTER_ADDR", "n0"), ("MASTER_PORT", "29600")]).collect();
-        let p = place(&with).unwrap().unwrap();
+        // mpirun passes no rendezvous address, and a place needs none (`eval`; training's rendezvous asks).
+        let p = place(&mpi).unwrap().unwrap();
         assert_eq!((p.rank, p.world, p.local_rank, p.local_world, p.launcher), (3, 4, 1, Some(2), Launcher::Mpi));
+        assert!(p.multi_node());
+        let with: Vec<_> = mpi.iter().copied().chain([("MASTER_ADDR", "n0"), ("MASTER_PORT", "29600")]).collect();
+        assert_eq!(place(&with).unwrap().unwrap(), p);
+    }
+
+    #[test]
+    fn multi_node_when_fewer_ranks_run_here_than_in_all() {
+        let p = |local_world: Option<usize>, launcher| Place { rank: 0, world: 8, local_rank: 0, local_world, launcher };
+        assert!(p(Some(4), Launcher::Torchrun).multi_node());
+        assert!(!p(Some(8), Launcher::Slurm).multi_node());
+        assert!(!p(Some(8), Launcher::Project).multi_node());
+        // The launcher did not say: not known to span machines.
+        assert!(!p(None, Launcher::Mpi).multi_node());
     }
 
     #[test]

@@ -18,9 +18,9 @@ use mvsplat360_train::dist::{self, Backend, Collective, LaunchSpec, Rank};
 use mvsplat360_train::{log, Quiet, RunOptions};
 use rand::{Rng, SeedableRng};
 
-/// A port free on 127.0.0.2 now (the rendezvous address of these tests).
+/// A port free now on every address: rank 0 listens on all of them (these tests name 127.0.0.2 as its address).
 fn free_port() -> u16 {
-    TcpListener::bind("127.0.0.2:0").unwrap().local_addr().unwrap().port()
+    TcpListener::bind("0.0.0.0:0").unwrap().local_addr().unwrap().port()
 }
 
 fn rank(r: usize, world: usize, port: u16, timeout_s: u64) -> Rank {
@@ -177,11 +177,11 @@ struct Torchrun {
 
 impl Torchrun {
     fn new(world: usize) -> Self {
-        // A MASTER_PORT whose successor is free on 127.0.0.2 as well.
+        // A MASTER_PORT whose successor is free as well (rank 0 listens there on every address).
         loop {
             let store = TcpListener::bind("0.0.0.0:0").unwrap();
             let p = store.local_addr().unwrap().port();
-            if p < u16::MAX && TcpListener::bind(("127.0.0.2", p + 1)).is_ok() {
+            if p < u16::MAX && TcpListener::bind(("0.0.0.0", p + 1)).is_ok() {
                 return Self { store, world };
             }
         }

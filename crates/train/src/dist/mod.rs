@@ -132,20 +132,23 @@ impl Rank {
             return Ok(None);
         }
         let who = place.launcher.name();
-        let rendezvous = match get(ENV_ADDR) {
-            Some(a) => a,
+        // mpirun passes no rendezvous address of its own; the others are started by scripts that set one.
+        let hint = if place.launcher == Launcher::Mpi {
+            "mpirun passes none: start it as `mpirun -x MASTER_ADDR=<rank 0's host> -x MASTER_PORT=<free port> …`"
+        } else {
+            "scripts/slurm/train.sbatch sets them from `scontrol show hostnames`"
+        };
+        // The address and the variable it came from, as given.
+        let (var, given, rendezvous) = match get(ENV_ADDR) {
+            Some(a) => (ENV_ADDR, a.rsplit_once(':').map_or(a.as_str(), |(h, _)| h).to_string(), a),
             None => {
                 let host = get("MASTER_ADDR").filter(|h| !h.trim().is_empty()).ok_or_else(|| {
-                    net(
-                        who,
-                        "MASTER_ADDR is not set: training ranks meet at rank 0's host; set MASTER_ADDR and MASTER_PORT \
-                         (scripts/slurm/train.sbatch sets them from `scontrol show hostnames`)",
-                    )
+                    net(who, format!("MASTER_ADDR is not set: training ranks meet at rank 0's host; set MASTER_ADDR and MASTER_PORT ({hint})"))
                 })?;
                 let port = match get(ENV_PORT) {
                     Some(p) => p.trim().parse::<u16>().map_err(|_| net(ENV_PORT, format!("`{p}` is not a port")))?,
                     None => {
-                        let p = get("MASTER_PORT").ok_or_else(|| net(who, "MASTER_PORT is not set (rank 0's rendezvous port)"))?;
+                        let p = get("MASTER_PORT").ok_or_else(|| net(who, format!("MASTER_PORT is not set (rank 0's rendezvous port; {hint})")))?;
                         let p = p.trim().parse::<u16>().map_err(|_| net("MASTER_PORT", format!("`{p}` is not a port")))?;
                         if place.launcher == Launcher::Torchrun {
                             p.checked_add(1).ok_or_else(|| net("MASTER_PORT", format!("{p} + 1 is not a port; set {ENV_PORT}")))?
@@ -155,13 +158,22 @@ impl Rank {
                     }
                 };
                 let host = host.trim();
-                if host.contains(':') && !host.starts_with('[') {
-                    format!("[{host}]:{port}")
-                } else {
-                    format!("{host}:{port}")
-                }
+                let addr = if host.contains(':') && !host.starts_with('[') { format!("[{host}]:{port}") } else { format!("{host}:{port}") };
+                ("MASTER_ADDR", host.to_string(), addr)
             }
         };
+        if place.multi_node() && loopback_everywhere(&given) {
+            return Err(net(
+                who,
+                format!(
+                    "{var} is {given}, a loopback address (this very machine on every node), but the {} ranks run on more than one \
+                     machine ({} here): the others could never reach rank 0; set {var} to rank 0's host name or address as the other \
+                     machines reach it ({hint})",
+                    place.world,
+                    place.local_world.unwrap_or(0)
+                ),
+            ));
+        }
         let timeout = match get(ENV_TIMEOUT) {
             None => DEFAULT_TIMEOUT,
             Some(t) => match t.trim().parse::<f64>() {
@@ -182,6 +194,16 @@ impl Rank {
             d => Ok(d),
         }
     }
+}
+
+/// Whether `host` (a name or an address, IPv6 bracketed or not) is a loopback address on every machine:
+/// `localhost` (and Debian's `ip6-localhost`/`ip6-loopback`), 127.0.0.0/8, `::1`. Machine-specific names are not
+/// resolved: Debian maps a machine's own name to 127.0.1.1 there, yet the other machines reach it by that name.
+fn loopback_everywhere(host: &str) -> bool {
+    let h = host.trim().trim_start_matches('[').trim_end_matches(']').trim_end_matches('.').to_ascii_lowercase();
+    ["localhost", "ip6-localhost", "ip6-loopback"].contains(&h.as_str())
+        || h.ends_with(".localhost")
+        || h.parse::<IpAddr>().is_ok_and(|ip| ip.to_canonical().is_loopback())
 }
 
 /// Sums over the ranks.
@@ -382,6 +404,49 @@ mod tests {
         assert!(rank(&bad).unwrap_err().to_string().contains("MVSPLAT360_DIST_TIMEOUT"));
         let bad: Vec<_> = torch.iter().copied().filter(|(k, _)| *k != "MASTER_PORT").chain([("MASTER_PORT", "65535")]).collect();
         assert!(rank(&bad).unwrap_err().to_string().contains(ENV_PORT));
+    }
+
+    #[test]
+    fn mpirun_ranks_are_told_how_to_pass_the_rendezvous() {
+        let mpi = [("OMPI_COMM_WORLD_RANK", "1"), ("OMPI_COMM_WORLD_SIZE", "2"), ("OMPI_COMM_WORLD_LOCAL_RANK", "1")];
+        let e = rank(&mpi).unwrap_err().to_string();
+        assert!(e.contains("MASTER_ADDR is not set") && e.contains("mpirun -x MASTER_ADDR="), "{e}");
+        let e = rank(&[mpi[0], mpi[1], mpi[2], ("MASTER_ADDR", "n0")]).unwrap_err().to_string();
+        assert!(e.contains("MASTER_PORT is not set") && e.contains("-x MASTER_PORT="), "{e}");
+        let r = rank(&[mpi[0], mpi[1], mpi[2], ("MASTER_ADDR", "n0"), ("MASTER_PORT", "29600")]).unwrap().unwrap();
+        assert_eq!(r.rendezvous, "n0:29600");
+    }
+
+    #[test]
+    fn a_loopback_master_addr_across_machines_is_refused() {
+        // torchrun, 2 of 4 ranks here: more than one machine.
+        let two_nodes = |addr: &'static str| {
+            [("RANK", "2"), ("WORLD_SIZE", "4"), ("LOCAL_RANK", "0"), ("LOCAL_WORLD_SIZE", "2"), ("MASTER_ADDR", addr), ("MASTER_PORT", "29500")]
+        };
+        for addr in ["localhost", "LOCALHOST.", "127.0.0.1", "127.0.1.1", "::1", "[::1]", "::ffff:127.0.0.1", "ip6-localhost"] {
+            let e = rank(&two_nodes(addr)).unwrap_err().to_string();
+            assert!(e.contains(&format!("MASTER_ADDR is {addr}, a loopback address")), "{addr}: {e}");
+            assert!(e.contains("4 ranks") && e.contains("2 here"), "{e}");
+        }
+        // A machine's own name (127.0.1.1 there on Debian, its address elsewhere) and real addresses are fine.
+        for addr in ["node0", "10.0.0.1", "fe80::1", "localhost-node"] {
+            assert!(rank(&two_nodes(addr)).is_ok(), "{addr}");
+        }
+        // One machine: loopback is right.
+        let one = [("RANK", "1"), ("WORLD_SIZE", "2"), ("LOCAL_RANK", "1"), ("LOCAL_WORLD_SIZE", "2"), ("MASTER_ADDR", "localhost"), ("MASTER_PORT", "1")];
+        assert_eq!(rank(&one).unwrap().unwrap().rendezvous, "localhost:2");
+        // srun, 16 tasks on 2 nodes; this program's own variable is named when it is the one.
+        let slurm = [
+            ("SLURM_STEP_ID", "0"),
+            ("SLURM_PROCID", "9"),
+            ("SLURM_NTASKS", "16"),
+            ("SLURM_LOCALID", "1"),
+            ("SLURM_NODEID", "1"),
+            ("SLURM_STEP_TASKS_PER_NODE", "8(x2)"),
+            (ENV_ADDR, "127.0.0.1:5000"),
+        ];
+        let e = rank(&slurm).unwrap_err().to_string();
+        assert!(e.contains("MVSPLAT360_DIST_ADDR is 127.0.0.1") && e.contains("16 ranks"), "{e}");
     }
 
     #[test]

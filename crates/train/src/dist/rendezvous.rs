@@ -1,8 +1,14 @@
-//! Rendezvous: rank 0 listens at the run's address (MASTER_ADDR and a port, [`super::Rank`]); every other rank
+//! Rendezvous: rank 0 listens at the run's port (MASTER_ADDR and a port, [`super::Rank`]); every other rank
 //! connects (retrying until the timeout, as ranks start in any order), says who it is, which backend and which
 //! config it runs, and where its ring listener is. When all have joined, rank 0 answers each with the ring's
 //! addresses, a token that only this run's ranks know (a stray connection is refused) and, for NCCL, the unique
 //! id it made. Then the `host` ranks connect their ring ([`ring`]); NCCL does its own bootstrap from the id.
+//!
+//! Rank 0's listeners, and every ring listener unless `NCCL_SOCKET_IFNAME` names an interface, are bound to the
+//! wildcard address (of MASTER_ADDR's family): what MASTER_ADDR resolves to on rank 0's machine need not be where
+//! the others reach it (Debian's `/etc/hosts` maps a machine's own name to 127.0.1.1). A wildcard ring listener
+//! is handed out as rank 0 saw its rank: at the address its rendezvous connection came from, or — on rank 0's
+//! machine, come over loopback — at the address where each peer reached rank 0 ([`ring_for`]).
 
 use std::io::{Read, Write};
 use std::net::{IpAddr, SocketAddr, TcpListener, TcpStream, ToSocketAddrs};
@@ -39,8 +45,8 @@ pub fn join(rank: &Rank, backend: Backend, fingerprint: u64, ring_ip: Option<IpA
     let addr = resolve(&rank.rendezvous)?;
     let wants_ring = backend == Backend::Host && rank.world > 1;
     if rank.rank == 0 {
-        let l = TcpListener::bind(addr).map_err(|e| bind_error(rank, addr, e))?;
-        let ring = if wants_ring { Some(bind_ring(ring_ip.unwrap_or(addr.ip()))?) } else { None };
+        let l = listen(rank, addr)?;
+        let ring = if wants_ring { Some(bind_ring(ring_ip, addr.ip())?) } else { None };
         let nccl_id = if backend == Backend::Nccl { nccl_id()? } else { Vec::new() };
         let token: u64 = rand::random();
         let own = Hello { rank: 0, world: rank.world, backend: backend as u8, fingerprint, ring: ring_addr(ring.as_ref())? };
@@ -56,9 +62,9 @@ pub fn join(rank: &Rank, backend: Backend, fingerprint: u64, ring_ip: Option<IpA
             rank.timeout.as_secs()
         ))
     })?;
-    // The interface that routes to rank 0 is the one the ring uses, unless told otherwise.
+    // Rank 0 fills in where the others reach this rank's ring (the address it saw this connection come from).
     let local = s.local_addr().map_err(|e| net("socket", e))?.ip();
-    let ring = if wants_ring { Some(bind_ring(ring_ip.unwrap_or(local))?) } else { None };
+    let ring = if wants_ring { Some(bind_ring(ring_ip, local)?) } else { None };
     let hello = Hello { rank: rank.rank, world: rank.world, backend: backend as u8, fingerprint, ring: ring_addr(ring.as_ref())? };
     let lost = |e: std::io::Error| TrainError::Dist(format!("rank {}: rendezvous with rank 0 at {addr}: {e}", rank.rank));
     hello.write(&mut s).map_err(lost)?;
@@ -173,7 +179,7 @@ fn backend_name(b: u8) -> &'static str {
 /// Rank 0: accepts the other ranks until all have joined or the deadline passes; the ring addresses by rank.
 fn serve(rank: &Rank, l: &TcpListener, own: &Hello, token: u64, nccl_id: &[u8], deadline: Instant) -> Result<Vec<String>> {
     let world = rank.world;
-    let mut joined: Vec<Option<(TcpStream, Hello)>> = (0..world).map(|_| None).collect();
+    let mut joined: Vec<Option<Peer>> = (0..world).map(|_| None).collect();
     let mut count = 1;
     l.set_nonblocking(true).map_err(|e| net("socket", e))?;
     let refuse = |s: &mut TcpStream, why: &str| {
@@ -182,9 +188,9 @@ fn serve(rank: &Rank, l: &TcpListener, own: &Hello, token: u64, nccl_id: &[u8], 
         put_str(&mut b, why);
         let _ = s.write_all(&b);
     };
-    let refuse_all = |joined: &mut Vec<Option<(TcpStream, Hello)>>, why: &str| {
-        for (s, _) in joined.iter_mut().flatten() {
-            refuse(s, why);
+    let refuse_all = |joined: &mut Vec<Option<Peer>>, why: &str| {
+        for p in joined.iter_mut().flatten() {
+            refuse(&mut p.stream, why);
         }
         TrainError::Dist(format!("rank 0: {why}"))
     };
@@ -209,8 +215,10 @@ fn serve(rank: &Rank, l: &TcpListener, own: &Hello, token: u64, nccl_id: &[u8], 
                     refuse(&mut s, &why);
                     return Err(refuse_all(&mut joined, &why));
                 }
+                // Both ends as the kernel reports them; an IPv4 peer of an IPv6 listener as IPv4.
+                let via = s.local_addr().map(|a| a.ip().to_canonical()).map_err(|e| net("rank 0: socket", e))?;
                 let r = h.rank;
-                joined[r] = Some((s, h));
+                joined[r] = Some(Peer { stream: s, hello: h, from: from.ip().to_canonical(), via });
                 count += 1;
             }
             Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {
@@ -229,21 +237,66 @@ fn serve(rank: &Rank, l: &TcpListener, own: &Hello, token: u64, nccl_id: &[u8], 
             Err(e) => return Err(net("rank 0: accepting ranks", e)),
         }
     }
-    let mut peers = vec![own.ring.clone()];
-    peers.extend(joined.iter().skip(1).map(|j| j.as_ref().expect("joined").1.ring.clone()));
-    let mut b = MAGIC.to_vec();
-    b.push(OK);
-    b.extend_from_slice(&token.to_le_bytes());
-    b.extend_from_slice(&(world as u32).to_le_bytes());
-    for p in &peers {
-        put_str(&mut b, p);
+    let joined: Vec<Peer> = joined.into_iter().skip(1).map(|j| j.expect("joined")).collect();
+    // Rank q's ring as seen by a rank that reached rank 0 at `via` (None: rank 0 itself).
+    let peers_for = |via: Option<IpAddr>| -> Vec<String> {
+        std::iter::once(ring_for(&own.ring, None, via)).chain(joined.iter().map(|p| ring_for(&p.hello.ring, Some(p.from), via))).collect()
+    };
+    for (r, p) in joined.iter().enumerate().map(|(i, p)| (i + 1, p)) {
+        let mut b = MAGIC.to_vec();
+        b.push(OK);
+        b.extend_from_slice(&token.to_le_bytes());
+        b.extend_from_slice(&(world as u32).to_le_bytes());
+        for a in peers_for(Some(p.via)) {
+            put_str(&mut b, &a);
+        }
+        b.extend_from_slice(&(nccl_id.len() as u32).to_le_bytes());
+        b.extend_from_slice(nccl_id);
+        (&p.stream).write_all(&b).map_err(|e| net(&format!("rank 0: answering rank {r}"), e))?;
     }
-    b.extend_from_slice(&(nccl_id.len() as u32).to_le_bytes());
-    b.extend_from_slice(nccl_id);
-    for (r, (s, _)) in joined.iter_mut().enumerate().filter_map(|(r, j)| Some((r, j.as_mut()?))) {
-        s.write_all(&b).map_err(|e| net(&format!("rank 0: answering rank {r}"), e))?;
+    Ok(peers_for(None))
+}
+
+/// A rank that has joined: its connection, what it said, where it came from and where it reached rank 0.
+struct Peer {
+    stream: TcpStream,
+    hello: Hello,
+    from: IpAddr,
+    via: IpAddr,
+}
+
+/// Where a rank's ring listener that said `advertised` is reached by another rank. A concrete address stands
+/// (`NCCL_SOCKET_IFNAME`); a wildcard one is filled in: `from`, the address the listener's rank came from to
+/// rank 0 (None for rank 0 itself), when that is another machine's; else — the listener is on rank 0's machine —
+/// `via`, the address at which the asking rank reached rank 0 (None: rank 0 asks, and `from` or loopback serves).
+fn ring_for(advertised: &str, from: Option<IpAddr>, via: Option<IpAddr>) -> String {
+    let Ok(a) = advertised.parse::<SocketAddr>() else { return advertised.to_string() };
+    if !a.ip().is_unspecified() {
+        return advertised.to_string();
     }
-    Ok(peers)
+    let ip = match (from, via) {
+        (Some(f), _) if !f.is_loopback() => f,
+        (_, Some(v)) => v,
+        (Some(f), None) => f,
+        (None, None) if a.is_ipv4() => IpAddr::V4(std::net::Ipv4Addr::LOCALHOST),
+        (None, None) => IpAddr::V6(std::net::Ipv6Addr::LOCALHOST),
+    };
+    SocketAddr::new(ip, a.port()).to_string()
+}
+
+/// Rank 0's rendezvous listener: on every address at MASTER_ADDR's port, once MASTER_ADDR is known to name this
+/// machine (else the others would knock at another one until their timeout).
+fn listen(rank: &Rank, addr: SocketAddr) -> Result<TcpListener> {
+    TcpListener::bind((addr.ip(), 0)).map_err(|e| bind_error(rank, addr, e))?;
+    let any = SocketAddr::new(unspecified(addr.ip()), addr.port());
+    TcpListener::bind(any).map_err(|e| bind_error(rank, any, e))
+}
+
+fn unspecified(like: IpAddr) -> IpAddr {
+    match like {
+        IpAddr::V4(_) => IpAddr::V4(std::net::Ipv4Addr::UNSPECIFIED),
+        IpAddr::V6(_) => IpAddr::V6(std::net::Ipv6Addr::UNSPECIFIED),
+    }
 }
 
 fn bind_error(rank: &Rank, addr: SocketAddr, e: std::io::Error) -> TrainError {
@@ -260,7 +313,9 @@ fn bind_error(rank: &Rank, addr: SocketAddr, e: std::io::Error) -> TrainError {
     TrainError::Dist(format!("rank 0: listening for the other ranks at {} ({addr}): {why}", rank.rendezvous))
 }
 
-fn bind_ring(ip: IpAddr) -> Result<TcpListener> {
+/// The ring listener: on `ring_ip` (`NCCL_SOCKET_IFNAME`) when given, else on every address of `family`'s kind.
+fn bind_ring(ring_ip: Option<IpAddr>, family: IpAddr) -> Result<TcpListener> {
+    let ip = ring_ip.unwrap_or(unspecified(family));
     TcpListener::bind((ip, 0)).map_err(|e| net(&format!("listening for the ring on {ip}"), e))
 }
 
@@ -309,4 +364,63 @@ fn read_bytes(s: &mut impl Read) -> std::io::Result<Vec<u8>> {
 
 fn read_str(s: &mut impl Read) -> std::io::Result<String> {
     String::from_utf8(read_bytes(s)?).map_err(|_| std::io::Error::other("not UTF-8"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::dist::{Collective, RingCollective};
+    use mvsplat360_pipeline::launch::{Launcher, Place};
+
+    fn rank(r: usize, at: &str, port: u16) -> Rank {
+        let place = Place { rank: r, world: 2, local_rank: r, local_world: Some(2), launcher: Launcher::Torchrun };
+        Rank { rank: r, world: 2, place, rendezvous: format!("{at}:{port}"), timeout: Duration::from_secs(20) }
+    }
+
+    /// Joins as `r` and sums over the ring: what it was handed out, its ring listener, the sum.
+    fn run(r: Rank) -> Result<(Vec<String>, SocketAddr, f64)> {
+        let j = join(&r, Backend::Host, 7, None, || Ok(Vec::new()))?;
+        let own = j.ring.as_ref().expect("a ring").local_addr().map_err(|e| net("socket", e))?;
+        let (prev, next) = ring(&r, &j)?;
+        let mut c = RingCollective::new(r.rank, r.world, prev, next, r.timeout)?;
+        let mut v = [r.rank as f64 + 1.0];
+        c.all_reduce_f64(&mut v)?;
+        Ok((j.peers, own, v[0]))
+    }
+
+    /// As on Debian: MASTER_ADDR, rank 0's own name, resolves to 127.0.1.1 on its machine, while rank 1 reaches
+    /// that machine at another address (127.0.0.3 stands for the LAN address): rank 0 listens on every address,
+    /// and hands out its ring at the address rank 1 came to.
+    #[test]
+    fn rank_0_listens_on_the_wildcard_address_and_hands_out_the_address_reached() {
+        let port = TcpListener::bind("0.0.0.0:0").unwrap().local_addr().unwrap().port();
+        let r0 = std::thread::spawn(move || run(rank(0, "127.0.1.1", port)).map_err(|e| e.to_string()));
+        let (peers1, ring1, sum1) = run(rank(1, "127.0.0.3", port)).unwrap();
+        let (peers0, ring0, sum0) = r0.join().unwrap().unwrap();
+        assert_eq!((sum0, sum1), (3.0, 3.0));
+        assert!(ring0.ip().is_unspecified() && ring1.ip().is_unspecified(), "{ring0} {ring1}");
+        assert_eq!(peers1[0], format!("127.0.0.3:{}", ring0.port()));
+        let at: SocketAddr = peers0[1].parse().unwrap();
+        assert!(at.ip().is_loopback() && at.port() == ring1.port(), "{peers0:?}");
+        // Where MASTER_ADDR is not this machine's, rank 0 says so at once.
+        let e = join(&rank(0, "192.0.2.1", port), Backend::Host, 7, None, || Ok(Vec::new())).map(|_| ()).unwrap_err().to_string();
+        assert!(e.contains("not an address of this machine"), "{e}");
+    }
+
+    #[test]
+    fn ring_addresses_each_rank_can_reach() {
+        let ip = |s: &str| Some(s.parse::<IpAddr>().unwrap());
+        // Rank 0's wildcard ring: where the asking rank reached it.
+        assert_eq!(ring_for("0.0.0.0:4000", None, ip("10.0.0.1")), "10.0.0.1:4000");
+        // A rank on another machine: where it came from, for everyone.
+        assert_eq!(ring_for("0.0.0.0:4001", ip("10.0.0.7"), ip("10.0.0.1")), "10.0.0.7:4001");
+        assert_eq!(ring_for("0.0.0.0:4001", ip("10.0.0.7"), None), "10.0.0.7:4001");
+        // A rank beside rank 0 that came over loopback (127.0.1.1): where the asking rank reached rank 0's machine.
+        assert_eq!(ring_for("0.0.0.0:4002", ip("127.0.1.1"), ip("10.0.0.1")), "10.0.0.1:4002");
+        assert_eq!(ring_for("0.0.0.0:4002", ip("127.0.1.1"), None), "127.0.1.1:4002");
+        assert_eq!(ring_for("[::]:4003", ip("::1"), ip("fd00::1")), "[fd00::1]:4003");
+        // NCCL_SOCKET_IFNAME's address stands.
+        assert_eq!(ring_for("192.168.5.5:4004", ip("10.0.0.7"), ip("10.0.0.1")), "192.168.5.5:4004");
+        assert_eq!(ring_for("", None, ip("10.0.0.1")), "");
+    }
 }
