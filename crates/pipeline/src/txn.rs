@@ -1,20 +1,29 @@
 //! A render as a transaction. A render writes its files into `OUT/.render/stage/` (under the lock
-//! `OUT/.render/lock`, `PID HOST`) and leaves the run in `OUT` alone until the new one is complete; then it
-//! renames the stage to `OUT/.render/commit/` — the commit point — and swaps the entries ([`ENTRIES`]) in by
-//! renames: phase 1 moves the old run's entries into `OUT/.render/old/` (`run.json` first), the marker
-//! `OUT/.render/installing` notes that phase 1 is done, phase 2 moves the new entries into `OUT` (`run.json`
-//! last), and the leftovers are removed. A crash before the commit point leaves the old run whole (the next
-//! render starts a fresh stage, or `--resume` continues it); a crash after it is finished by whichever process
-//! opens the folder next ([`recover`]: the next render, `view`), so a folder holds one whole run, old or new, as
-//! soon as anyone looks. Entries that are not the render's (a posed `scene/`, the user's own files) are never
-//! moved.
+//! `OUT/.render/lock`) and leaves the run in `OUT` alone until the new one is complete; then it swaps the new run
+//! in. Every step of the swap is one file-system operation, and which folder exists under `OUT/.render/` says
+//! how far it got, so that whoever opens the folder next ([`recover_if_free`]: `view`; [`Txn::begin`]: the next
+//! render) finishes it from any step, a crash in that finishing included:
+//!
+//! 1. `stage/` → `commit/` (rename): the commit point. Before it the old run is whole (the next render starts a
+//!    fresh stage, or `--resume` continues it).
+//! 2. `commit/` present: phase 1 moves the old run's entries ([`ENTRIES`], `run.json` first) from `OUT` into
+//!    `commit/.old/`, then renames `commit/` → `install/`; that rename is the phase's marker, so no marker file
+//!    can outlive its folder.
+//! 3. `install/` present: phase 2 moves the new entries into `OUT` (`run.json` last) and the resume state into
+//!    `install/.resume/`, then renames `install/` → `trash/`: the swap is done.
+//! 4. `trash/` present: the old run and the leftovers, removed file by file; anything under `trash/` is garbage.
+//!
+//! So a folder holds one whole run, old or new, as soon as anyone looks. Entries that are not the render's (a
+//! posed `scene/`, the user's own files) are never moved. Recovery runs only under the lock: `view` finding a
+//! render holding it leaves the folder as it is.
 //!
 //! Resume: `OUT/.render/resume/key.json` names what the interrupted render was (input, model, settings,
 //! targets, device, dtype) and `OUT/.render/resume/windows/` holds each refined window as it finishes;
-//! `render --resume` with the same key skips those windows. The resume folder goes at the commit.
+//! `render --resume` with the same key skips those windows. The resume folder goes with the swap (step 3).
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicUsize, Ordering};
 
 use mvsplat360_dataset::atomic::DirLock;
 
@@ -52,7 +61,7 @@ impl Txn {
         std::fs::create_dir_all(&dir).map_err(write_err(&dir))?;
         let lock =
             DirLock::acquire(&dir.join("lock"), "render", "choose another --out").map_err(|m| PipelineError::Write { path: dir.join("lock"), msg: m })?;
-        if recover(out)? {
+        if finish_swap(out)? {
             note(&format!("{}: finished installing the render that was interrupted while it was being swapped in", out.display()));
         }
         let stage = dir.join("stage");
@@ -109,15 +118,12 @@ impl Txn {
     pub fn commit(self) -> Result<()> {
         let dir = self.out.join(DIR);
         sync_tree(&self.stage).map_err(write_err(&self.stage))?;
-        let commit = dir.join("commit");
-        if commit.exists() {
-            std::fs::remove_dir_all(&commit).map_err(write_err(&commit))?;
-        }
+        // The lock is held and `begin` finished any earlier swap: no `commit/`, `install/` or `trash/` is left.
+        let commit = dir.join(COMMIT);
+        step();
         std::fs::rename(&self.stage, &commit).map_err(write_err(&commit))?;
         sync_dir(&dir);
-        recover(&self.out)?;
-        let r = dir.join("resume");
-        let _ = std::fs::remove_dir_all(&r);
+        finish_swap(&self.out)?;
         Ok(())
     }
 }
@@ -132,68 +138,171 @@ impl Drop for Txn {
     }
 }
 
-/// Finishes a swap whose commit point has passed (true when there was one); nothing to do otherwise. Safe to
-/// repeat after a crash at any step.
-pub fn recover(out: &Path) -> Result<bool> {
-    swap_steps(out, usize::MAX)
+const COMMIT: &str = "commit";
+const INSTALL: &str = "install";
+const TRASH: &str = "trash";
+/// Inside `commit/` (then `install/`, `trash/`): the old run's entries, and the resume state.
+const OLD: &str = ".old";
+const RESUME: &str = ".resume";
+/// What an older version of the swap left (its phase-1 folder and marker file): recognised and finished.
+const LEGACY_OLD: &str = "old";
+const LEGACY_MARKER: &str = "installing";
+
+/// What [`recover_if_free`] did.
+#[derive(Debug, PartialEq, Eq)]
+pub enum Recovery {
+    /// No swap was interrupted here (leftovers of a finished one may have been removed).
+    Nothing,
+    /// A swap interrupted after its commit point was finished: the folder holds the new run.
+    Finished,
+    /// An interrupted swap is there, but the render lock could not be taken (a render holds it: it is
+    /// committing, and finishes the swap itself; or the folder cannot be written): left as it is. The lock's
+    /// message.
+    Busy(String),
 }
 
-/// [`recover`] stopping after `limit` renames (the crash tests).
-pub(crate) fn swap_steps(out: &Path, mut limit: usize) -> Result<bool> {
+/// For readers of a render's folder (`view`): finishes an interrupted swap under the render lock, then lets the
+/// lock go. When a render holds the lock the folder is left alone (a reader shows it as it is). Takes no lock,
+/// and writes nothing, when nothing is pending.
+pub fn recover_if_free(out: &Path) -> Result<Recovery> {
     let dir = out.join(DIR);
-    let (commit, old, installing) = (dir.join("commit"), dir.join("old"), dir.join("installing"));
-    if !commit.is_dir() {
-        return Ok(false);
+    if ![COMMIT, INSTALL, TRASH, LEGACY_OLD, LEGACY_MARKER].iter().any(|n| dir.join(n).symlink_metadata().is_ok()) {
+        return Ok(Recovery::Nothing);
     }
-    let mut step = || {
-        if limit == 0 {
-            return false;
-        }
-        limit -= 1;
-        true
+    let _lock = match DirLock::acquire(&dir.join("lock"), "render", "view the folder again when it is done") {
+        Ok(l) => l,
+        Err(m) => return Ok(Recovery::Busy(m)),
     };
-    if !installing.exists() {
-        std::fs::create_dir_all(&old).map_err(write_err(&old))?;
-        for e in ENTRIES {
-            let (from, to) = (out.join(e), old.join(e));
-            if from.symlink_metadata().is_ok() {
-                if !step() {
-                    return Ok(true);
-                }
-                remove_any(&to).map_err(write_err(&to))?;
-                std::fs::rename(&from, &to).map_err(write_err(&from))?;
-            }
+    Ok(if finish_swap(out)? { Recovery::Finished } else { Recovery::Nothing })
+}
+
+/// Finishes a swap from whatever step it was interrupted at (true when one had passed its commit point); the
+/// caller holds the render lock. Each state is recognised by the folder that exists, each step is one
+/// file-system operation, so a crash anywhere here leaves a state this function finishes too.
+fn finish_swap(out: &Path) -> Result<bool> {
+    let dir = out.join(DIR);
+    let (commit, install, trash) = (dir.join(COMMIT), dir.join(INSTALL), dir.join(TRASH));
+    // Garbage of a finished swap (an older version's `old/` holds only the old run's entries, past its commit
+    // point or finished).
+    remove_tree(&trash)?;
+    remove_tree(&dir.join(LEGACY_OLD))?;
+    // An older version's marker: its phase 1 was done, `commit/` (if still there) is phase 2.
+    let marker = dir.join(LEGACY_MARKER);
+    if marker.symlink_metadata().is_ok() {
+        if commit.is_dir() && install.symlink_metadata().is_err() {
+            step();
+            std::fs::rename(&commit, &install).map_err(write_err(&install))?;
+            sync_dir(&dir);
         }
-        sync_dir(out);
-        if !step() {
-            return Ok(true);
-        }
-        crate::output::write_bytes(&installing, b"phase 2: installing the new run\n")?;
-        sync_dir(&dir);
+        step();
+        std::fs::remove_file(&marker).map_err(write_err(&marker))?;
     }
-    for e in ENTRIES.iter().rev() {
-        let (from, to) = (commit.join(e), out.join(e));
+    let mut swapped = false;
+    if commit.is_dir() {
+        move_old_out(out, &commit, &install)?;
+        swapped = true;
+    }
+    if install.is_dir() {
+        install_new(out, &install, &trash)?;
+        swapped = true;
+    }
+    remove_tree(&trash)?;
+    Ok(swapped)
+}
+
+/// Phase 1: the old run's entries from `OUT` into `commit/.old/`, then `commit/` → `install/`.
+fn move_old_out(out: &Path, commit: &Path, install: &Path) -> Result<()> {
+    let old = commit.join(OLD);
+    if !old.is_dir() {
+        step();
+        std::fs::create_dir(&old).map_err(write_err(&old))?;
+    }
+    for e in ENTRIES {
+        let (from, to) = (out.join(e), old.join(e));
         if from.symlink_metadata().is_ok() {
-            if !step() {
-                return Ok(true);
-            }
+            // A rename moves: an entry is in one place or the other, unless someone put one back by hand.
+            remove_tree(&to)?;
+            step();
+            std::fs::rename(&from, &to).map_err(write_err(&from))?;
+        }
+    }
+    sync_dir(&old);
+    sync_dir(out);
+    step();
+    std::fs::rename(commit, install).map_err(write_err(install))?;
+    sync_dir(install.parent().unwrap_or(out));
+    Ok(())
+}
+
+/// Phase 2: the new entries from `install/` into `OUT`, the resume state into `install/.resume/`, then
+/// `install/` → `trash/`.
+fn install_new(out: &Path, install: &Path, trash: &Path) -> Result<()> {
+    for e in ENTRIES.iter().rev() {
+        let (from, to) = (install.join(e), out.join(e));
+        if from.symlink_metadata().is_ok() {
+            // Phase 1 moved every entry out: one here was put back by hand (a folder would block the rename).
+            remove_tree(&to)?;
+            step();
             std::fs::rename(&from, &to).map_err(write_err(&to))?;
         }
     }
-    sync_dir(out);
-    for p in [&old, &commit] {
-        let _ = std::fs::remove_dir_all(p);
+    // The resume state is the installed render's (the lock is held, and a render opens a new one only after
+    // finishing any swap).
+    let dir = install.parent().unwrap_or(out);
+    let (resume, gone) = (dir.join("resume"), install.join(RESUME));
+    if resume.symlink_metadata().is_ok() && gone.symlink_metadata().is_err() {
+        step();
+        std::fs::rename(&resume, &gone).map_err(write_err(&resume))?;
     }
-    let _ = std::fs::remove_file(&installing);
-    Ok(true)
+    sync_dir(out);
+    remove_tree(trash)?;
+    step();
+    std::fs::rename(install, trash).map_err(write_err(trash))?;
+    sync_dir(dir);
+    Ok(())
 }
 
-fn remove_any(p: &Path) -> std::io::Result<()> {
-    match p.symlink_metadata() {
-        Ok(m) if m.is_dir() => std::fs::remove_dir_all(p),
-        Ok(_) => std::fs::remove_file(p),
-        Err(_) => Ok(()),
+/// Removes a file or a folder (not following links), one file-system step per file and folder.
+fn remove_tree(p: &Path) -> Result<()> {
+    let Ok(m) = p.symlink_metadata() else { return Ok(()) };
+    if m.is_dir() {
+        let mut entries: Vec<PathBuf> = std::fs::read_dir(p).map_err(write_err(p))?.flatten().map(|e| e.path()).collect();
+        entries.sort();
+        for e in entries {
+            remove_tree(&e)?;
+        }
+        step();
+        std::fs::remove_dir(p).map_err(write_err(p))
+    } else {
+        step();
+        std::fs::remove_file(p).map_err(write_err(p))
     }
+}
+
+/// Steps left before the crash tests' crash (`usize::MAX`: none).
+static CRASH_AFTER: AtomicUsize = AtomicUsize::new(usize::MAX);
+
+/// Exit status of a process ended by [`crash_after_steps`].
+#[doc(hidden)]
+pub const CRASH_EXIT: i32 = 86;
+
+/// For crash tests: the process exits ([`CRASH_EXIT`], no destructors run, the lock stays behind) just before
+/// the swap's file-system step number `n` (0: before the commit point), in [`Txn::commit`] or a recovery.
+#[doc(hidden)]
+pub fn crash_after_steps(n: usize) {
+    CRASH_AFTER.store(n, Ordering::SeqCst);
+}
+
+/// Called before each file-system step of the swap.
+fn step() {
+    let left = CRASH_AFTER.load(Ordering::SeqCst);
+    if left == usize::MAX {
+        return;
+    }
+    if left == 0 {
+        std::process::exit(CRASH_EXIT);
+    }
+    CRASH_AFTER.store(left - 1, Ordering::SeqCst);
 }
 
 fn count_windows(dir: &Path) -> usize {
@@ -244,72 +353,6 @@ fn sync_dir(dir: &Path) {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn tree(root: &Path) -> BTreeMap<String, Vec<u8>> {
-        fn walk(root: &Path, d: &Path, m: &mut BTreeMap<String, Vec<u8>>) {
-            for e in std::fs::read_dir(d).unwrap().flatten() {
-                let p = e.path();
-                let rel = p.strip_prefix(root).unwrap().to_string_lossy().into_owned();
-                if rel.starts_with(DIR) {
-                    continue;
-                }
-                if p.is_dir() {
-                    walk(root, &p, m);
-                } else {
-                    m.insert(rel, std::fs::read(&p).unwrap());
-                }
-            }
-        }
-        let mut m = BTreeMap::new();
-        walk(root, root, &mut m);
-        m
-    }
-
-    fn write_run(dir: &Path, tag: &str, splat: bool) {
-        std::fs::create_dir_all(dir.join("frames/final")).unwrap();
-        std::fs::write(dir.join("frames/final/0000.png"), format!("{tag} frame")).unwrap();
-        std::fs::write(dir.join("gaussians.ply"), format!("{tag} ply")).unwrap();
-        std::fs::write(dir.join("cameras.json"), format!("{tag} cams")).unwrap();
-        std::fs::write(dir.join("run.json"), format!("{tag} run")).unwrap();
-        if splat {
-            std::fs::write(dir.join("gaussians.splat"), format!("{tag} splat")).unwrap();
-        }
-    }
-
-    /// A crash after any number of the swap's renames, then recovery: always the whole new run, never a file of
-    /// the old one (the old had a `gaussians.splat`, the new has none), the user's own file untouched. A crash
-    /// before the commit point leaves the old run whole.
-    #[test]
-    fn a_swap_interrupted_anywhere_recovers_to_the_whole_new_run() {
-        let key: ResumeKey = [("input".to_string(), "x".to_string())].into();
-        let new_only = {
-            let d = tempfile::tempdir().unwrap();
-            write_run(d.path(), "new", false);
-            tree(d.path())
-        };
-        for crash_after in 0..20 {
-            let d = tempfile::tempdir().unwrap();
-            let out = d.path();
-            write_run(out, "old", true);
-            std::fs::write(out.join("notes.txt"), "mine").unwrap();
-            let old = tree(out);
-            let t = Txn::begin(out, &key, false, true, &|_| {}).unwrap();
-            write_run(&t.stage, "new", false);
-            // Before the commit point: the old run, whole.
-            assert_eq!(tree(out), old);
-            let dir = out.join(DIR);
-            std::fs::rename(dir.join("stage"), dir.join("commit")).unwrap();
-            drop(t);
-            let finished = swap_steps(out, crash_after).unwrap();
-            assert!(finished);
-            // What a crash left, then the next process's recovery (10 steps: 5 entries out, the marker, 4 in).
-            assert_eq!(recover(out).unwrap(), crash_after < 10, "crash after {crash_after} renames");
-            let mut want = new_only.clone();
-            want.insert("notes.txt".into(), b"mine".to_vec());
-            assert_eq!(tree(out), want, "crash after {crash_after} renames");
-            assert!(!dir.join("commit").exists() && !dir.join("old").exists() && !dir.join("installing").exists());
-        }
-    }
 
     #[test]
     fn resume_keeps_windows_of_the_same_render_and_names_what_differs() {

@@ -32,9 +32,18 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    // A render swapped in halfway when it was killed: finish it, so the viewer shows one whole run.
-    if let Err(e) = mvsplat360_pipeline::txn::recover(&args.out_dir) {
-        eprintln!("warning: {}: a render was interrupted while being swapped in, and finishing it failed: {e}", args.out_dir.display());
+    // A render swapped in halfway when it was killed: finish it (under the render lock), so the viewer shows one
+    // whole run. While a render holds the lock it is swapping its run in itself: show the folder as it is.
+    use mvsplat360_pipeline::txn::Recovery;
+    match mvsplat360_pipeline::txn::recover_if_free(&args.out_dir) {
+        Ok(Recovery::Nothing) => {}
+        Ok(Recovery::Finished) => eprintln!("note: {}: finished swapping in the render that was interrupted while being swapped in", args.out_dir.display()),
+        Ok(Recovery::Busy(why)) => eprintln!(
+            "note: {why}\n  a render is being swapped into {}: showing the folder read-only as it is now, without finishing the swap; \
+             reload the page when the render is done",
+            args.out_dir.display()
+        ),
+        Err(e) => eprintln!("warning: {}: a render was interrupted while being swapped in, and finishing it failed: {e}", args.out_dir.display()),
     }
     let out = mvsplat360_viewer::OutDir::open(&args.out_dir).context("cannot view this folder")?;
     if let Some(dest) = &args.static_dir {
