@@ -11,6 +11,7 @@ pub mod guard;
 pub mod image;
 pub mod index;
 pub mod lens;
+pub mod owner;
 pub mod resize;
 pub mod torch_chunk;
 pub mod transforms;

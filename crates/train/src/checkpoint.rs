@@ -277,7 +277,7 @@ mod tests {
         let d = tempfile::tempdir().unwrap();
         let lock = RunLock::acquire(d.path()).unwrap();
         let text = std::fs::read_to_string(d.path().join("train.lock")).unwrap();
-        assert_eq!(text.trim(), format!("{} {}", std::process::id(), mvsplat360_dataset::atomic::host_name()));
+        assert_eq!(text.trim(), mvsplat360_dataset::owner::Owner::me().record());
         assert!(RunLock::acquire(d.path()).err().unwrap().to_string().contains("another training run"));
         drop(lock);
         // Held on another machine: refused, naming it (its process cannot be checked from here).

@@ -290,7 +290,7 @@ fn second_run_on_a_live_folder_is_refused_and_a_killed_runs_lock_taken_over() {
     child.wait().unwrap();
     assert!(lock.is_file(), "SIGKILL runs no clean-up: the lock stays");
     let taken = mvsplat360_train::checkpoint::RunLock::acquire(&out).expect("a killed run's lock is taken over");
-    assert_eq!(std::fs::read_to_string(&lock).unwrap().trim(), format!("{} {}", std::process::id(), mvsplat360_dataset::atomic::host_name()));
+    assert_eq!(std::fs::read_to_string(&lock).unwrap().trim(), mvsplat360_dataset::owner::Owner::me().record());
     drop(taken);
     assert!(!lock.exists(), "the lock is removed when its run ends");
 }

@@ -2,9 +2,10 @@
 //! array jobs on several nodes, a rerun next to a running job) render each scene once, with no rendezvous.
 //!
 //! A lease is the file `KEY.lease-G` created exclusively (`O_EXCL`, which NFS honours too), holding the owner's
-//! host and pid; its mtime is the owner's heartbeat, refreshed while it holds the lease. The scene's current lease
-//! is its highest generation G. It is stale when its owner is on this host and dead (taken over at once), or when
-//! its heartbeat is older than [`STALE_AFTER`] (an owner on another host that stopped). Taking over creates
+//! record ([`Owner`]: pid, host, start time); its mtime is the owner's heartbeat, refreshed while it holds the
+//! lease. The scene's current lease is its highest generation G. It is stale when its owner is on this host and
+//! dead (gone, a zombie, or its pid now another process's: [`Owner::state`]; taken over at once), or when its
+//! heartbeat is older than [`STALE_AFTER`] (an owner on another host that stopped). Taking over creates
 //! generation G + 1 exclusively, so of several processes that find the same stale lease exactly one wins.
 //! A lease is removed once its scene's record (or failure) is written.
 
@@ -13,35 +14,17 @@ use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, SystemTime};
 
-use mvsplat360_dataset::atomic::{host_name, process_alive};
+pub use mvsplat360_dataset::owner::Owner;
+use mvsplat360_dataset::owner::State;
 
 /// How often a holder refreshes its leases.
 pub const HEARTBEAT: Duration = Duration::from_secs(20);
 /// A lease whose heartbeat is older is stale, whoever holds it.
 pub const STALE_AFTER: Duration = Duration::from_secs(180);
 
-/// Who holds a lease (the file's content, one line: `HOST PID`).
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct Owner {
-    pub host: String,
-    pub pid: u32,
-}
-
-impl Owner {
-    fn me() -> Self {
-        Self { host: host_name(), pid: std::process::id() }
-    }
-
-    fn parse(text: &str) -> Option<Self> {
-        let (host, pid) = text.trim().rsplit_once(' ')?;
-        Some(Self { host: host.to_string(), pid: pid.parse().ok()? })
-    }
-}
-
-impl std::fmt::Display for Owner {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "pid {} on {}", self.pid, self.host)
-    }
+/// A lease's owner whose record is not written yet, or is garbled.
+fn unknown() -> Owner {
+    Owner { pid: 0, host: "?".into(), start: None }
 }
 
 /// The outcome of [`Leases::claim`].
@@ -114,10 +97,10 @@ impl Leases {
                 let owner = Owner::parse(&text);
                 let age = std::fs::metadata(path).and_then(|m| m.modified()).ok().and_then(|t| SystemTime::now().duration_since(t).ok());
                 // Just created and not yet written: its creator is alive.
-                let dead_here = owner.as_ref().is_some_and(|o| o.host == host_name() && o.pid != std::process::id() && !process_alive(o.pid));
+                let dead_here = owner.as_ref().is_some_and(|o| !o.is_me() && o.state() == State::Dead);
                 let expired = age.is_some_and(|a| a > stale_after);
                 if !(dead_here || expired) {
-                    return Ok(Claim::Held(owner.unwrap_or(Owner { host: "?".into(), pid: 0 })));
+                    return Ok(Claim::Held(owner.unwrap_or_else(unknown)));
                 }
                 g + 1
             }
@@ -127,7 +110,7 @@ impl Leases {
             Ok(mut f) => {
                 use std::io::Write;
                 let me = Owner::me();
-                f.write_all(format!("{} {}\n", me.host, me.pid).as_bytes())?;
+                f.write_all(format!("{}\n", me.record()).as_bytes())?;
                 self.held.lock().unwrap_or_else(|e| e.into_inner()).insert(path);
                 // Older generations are dead weight now.
                 for (g, p) in lease_files(&self.dir, key) {
@@ -139,7 +122,7 @@ impl Leases {
             }
             Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
                 let text = std::fs::read_to_string(&path).unwrap_or_default();
-                Ok(Claim::Held(Owner::parse(&text).unwrap_or(Owner { host: "?".into(), pid: 0 })))
+                Ok(Claim::Held(Owner::parse(&text).unwrap_or_else(unknown)))
             }
             Err(e) => Err(e),
         }
@@ -168,6 +151,7 @@ impl Drop for Leases {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use mvsplat360_dataset::owner::host_name;
 
     #[test]
     fn one_holder_and_takeover_of_dead_or_expired_owners() {
@@ -182,14 +166,25 @@ mod tests {
         assert_eq!(b.claim("s1").unwrap(), Claim::Mine);
         b.release("s1");
 
-        // A dead owner on this host (a pid beyond the kernel's maximum): taken over at once, as generation 1.
+        // A dead owner on this host (a pid beyond the kernel's maximum; the older `HOST PID` form): taken over at
+        // once, as generation 1.
         std::fs::write(d.path().join("s2.lease-0"), format!("{} 4294967295\n", host_name())).unwrap();
         assert_eq!(a.claim("s2").unwrap(), Claim::Mine);
         let files: Vec<u64> = lease_files(d.path(), "s2").into_iter().map(|x| x.0).collect();
         assert_eq!(files, [1]);
+        // A live process on this host (the test's parent) under another start time: its pid was reused, the
+        // owner is dead.
+        let pid = std::os::unix::process::parent_id();
+        if let Ok(Some(st)) = mvsplat360_dataset::owner::proc_stat(pid) {
+            let boot = mvsplat360_dataset::owner::boot_id().unwrap_or("");
+            std::fs::write(d.path().join("s4.lease-0"), format!("{pid} {} {boot}:{}\n", host_name(), st.start_ticks + 1)).unwrap();
+            assert_eq!(a.claim("s4").unwrap(), Claim::Mine);
+            std::fs::write(d.path().join("s5.lease-0"), format!("{pid} {} {boot}:{}\n", host_name(), st.start_ticks)).unwrap();
+            assert!(matches!(a.claim("s5").unwrap(), Claim::Held(o) if o.pid == pid));
+        }
         // A live owner on another host: held until its heartbeat is older than the limit.
         std::fs::write(d.path().join("s3.lease-4"), "node-b 77\n").unwrap();
-        assert_eq!(a.claim("s3").unwrap(), Claim::Held(Owner { host: "node-b".into(), pid: 77 }));
+        assert_eq!(a.claim("s3").unwrap(), Claim::Held(Owner { host: "node-b".into(), pid: 77, start: None }));
         let old = SystemTime::now() - Duration::from_secs(10);
         std::fs::File::options().write(true).open(d.path().join("s3.lease-4")).unwrap().set_modified(old).unwrap();
         assert_eq!(a.claim_with("s3", Duration::from_secs(5)).unwrap(), Claim::Mine);
