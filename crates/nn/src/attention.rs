@@ -260,7 +260,7 @@ pub(crate) fn fused_attention_composed_capped(q: &Tensor, k: &Tensor, v: &Tensor
 }
 
 #[inline(always)]
-fn row_max(row: &[f32]) -> f32 {
+pub(crate) fn row_max(row: &[f32]) -> f32 {
     let mut acc = [f32::NEG_INFINITY; LANES];
     let mut it = row.chunks_exact(LANES);
     for c in &mut it {
@@ -278,7 +278,12 @@ fn row_max(row: &[f32]) -> f32 {
 /// In place: row ← exp(row − max(row)); returns the sum (normalisation is left to the caller).
 #[inline(always)]
 fn exp_shift_sum(row: &mut [f32]) -> f32 {
-    let m = row_max(row);
+    exp_sub_sum(row, row_max(row))
+}
+
+/// In place: row ← exp(row − m); returns the sum.
+#[inline(always)]
+pub(crate) fn exp_sub_sum(row: &mut [f32], m: f32) -> f32 {
     let mut acc = [0f32; LANES];
     let mut it = row.chunks_exact_mut(LANES);
     for c in &mut it {

@@ -6,8 +6,8 @@
 use candle_core::{Result, Tensor, D};
 use rayon::prelude::*;
 
-use crate::attention::{attention_raw, AttnOperand, SeqLayout};
-use crate::math::{exp_f32, simd_dispatch, LANES};
+use crate::attention::{attention_raw, exp_sub_sum, row_max, AttnOperand, SeqLayout};
+use crate::math::{exp_f32, simd_dispatch};
 use crate::mode::{is_cpu_f32, with_f32};
 
 /// LayerNorm over one head's features.
@@ -219,22 +219,10 @@ simd_dispatch! {
     /// row's running sum and accumulated output are rescaled by exp(old max − new max).
     fn online_softmax_chunk(s: &mut [f32], kc: usize, mx: &mut [f32], sum: &mut [f32], acc: &mut [f32], d: usize) {
         for (r, row) in s.chunks_exact_mut(kc).enumerate() {
-            let m_new = row.iter().fold(mx[r], |a, &b| a.max(b));
+            let m_new = row_max(row).max(mx[r]);
             let corr = exp_f32(mx[r] - m_new);
-            let mut t = [0f32; LANES];
-            let mut it = row.chunks_exact_mut(LANES);
-            for ch in &mut it {
-                for i in 0..LANES {
-                    ch[i] = exp_f32(ch[i] - m_new);
-                    t[i] += ch[i];
-                }
-            }
-            let mut rs = 0f32;
-            for v in it.into_remainder() {
-                *v = exp_f32(*v - m_new);
-                rs += *v;
-            }
-            sum[r] = sum[r] * corr + rs + t.iter().sum::<f32>();
+            let rs = exp_sub_sum(row, m_new);
+            sum[r] = sum[r] * corr + rs;
             if corr != 1.0 {
                 for a in &mut acc[r * d..(r + 1) * d] {
                     *a *= corr;

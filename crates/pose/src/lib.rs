@@ -267,7 +267,7 @@ pub fn pose(input: &Path, out: &Path, opts: &PoseOptions, progress: &dyn Progres
         InputKind::Photos => {
             let (p, others) = photos::list(input)?;
             if p.is_empty() {
-                let also = if others.is_empty() { String::new() } else { format!(" (other files: {})", others.join(", ")) };
+                let also = photos::others_suffix(&others);
                 return Err(PoseError::input(input, format!("holds no photos (.jpg, .jpeg, .png){also}; give a folder of overlapping photos or a video")));
             }
             if p.len() < 2 || p.len() < opts.min_views {
@@ -279,9 +279,7 @@ pub fn pose(input: &Path, out: &Path, opts: &PoseOptions, progress: &dyn Progres
                     ),
                 ));
             }
-            if !others.is_empty() {
-                progress.note(&format!("note: {}: ignoring {} non-photo file(s): {}", input.display(), others.len(), others.join(", ")));
-            }
+            photos::note_ignored(input, &others, progress);
             (p, None)
         }
         InputKind::Video => {

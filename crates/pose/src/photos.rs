@@ -150,3 +150,19 @@ mod tests {
         assert_eq!(o, ["notes.txt"]);
     }
 }
+
+/// ` (other files: a, b)` for a refusal that names what else the folder holds; empty when nothing.
+pub fn others_suffix(others: &[String]) -> String {
+    if others.is_empty() {
+        String::new()
+    } else {
+        format!(" (other files: {})", others.join(", "))
+    }
+}
+
+/// Says which files of `dir` are not photos and are left out.
+pub fn note_ignored(dir: &Path, others: &[String], progress: &dyn crate::Progress) {
+    if !others.is_empty() {
+        progress.note(&format!("note: {}: ignoring {} non-photo file(s): {}", dir.display(), others.len(), others.join(", ")));
+    }
+}

@@ -233,7 +233,7 @@ fn check_inputs(dir: &Path, opts: &VggtPoseOptions, progress: &dyn Progress) -> 
     }
     let (photos, others) = photos::list(dir)?;
     if photos.len() < MIN_PHOTOS {
-        let also = if others.is_empty() { String::new() } else { format!(" (other files: {})", others.join(", ")) };
+        let also = photos::others_suffix(&others);
         return Err(PoseError::input(
             dir,
             format!(
@@ -242,9 +242,7 @@ fn check_inputs(dir: &Path, opts: &VggtPoseOptions, progress: &dyn Progress) -> 
             ),
         ));
     }
-    if !others.is_empty() {
-        progress.note(&format!("note: {}: ignoring {} non-photo file(s): {}", dir.display(), others.len(), others.join(", ")));
-    }
+    photos::note_ignored(dir, &others, progress);
     let src = VggtSource::resolve(&opts.weights).map_err(weights_error)?;
     Ok((photos, src))
 }
