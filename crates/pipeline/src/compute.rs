@@ -64,7 +64,7 @@ impl DeviceSpec {
                         "--device",
                         format!(
                             "{self}: this binary was built without CUDA; build it with `cargo build --release --features cuda` \
-                             (nvcc at build time, an NVIDIA driver at run time; see README, GPU) or use --device cpu"
+                             (nvcc at build time, an NVIDIA driver at run time; see docs/gpu.md) or use --device cpu"
                         ),
                     ));
                 }

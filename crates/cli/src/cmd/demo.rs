@@ -20,7 +20,7 @@ pub struct Args {
     #[arg(long, default_value_t = 5)]
     pub num_context: usize,
     /// Where the model runs: `auto` (GPU 0 when this binary has CUDA and a GPU is present, else the CPU),
-    /// `cpu`, `cuda` (GPU 0) or `cuda:N`. CUDA needs a binary built with `--features cuda` (see README, GPU).
+    /// `cpu`, `cuda` (GPU 0) or `cuda:N`. CUDA needs a binary built with `--features cuda` (see docs/gpu.md).
     #[arg(long, default_value = "auto")]
     pub device: mvsplat360_pipeline::compute::DeviceSpec,
 }

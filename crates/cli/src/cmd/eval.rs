@@ -59,7 +59,7 @@ pub struct Args {
     /// index: one per GPU with `--device cuda` (GPUs N..N+world-1 for `cuda:N`), or sharing the cores on the CPU.
     /// Then this process writes one `metrics.json`/`metrics.md` from every scene's record (as a resumed run does);
     /// an interrupted run resumes per scene with any world size. On a cluster, start one process per GPU with
-    /// `srun`, `torchrun --no-python` or `mpirun` instead (README, Evaluation on a cluster): each finds its rank
+    /// `srun`, `torchrun --no-python` or `mpirun` instead (docs/cluster.md, "Evaluation on a cluster"): each finds its rank
     /// and GPU from their variables, and the last to finish writes the tables.
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..))]
     pub world_size: u64,

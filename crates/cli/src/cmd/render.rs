@@ -106,7 +106,7 @@ fn posed_scene(a: &Args, quiet: bool) -> anyhow::Result<PathBuf> {
 const SHIPPED_MODEL_NOTE: &str = "model: the shipped small model (assets/models/default: 128x64 input, trained on synthetic POV-Ray \
 scenes, no refiner) — fine for the bundled demo, not for real photos. For real scenes use the official weights: \
 --ckpt dl3dv_480p.ckpt (Hugging Face repo donydchen/mvsplat360; ~9 GB with its refiner, converted once into \
-$MVSPLAT360_CACHE or ~/.cache/mvsplat360) and --device cuda on a GPU build. See README, \"Your own scene\".";
+$MVSPLAT360_CACHE or ~/.cache/mvsplat360) and --device cuda on a GPU build. See docs/weights.md and docs/pose.md, \"Your own scene\".";
 
 pub fn request(a: &Args) -> RenderRequest {
     let targets = if let Some(t) = &a.targets {

@@ -37,7 +37,7 @@ pub struct Args {
     #[arg(long)]
     pub weights_dir: Option<PathBuf>,
     /// Where the encoder, the refiner (`[model.refiner]`), the rasterizer and the losses run: cpu, cuda (GPU 0)
-    /// or cuda:N. CUDA needs a build with `--features cuda` (README, GPU); scene loading, view sampling, noise
+    /// or cuda:N. CUDA needs a build with `--features cuda` (docs/gpu.md); scene loading, view sampling, noise
     /// draws and checkpoints stay on the host.
     #[arg(long, default_value = "cpu")]
     pub device: mvsplat360_pipeline::compute::DeviceSpec,
@@ -45,7 +45,7 @@ pub struct Args {
     /// cuda` (GPUs N..N+world-1 for `cuda:N`), or sharing the cores on the CPU. Each rank draws its own
     /// micro-batches and gradients are summed every step, so a step equals one process with `accumulate` ×
     /// N micro-batches. Rank 0 writes the log, checkpoints and model folder. Under srun, torchrun or mpirun
-    /// each started process is a rank already: leave this out (README, Training on a cluster).
+    /// each started process is a rank already: leave this out (docs/cluster.md, "Training on a cluster").
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..))]
     pub world_size: u64,
     /// How the ranks sum gradients: `nccl` (GPUs; a build with `--features nccl`), `host` (a TCP ring through

@@ -77,7 +77,7 @@ pub struct ModelFlags {
     #[arg(long)]
     pub scene_scale: Option<SceneScale>,
     /// Where the model runs: `auto` (GPU 0 when this binary has CUDA and a GPU is present, else the CPU),
-    /// `cpu`, `cuda` (GPU 0) or `cuda:N`. CUDA needs a binary built with `--features cuda` (see README, GPU).
+    /// `cpu`, `cuda` (GPU 0) or `cuda:N`. CUDA needs a binary built with `--features cuda` (see docs/gpu.md).
     #[arg(long, default_value = "auto")]
     pub device: DeviceSpec,
     /// Precision of the refiner (UNet, VAE, CLIP): `f32`, `f16` or `bf16` (GPU only). Half precision halves the

@@ -92,7 +92,7 @@ fn no_nccl() -> TrainError {
     flag(
         "--dist-backend",
         "this binary was built without NCCL: build with `--features nccl` (NCCL's library at build and run time; \
-         README, GPU) or pass --dist-backend host",
+         docs/gpu.md) or pass --dist-backend host",
     )
 }
 
