@@ -314,9 +314,58 @@ impl Drop for DirLock {
     }
 }
 
+/// An exclusive lock on `path` held for the guard's life, waited for: one process at a time does the work it
+/// guards (one conversion into a shared cache), the others then find it done. The file stays (removing it would
+/// let a waiter lock an unlinked file); `on_wait` runs once if another holds it. Off Unix: no lock.
+pub struct WaitLock {
+    _file: std::fs::File,
+}
+
+pub fn wait_lock(path: &Path, on_wait: impl FnOnce()) -> io::Result<WaitLock> {
+    let file = lock::open(path).or_else(|e| if e.kind() == io::ErrorKind::AlreadyExists { std::fs::File::open(path) } else { Err(e) })?;
+    #[cfg(unix)]
+    if !lock::try_lock(&file)? {
+        on_wait();
+        use std::os::fd::AsRawFd;
+        loop {
+            // SAFETY: a valid descriptor, owned by `file` for the call.
+            if unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX) } == 0 {
+                break;
+            }
+            let e = io::Error::last_os_error();
+            if e.raw_os_error() != Some(libc::EINTR) {
+                return Err(e);
+            }
+        }
+    }
+    #[cfg(not(unix))]
+    let _ = on_wait;
+    Ok(WaitLock { _file: file })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_wait_lock_is_waited_for() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("x.lock");
+        let first = wait_lock(&p, || panic!("free")).unwrap();
+        let (tx, rx) = std::sync::mpsc::channel();
+        let p2 = p.clone();
+        let waiter = std::thread::spawn(move || {
+            let mut waited = false;
+            let _l = wait_lock(&p2, || waited = true).unwrap();
+            tx.send(()).unwrap();
+            waited
+        });
+        // Held: the waiter cannot pass until it is dropped.
+        assert!(rx.recv_timeout(std::time::Duration::from_millis(300)).is_err());
+        drop(first);
+        assert!(waiter.join().unwrap());
+        assert!(p.exists());
+    }
 
     #[test]
     fn replaces_the_file_or_leaves_it_untouched() {

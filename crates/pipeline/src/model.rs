@@ -370,6 +370,13 @@ pub fn refiner_safetensors(w: &RefinerWeights, note: &dyn Fn(&str)) -> Result<Pa
                 return Ok(out);
             }
             std::fs::create_dir_all(&dir).map_err(|e| PipelineError::Write { path: dir.clone(), msg: e.to_string() })?;
+            // One conversion per cache: processes sharing it (ranks on one machine) wait for the first.
+            let lock = out.with_extension("safetensors.lock");
+            let _held = mvsplat360_dataset::atomic::wait_lock(&lock, || note(&format!("waiting for another process converting {} …", p.display())))
+                .map_err(|e| PipelineError::Write { path: lock.clone(), msg: e.to_string() })?;
+            if out.is_file() {
+                return Ok(out);
+            }
             note(&format!("converting the refiner of {} to safetensors (once) → {}", p.display(), out.display()));
             crate::output::atomic_write_ungated(&out, |tmp| {
                 mvsplat360_encoder::weights::convert_to_safetensors(p, tmp, "refiner.").map(|_| ()).map_err(|e| e.to_string())

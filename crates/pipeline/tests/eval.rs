@@ -69,6 +69,7 @@ fn request(data: &Path, index: &Path, m: &Path, out: &Path) -> EvalRequest {
         shard: None,
         merge_only: false,
         exclude: Vec::new(),
+        lease: Default::default(),
     }
 }
 

@@ -111,6 +111,7 @@ fn eval_reproduces_the_official_evaluation() {
         shard: None,
         merge_only: false,
         exclude: Vec::new(),
+        lease: Default::default(),
     };
     let s = eval::run(&req, &Silent).unwrap();
     assert!(s.missing.is_empty() && s.skipped_fov.is_empty(), "{s:?}");

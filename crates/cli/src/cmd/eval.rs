@@ -77,6 +77,16 @@ pub struct Args {
     /// lists them under `scenes.excluded`.
     #[arg(long, value_delimiter = ',')]
     pub exclude: Vec<String>,
+    /// Seconds a scene's lease may stay unrefreshed before another process sharing --out takes the scene over
+    /// (its owner stopped: a dead host, a frozen job). Timed by the waiting process's own clock, so clocks that
+    /// differ between hosts do not matter; owners refresh theirs every ninth of it. Give every process the same.
+    #[arg(long, default_value_t = 180, value_name = "SECONDS", value_parser = clap::value_parser!(u64).range(1..))]
+    pub lease_stale: u64,
+    /// Seconds a scene's owner may go on refreshing its lease without progress (no stage begun, no step done)
+    /// before another process takes the scene over: a hung render. On a CPU one refiner step of a paper-size scene
+    /// takes minutes; raise it on slow machines.
+    #[arg(long, default_value_t = 3600, value_name = "SECONDS", value_parser = clap::value_parser!(u64).range(1..))]
+    pub lease_stall: u64,
 }
 
 pub fn request(a: &Args) -> EvalRequest {
@@ -99,6 +109,7 @@ pub fn request(a: &Args) -> EvalRequest {
         shard: None,
         merge_only: a.merge,
         exclude: a.exclude.clone(),
+        lease: mvsplat360_pipeline::eval::lease::Timing::from_secs(a.lease_stale, a.lease_stall),
     }
 }
 

@@ -66,10 +66,10 @@ use crate::views::{Target, ViewChoice};
 
 pub mod lease;
 mod report;
+mod run;
 mod score;
 
 pub use report::markdown;
-use report::*;
 use score::*;
 
 /// Ground-truth folder (official name).
@@ -172,6 +172,8 @@ pub struct EvalRequest {
     pub merge_only: bool,
     /// `--exclude`: scenes of the index left out (listed in `metrics.json`).
     pub exclude: Vec<String>,
+    /// When another process's scene is taken over (`--lease-stale`, `--lease-stall`; see [`lease`]).
+    pub lease: lease::Timing,
 }
 
 /// Averages of one method over a set of images.
@@ -509,8 +511,9 @@ struct Ctx<'a> {
     progress: &'a dyn Progress,
 }
 
-/// Render one scene, save its scored views in the official layout, score them, write its record.
-fn render_scene(cx: &Ctx, scene: Scene, plan: &ScenePlan, warnings: &mut Vec<String>) -> Result<SceneRecord> {
+/// Render one scene, save its scored views in the official layout, score them, write its record; nothing is
+/// written once `mine()` says another process took the scene over.
+fn render_scene(cx: &Ctx, scene: Scene, plan: &ScenePlan, mine: &dyn Fn() -> bool, warnings: &mut Vec<String>) -> Result<Rendered> {
     let t = Instant::now();
     let out = &cx.req.out;
     let idx_err = |what: &str, v: usize| {
@@ -548,9 +551,12 @@ fn render_scene(cx: &Ctx, scene: Scene, plan: &ScenePlan, warnings: &mut Vec<Str
     // The official loaders skip scenes with a view wider than max_fov (all views of the scene are checked).
     if let Some((i, (fx, fy))) = scene.cameras.iter().map(official_fov_deg).enumerate().find(|(_, (x, y))| *x > MAX_FOV_DEG || *y > MAX_FOV_DEG) {
         let why = format!("view {i} has a {fx:.1}°×{fy:.1}° field of view, above the official max_fov {MAX_FOV_DEG}°");
+        if !mine() {
+            return Ok(Rendered::Lost);
+        }
         warnings.push(format!("scene {} skipped: {why}", plan.key));
         record.skipped = Some(why);
-        return write_record(out, &record);
+        return write_record(out, &record).map(Rendered::Record);
     }
     if plan.context.len() < 2 {
         return Err(flag("--index", format!("scene {}: need at least 2 context views, got {}", plan.key, plan.context.len())));
@@ -618,6 +624,9 @@ fn render_scene(cx: &Ctx, scene: Scene, plan: &ScenePlan, warnings: &mut Vec<Str
         None => None,
     };
     drop(feats);
+    if !mine() {
+        return Ok(Rendered::Lost);
+    }
     let scored: BTreeSet<usize> = plan.scored.iter().copied().collect();
     for (k, &v) in plan.targets.iter().enumerate() {
         if !scored.contains(&v) {
@@ -637,7 +646,10 @@ fn render_scene(cx: &Ctx, scene: Scene, plan: &ScenePlan, warnings: &mut Vec<Str
     record.methods = score_scene(out, plan, &cx.methods, &cx.nets)?;
     cx.progress.end();
     record.seconds = t.elapsed().as_secs_f64();
-    write_record(out, &record)
+    if !mine() {
+        return Ok(Rendered::Lost);
+    }
+    write_record(out, &record).map(Rendered::Record)
 }
 
 /// Scene positions in the order this process takes them: a `--world-size` rank its own share only (its launcher
@@ -684,24 +696,35 @@ fn is_data_error(e: &PipelineError) -> bool {
     matches!(e, PipelineError::Dataset(_) | PipelineError::Camera(_) | PipelineError::NonFinite { .. } | PipelineError::Flag { flag: "--index", .. })
 }
 
-/// Reads the scene from its chunk (the last chunk read is kept) and renders it; None when the chunk lacks it.
+/// What became of a claimed scene.
+enum Rendered {
+    Record(SceneRecord),
+    /// The chunk the data's index names does not hold it.
+    NotInChunk,
+    /// Another process took its lease over: nothing was written.
+    Lost,
+}
+
+/// Reads the scene from its chunk (the last chunk read is kept) and renders it while `mine()` says this process
+/// still holds it.
 fn render_claimed(
     cx: &Ctx,
     data_dir: &Path,
     plan: &ScenePlan,
     cache: &mut Option<(String, HashMap<String, ChunkScene>)>,
+    mine: &dyn Fn() -> bool,
     warnings: &mut Vec<String>,
-) -> Result<Option<SceneRecord>> {
+) -> Result<Rendered> {
     let path = data_dir.join(&plan.chunk);
     if cache.as_ref().is_none_or(|(c, _)| *c != plan.chunk) {
         *cache = None;
         let scenes = torch_chunk::read_chunk(&path)?.into_iter().map(|s| (s.key.clone(), s)).collect();
         *cache = Some((plan.chunk.clone(), scenes));
     }
-    let Some(cs) = cache.as_mut().and_then(|(_, m)| m.remove(&plan.key)) else { return Ok(None) };
+    let Some(cs) = cache.as_mut().and_then(|(_, m)| m.remove(&plan.key)) else { return Ok(Rendered::NotInChunk) };
     let scene = cs.into_scene(&path)?;
     scene.validate()?;
-    render_scene(cx, scene, plan, warnings).map(Some)
+    render_scene(cx, scene, plan, mine, warnings)
 }
 
 /// Write `scenes/{scene}.json` atomically and return the record as read back from it, so a first run and a
@@ -728,373 +751,12 @@ pub fn prepare(req: &EvalRequest, progress: &dyn Progress) -> Result<()> {
 
 /// The whole evaluation (see the module docs).
 pub fn run(req: &EvalRequest, progress: &dyn Progress) -> Result<EvalSummary> {
-    run_scenes(req, progress).map_err(|e| match e {
+    run::run_scenes(req, progress).map_err(|e| match e {
         PipelineError::Write { path, msg } if crate::output::disk_full(&msg) => PipelineError::Write {
             msg: format!("{msg}: the disk is full. The scenes finished so far are kept in {} (every file there is whole); free some space and run the same command again to go on", req.out.display()),
             path,
         },
         e => e,
-    })
-}
-
-fn run_scenes(req: &EvalRequest, progress: &dyn Progress) -> Result<EvalSummary> {
-    let t_all = Instant::now();
-    let index = mvsplat360_dataset::read_evaluation_index(&req.index)?;
-    let (data_dir, chunk_of) = chunk_map(&req.data, progress)?;
-    let spec = crate::model::resolve(&req.model)?;
-    if req.refine.window == 0 {
-        return Err(flag("--window", "must be at least 1"));
-    }
-    if req.refine.vae_chunk == 0 {
-        return Err(flag("--vae-chunk", "must be at least 1"));
-    }
-    if spec.refiner.is_some() && req.refine.steps == 0 {
-        return Err(flag("--steps", "must be at least 1 (or use --refiner none)"));
-    }
-    if let Some(list) = &req.scenes {
-        for k in list {
-            if !index.contains_key(k) {
-                return Err(flag("--scenes", format!("no scene `{k}` in {}", req.index.display())));
-            }
-        }
-    }
-    for k in &req.exclude {
-        if !index.contains_key(k) {
-            return Err(flag("--exclude", format!("no scene `{k}` in {}", req.index.display())));
-        }
-    }
-    let wanted: Option<BTreeSet<&String>> = req.scenes.as_ref().map(|l| l.iter().collect());
-    let excluded: BTreeSet<&String> = req.exclude.iter().collect();
-    let mut null_entries = 0;
-    let mut plans = Vec::new();
-    let mut missing = Vec::new();
-    for (k, e) in &index {
-        if wanted.as_ref().is_some_and(|w| !w.contains(k)) || excluded.contains(k) {
-            continue;
-        }
-        let Some(e) = e else {
-            null_entries += 1;
-            continue;
-        };
-        if req.limit.is_some_and(|l| plans.len() + missing.len() >= l) {
-            break;
-        }
-        match chunk_of.get(k) {
-            Some(c) => plans.push(ScenePlan::new(k, c, e)),
-            None => missing.push(k.clone()),
-        }
-    }
-    let selected = plans.len() + missing.len();
-    let mut warnings = Vec::new();
-    if !missing.is_empty() {
-        warnings.push(format!(
-            "{} scene(s) of the index are not in {}: {}{}",
-            missing.len(),
-            data_dir.display(),
-            missing.iter().take(5).cloned().collect::<Vec<_>>().join(", "),
-            if missing.len() > 5 { ", …" } else { "" }
-        ));
-    }
-    let out = &req.out;
-    output::check_writable(out, "--out")?;
-    output::remove_partials(out);
-    let size = req.size.unwrap_or(InputSize::Fixed { width: spec.data.image_width, height: spec.data.image_height });
-    let mut settings = settings_json(req, &spec, size);
-    if req.merge_only {
-        // The records' precision, whatever this command asks for: a merge computes nothing.
-        let stored: Option<serde_json::Value> = std::fs::read_to_string(out.join(SETTINGS_JSON)).ok().and_then(|t| serde_json::from_str(&t).ok());
-        match stored.as_ref().and_then(|v| v.get("refiner_dtype")) {
-            Some(d) => settings["refiner_dtype"] = d.clone(),
-            None => {
-                settings.as_object_mut().map(|o| o.remove("refiner_dtype"));
-            }
-        }
-    }
-    check_settings(out, &settings)?;
-    let refine_file = match &spec.refiner {
-        Some((_, w)) => Some(crate::model::refiner_safetensors(w, &|m| progress.note(m))?),
-        None => None,
-    };
-    let methods: Vec<Method> = if refine_file.is_some() { Method::ALL.to_vec() } else { vec![Method::GSplat] };
-    let primary = methods[0];
-    let blended = spec.blend.is_some();
-    let nets = load_nets(req, &mut warnings)?;
-    for w in &warnings {
-        progress.note(&format!("warning: {w}"));
-    }
-    let n_warned = warnings.len();
-    for d in std::iter::once(GT_DIR).chain(methods.iter().map(|m| m.dir())).chain([SCENES_DIR]) {
-        mkdir(&out.join(d))?;
-    }
-    let pre = Preprocess { size, multiple: spec.encoder.image_multiple() as u32 };
-    let description = spec.description.clone();
-    let experiment = spec.data.experiment.clone();
-    let device = if req.merge_only { Device::Cpu } else { req.model.compute.open()? };
-    // `.torch` chunks come with no pose engine to state their units.
-    let scene_scale = crate::scale::resolve(req.scene_scale, None, spec.scene_scale);
-    let noise = match &req.noise {
-        Some(f) => {
-            let m = candle_core::safetensors::load(f, &Device::Cpu).map_err(|e| flag("--noise", format!("{}: {e}", f.display())))?;
-            if let Some(p) = plans.iter().find(|p| !m.contains_key(&p.key)) {
-                return Err(flag("--noise", format!("{} has no noise for scene `{}`: it needs one tensor per evaluated scene", f.display(), p.key)));
-            }
-            Some(m)
-        }
-        None => None,
-    };
-    let cx = Ctx { req, spec, pre, refine_file, device, methods: methods.clone(), nets, scene_scale, noise, progress };
-
-    // Resume: complete scenes are kept, scenes with images but incomplete scores are re-scored from disk.
-    let used = cx.nets.used();
-    let mut records: Vec<Option<SceneRecord>> = vec![None; plans.len()];
-    let (mut resumed, mut rescored, mut rendered) = (Vec::new(), Vec::new(), Vec::new());
-    let mut to_render: Vec<usize> = Vec::new();
-    for i in scene_order(&plans, req.shard) {
-        let plan = &plans[i];
-        match resume_state(out, plan, &methods, used) {
-            Resume::Done(rec) => {
-                resumed.push(plan.key.clone());
-                records[i] = Some(*rec);
-            }
-            Resume::Rescore => {
-                progress.note(&format!("scene {}: re-scoring its saved images", plan.key));
-                let path = scene_json(out, &plan.key);
-                let text = std::fs::read_to_string(&path).map_err(|e| werr(&path, e))?;
-                let mut rec: SceneRecord = serde_json::from_str(&text).map_err(|e| werr(&path, e))?;
-                progress.begin("scoring", 0);
-                rec.methods = score_scene(out, plan, &methods, &cx.nets)?;
-                progress.end();
-                rec.networks = used;
-                records[i] = Some(write_record(out, &rec)?);
-                rescored.push(plan.key.clone());
-            }
-            Resume::Render => to_render.push(i),
-        }
-    }
-    if !resumed.is_empty() {
-        progress.note(&format!("resuming: {} of {} scenes already complete in {}", resumed.len(), plans.len(), out.display()));
-    }
-    let mut failed: Vec<(String, String)> = Vec::new();
-    if req.merge_only {
-        // A recorded failure is a result; a scene without record or failure is not done yet.
-        to_render.retain(|&i| match read_failure(out, &plans[i].key) {
-            Some(msg) => {
-                failed.push((plans[i].key.clone(), msg));
-                false
-            }
-            None => true,
-        });
-    }
-    // A merge renders nothing: scenes without a record are reported, and no tables are written.
-    let incomplete: Vec<String> = if req.merge_only { to_render.drain(..).map(|i| plans[i].key.clone()).collect() } else { Vec::new() };
-    let total_render = to_render.len();
-    // Render: each scene under its lease (see `lease`), so that processes sharing --out render it once; scenes
-    // another live process holds are waited for, and taken over when their owner dies.
-    let leases = lease::Leases::new(&out.join(SCENES_DIR));
-    let started = std::time::SystemTime::now();
-    let mut queue: std::collections::VecDeque<usize> = to_render.into();
-    let mut waiting: Vec<usize> = Vec::new();
-    let mut told: BTreeSet<usize> = BTreeSet::new();
-    let mut cache: Option<(String, HashMap<String, ChunkScene>)> = None;
-    let mut done = 0;
-    loop {
-        let Some(i) = queue.pop_front() else {
-            if waiting.is_empty() {
-                break;
-            }
-            std::thread::sleep(std::time::Duration::from_millis(500));
-            for i in std::mem::take(&mut waiting) {
-                let key = &plans[i].key;
-                if let Resume::Done(rec) = resume_state(out, &plans[i], &methods, used) {
-                    resumed.push(key.clone());
-                    records[i] = Some(*rec);
-                } else if let Some(msg) = read_failure_since(out, key, started) {
-                    failed.push((key.clone(), msg));
-                } else {
-                    queue.push_back(i);
-                }
-            }
-            continue;
-        };
-        let plan = &plans[i];
-        if let lease::Claim::Held(owner) = leases.claim(&plan.key).map_err(|e| werr(&out.join(SCENES_DIR), e))? {
-            if told.insert(i) {
-                progress.note(&format!("scene {}: being rendered by {owner}; waiting for it (taken over if that process dies)", plan.key));
-            }
-            waiting.push(i);
-            continue;
-        }
-        // Finished by another process since it was looked at.
-        if let Resume::Done(rec) = resume_state(out, plan, &methods, used) {
-            leases.release(&plan.key);
-            resumed.push(plan.key.clone());
-            records[i] = Some(*rec);
-            continue;
-        }
-        done += 1;
-        progress.note(&format!(
-            "[{done}/{total_render}] scene {} ({} context, {} targets, {} scored)",
-            plan.key,
-            plan.context.len(),
-            plan.targets.len(),
-            plan.scored.len()
-        ));
-        let result = render_claimed(&cx, &data_dir, plan, &mut cache, &mut warnings);
-        let failure = failure_json(out, &plan.key);
-        match result {
-            Ok(Some(rec)) => {
-                let _ = std::fs::remove_file(&failure);
-                rendered.push(plan.key.clone());
-                records[i] = Some(rec);
-            }
-            Ok(None) => {
-                warnings.push(format!(
-                    "scene {} is listed in {} under {} but that chunk does not hold it",
-                    plan.key,
-                    data_dir.join("index.json").display(),
-                    plan.chunk
-                ));
-                missing.push(plan.key.clone());
-            }
-            Err(e) if is_data_error(&e) => {
-                let msg = e.to_string();
-                progress.note(&format!("warning: scene {} failed, the others go on: {msg}", plan.key));
-                let rec = json!({ "scene": plan.key, "error": msg, "host": mvsplat360_dataset::atomic::host_name(), "pid": std::process::id() });
-                let written = write_json(&failure, &rec);
-                leases.release(&plan.key);
-                written?;
-                failed.push((plan.key.clone(), msg));
-                continue;
-            }
-            Err(e) => return Err(e),
-        }
-        leases.release(&plan.key);
-    }
-    drop(leases);
-    if req.shard.is_some() || !incomplete.is_empty() {
-        // A rank (its scenes' records are on disk; the launcher or the last rank aggregates), or an incomplete merge.
-        let seconds = t_all.elapsed().as_secs_f64();
-        let images = records.iter().flatten().map(|r| r.scored.len()).sum();
-        return Ok(EvalSummary {
-            out: out.clone(),
-            selected,
-            null_entries,
-            rendered,
-            rescored,
-            resumed,
-            missing,
-            skipped_fov: Vec::new(),
-            images,
-            methods: Vec::new(),
-            warnings,
-            seconds,
-            incomplete,
-            failed,
-        });
-    }
-    // Aggregate.
-    let done_records: Vec<&SceneRecord> = records.iter().flatten().filter(|r| r.skipped.is_none()).collect();
-    // One table, one precision: eval.json keeps processes of another --dtype out; this catches edited folders.
-    let want = settings.get("refiner_dtype").and_then(|v| v.as_str()).unwrap_or("f32");
-    let mixed: Vec<String> = done_records
-        .iter()
-        .filter_map(|r| r.rendered_by.as_ref().filter(|b| b.refiner_dtype != want).map(|b| format!("{} ({})", r.scene, b.refiner_dtype)))
-        .collect();
-    if !mixed.is_empty() {
-        return Err(flag(
-            "--out",
-            format!(
-                "{}: these scenes were rendered in another precision than the folder's {want}: {}; render them again (remove their scenes/*.json)",
-                out.display(),
-                mixed.join(", ")
-            ),
-        ));
-    }
-    let skipped_fov: Vec<String> = records.iter().flatten().filter(|r| r.skipped.is_some()).map(|r| r.scene.clone()).collect();
-    let mut table = Vec::new();
-    for &m in &methods {
-        let imgs: Vec<&ImageScores> = done_records.iter().filter_map(|r| r.methods.get(m.key())).flatten().collect();
-        let mut sc = method_scores(m, &imgs);
-        if cx.nets.fid.is_some() {
-            sc.fid = set_fid(out, &done_records, m, &mut warnings)?;
-        }
-        table.push((m, sc));
-    }
-    let images = done_records.iter().map(|r| r.scored.len()).sum();
-    let mut per_scene_json = serde_json::Map::new();
-    let mut per_scene_primary = Vec::new();
-    for r in &done_records {
-        let mut o = serde_json::Map::new();
-        o.insert("images".into(), json!(r.scored.len()));
-        o.insert("gaussians".into(), json!(r.gaussians));
-        for &m in &methods {
-            let imgs: Vec<&ImageScores> = r.methods.get(m.key()).map(|v| v.iter().collect()).unwrap_or_default();
-            let sc = method_scores(m, &imgs);
-            if m == primary {
-                per_scene_primary.push((r.scene.clone(), sc.clone()));
-            }
-            o.insert(m.key().into(), json!({ "psnr": sc.psnr, "ssim": sc.ssim, "lpips": sc.lpips, "dists": sc.dists }));
-        }
-        per_scene_json.insert(r.scene.clone(), serde_json::Value::Object(o));
-    }
-    for w in &warnings[n_warned..] {
-        progress.note(&format!("warning: {w}"));
-    }
-    let seconds = t_all.elapsed().as_secs_f64();
-    let metrics = json!({
-        "format": SETTINGS_FORMAT,
-        "index": req.index.display().to_string(),
-        "data": data_dir.display().to_string(),
-        "model": description,
-        "experiment": experiment,
-        "settings": settings,
-        "primary": primary.key(),
-        "columns": ["psnr", "ssim", "lpips", "dists", "fid"],
-        "fid_variant": req.fid_variant.name(),
-        "scenes": {
-            "selected": selected,
-            "evaluated": done_records.len(),
-            "null_in_index": null_entries,
-            "missing_from_data": missing,
-            "skipped_fov": skipped_fov,
-            "failed": failed.iter().map(|(k, e)| json!({ "scene": k, "error": e })).collect::<Vec<_>>(),
-            "excluded": req.exclude,
-        },
-        "images": images,
-        "methods": table.iter().map(|(m, s)| (m.key().to_string(), json!(s))).collect::<serde_json::Map<_, _>>(),
-        "per_scene": per_scene_json,
-        "warnings": warnings,
-        "run": { "rendered": rendered.len(), "rescored": rescored.len(), "resumed": resumed.len(), "seconds": seconds },
-    });
-    write_json(&out.join(METRICS_JSON), &metrics)?;
-    let line = format!(
-        "Index `{}`, data `{}`, model {}: {} scene(s) evaluated ({} null in the index, {} missing from the data, {} skipped for field of view, {} failed), {} image(s) per method.",
-        req.index.display(),
-        data_dir.display(),
-        description,
-        done_records.len(),
-        null_entries,
-        missing.len(),
-        skipped_fov.len(),
-        failed.len(),
-        images
-    );
-    output::write_bytes(&out.join(METRICS_MD), markdown(&line, &table, &per_scene_primary, primary, blended).as_bytes())?;
-    Ok(EvalSummary {
-        out: out.clone(),
-        selected,
-        null_entries,
-        rendered,
-        rescored,
-        resumed,
-        missing,
-        skipped_fov,
-        images,
-        methods: table,
-        warnings,
-        seconds,
-        incomplete: Vec::new(),
-        failed,
     })
 }
 
