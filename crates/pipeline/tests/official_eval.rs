@@ -195,4 +195,24 @@ fn eval_reproduces_the_official_evaluation() {
             assert!(rel(got, want) <= 1e-4, "{dir} mean {m}: {got} vs official {want}");
         }
     }
+
+    // A merge renders nothing, so it converts nothing: a fresh cache stays empty.
+    let merge_cache = tmp.path().join("merge-cache");
+    std::env::set_var("MVSPLAT360_CACHE", &merge_cache);
+    let merged = eval::run(&EvalRequest { merge_only: true, ..req.clone() }, &Silent).unwrap();
+    assert_eq!(merged.resumed.len(), s.resumed.len() + s.rendered.len());
+    assert!(!merge_cache.join("converted").exists(), "eval --merge converted the refiner");
+
+    // Processes sharing a cache convert a checkpoint once: the others wait for it and take its file.
+    std::env::set_var("MVSPLAT360_CACHE", tmp.path().join("shared-cache"));
+    let w = mvsplat360_pipeline::model::RefinerWeights::Ckpt(fx.join("model.ckpt"));
+    let notes = std::sync::Mutex::new(Vec::<String>::new());
+    let paths: Vec<PathBuf> = std::thread::scope(|sc| {
+        let hs: Vec<_> =
+            (0..3).map(|_| sc.spawn(|| mvsplat360_pipeline::model::refiner_safetensors(&w, &|m| notes.lock().unwrap().push(m.to_string())).unwrap())).collect();
+        hs.into_iter().map(|h| h.join().unwrap()).collect()
+    });
+    let notes = notes.into_inner().unwrap();
+    assert_eq!(notes.iter().filter(|n| n.starts_with("converting")).count(), 1, "{notes:?}");
+    assert!(paths.iter().all(|p| p == &paths[0] && p.is_file()), "{paths:?}");
 }
