@@ -183,8 +183,14 @@ impl Hub {
         let page = self.page(&file.repo);
         let message = r.header("x-error-message").unwrap_or("");
         let code = error_code(r);
-        let token_from =
-            if std::env::var_os("HF_TOKEN").is_some() { "HF_TOKEN".to_string() } else { format!("the token file {}", self.config.token_path.display()) };
+        let token = self.config.token.as_deref();
+        let token_from = if token.is_some() && std::env::var("HF_TOKEN").ok().as_deref().map(str::trim) == token {
+            "HF_TOKEN".to_string()
+        } else if token.is_some() && std::fs::read_to_string(&self.config.token_path).ok().as_deref().map(str::trim) == token {
+            format!("the token file {}", self.config.token_path.display())
+        } else {
+            "the token given to this program".to_string()
+        };
         let set_token =
             format!("then set HF_TOKEN to a token of that account (https://huggingface.co/settings/tokens), or put it in {}", self.config.token_path.display());
         match (r.status, code) {
@@ -238,11 +244,19 @@ impl Hub {
 
     /// The metadata of a successful (2xx or cross-origin redirect) answer to the HEAD request.
     fn meta(&self, r: &Resp, file: &HubFile) -> Result<Meta> {
-        let missing = |h: &str| Error::Http(format!("the Hub's answer for {} has no {h} header ({})", file.describe(), r.url));
+        let missing = |h: &str| {
+            Error::Http(format!(
+                "the answer for {} has no {h} header ({}): is {} a Hugging Face Hub (HF_ENDPOINT)?",
+                file.describe(),
+                r.url,
+                self.http.endpoint()
+            ))
+        };
         let commit = r.header("x-repo-commit").map(str::trim).filter(|c| !c.is_empty()).ok_or_else(|| missing("X-Repo-Commit"))?.to_string();
         let linked = r.header("x-linked-etag").map(normalize_etag);
         let etag = linked.clone().or_else(|| r.header("etag").map(normalize_etag)).filter(|e| !e.is_empty()).ok_or_else(|| missing("ETag"))?;
-        if etag.contains(['/', '\\']) || etag.starts_with('.') || !is_commit_hash(&commit) && commit.contains(['/', '\\', '.']) {
+        let unsafe_name = |n: &str| n.contains(['/', '\\', '\0']) || n.starts_with('.');
+        if unsafe_name(&etag) || unsafe_name(&commit) {
             return Err(Error::Http(format!("the Hub's answer for {} has an unusable ETag {etag:?} or commit {commit:?}", file.describe())));
         }
         let size =
