@@ -44,6 +44,17 @@ fn is_executable(p: &Path) -> bool {
     std::fs::metadata(p).map(|m| m.is_file() && m.permissions().mode() & 0o111 != 0).unwrap_or(false)
 }
 
+/// `--colmap-gpu`: `auto` asks for COLMAP's GPU paths (SIFT extraction and matching) when it was built with
+/// CUDA; `off` keeps a CUDA build on the CPU (`use_gpu 0`; its bundle adjustment runs on the CPU either way:
+/// 3.x has no GPU option for it, later versions default it off).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ColmapGpu {
+    #[default]
+    Auto,
+    Off,
+}
+
 /// What `colmap -h` says of the build.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct ColmapInfo {
@@ -92,14 +103,19 @@ impl ColmapInfo {
         version_tuple(&self.version) >= (3, 13, 0)
     }
 
-    pub fn extraction_gpu_flag(&self) -> [String; 2] {
-        let name = if self.renamed_feature_options() { "FeatureExtraction" } else { "SiftExtraction" };
-        [format!("--{name}.use_gpu"), if self.cuda { "1" } else { "0" }.into()]
+    /// Whether the GPU paths are asked for: only from a CUDA build, and not under `--colmap-gpu off`.
+    pub fn uses_gpu(&self, gpu: ColmapGpu) -> bool {
+        self.cuda && gpu == ColmapGpu::Auto
     }
 
-    pub fn matching_gpu_flag(&self) -> [String; 2] {
+    pub fn extraction_gpu_flag(&self, gpu: ColmapGpu) -> [String; 2] {
+        let name = if self.renamed_feature_options() { "FeatureExtraction" } else { "SiftExtraction" };
+        [format!("--{name}.use_gpu"), if self.uses_gpu(gpu) { "1" } else { "0" }.into()]
+    }
+
+    pub fn matching_gpu_flag(&self, gpu: ColmapGpu) -> [String; 2] {
         let name = if self.renamed_feature_options() { "FeatureMatching" } else { "SiftMatching" };
-        [format!("--{name}.use_gpu"), if self.cuda { "1" } else { "0" }.into()]
+        [format!("--{name}.use_gpu"), if self.uses_gpu(gpu) { "1" } else { "0" }.into()]
     }
 }
 
@@ -124,20 +140,37 @@ pub struct CommandRecord {
     pub exit_code: Option<i32>,
 }
 
-/// Process groups of the children now running; [`stop_children`] ends them.
-static RUNNING: Mutex<Vec<i32>> = Mutex::new(Vec::new());
-static STOPPED: AtomicBool = AtomicBool::new(false);
-
-pub(crate) fn register_child(pid: i32) {
-    if let Ok(mut r) = RUNNING.lock() {
-        r.push(pid);
-    }
+/// The children now running (their process groups) and whether [`stop_children`] was called, under one lock:
+/// a spawn registers its child before the lock is released, and the stop kills under it, so no child is
+/// registered after the stop looked, and none starts after it.
+struct Children {
+    groups: Vec<i32>,
+    stopped: bool,
 }
 
-pub(crate) fn unregister_child(pid: i32) {
-    if let Ok(mut r) = RUNNING.lock() {
-        r.retain(|&p| p != pid);
+static CHILDREN: Mutex<Children> = Mutex::new(Children { groups: Vec::new(), stopped: false });
+static STOPPED: AtomicBool = AtomicBool::new(false);
+
+/// The lock, even if a thread panicked while holding it (the list stays valid: every change is one push or
+/// retain).
+fn children() -> std::sync::MutexGuard<'static, Children> {
+    CHILDREN.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// Waits for `child` and unregisters it before reaping it: until reaped its pid (the group id) cannot be
+/// reused, so the stop never signals another program's group.
+pub(crate) fn wait_child(child: &mut std::process::Child) -> std::io::Result<std::process::ExitStatus> {
+    let pid = child.id();
+    loop {
+        // SAFETY: waitid(2) writes only into `info`, a zeroed siginfo_t we own.
+        let mut info: libc::siginfo_t = unsafe { std::mem::zeroed() };
+        let r = unsafe { libc::waitid(libc::P_PID, pid as libc::id_t, &mut info, libc::WEXITED | libc::WNOWAIT) };
+        if r == 0 || std::io::Error::last_os_error().raw_os_error() != Some(libc::EINTR) {
+            break;
+        }
     }
+    children().groups.retain(|&p| p != pid as i32);
+    child.wait()
 }
 
 /// Whether [`stop_children`] was called: a child's failure is then the interrupt, not the input's fault.
@@ -145,24 +178,29 @@ pub fn was_stopped() -> bool {
     STOPPED.load(Ordering::SeqCst)
 }
 
-/// Ends every child process group started by this crate (called from a Ctrl-C handler).
+/// Ends every child process group started by this crate (called from a Ctrl-C handler); later spawns are
+/// refused.
 pub fn stop_children() {
+    let mut c = children();
+    c.stopped = true;
     STOPPED.store(true, Ordering::SeqCst);
-    if let Ok(pids) = RUNNING.lock() {
-        for &pid in pids.iter() {
-            // SAFETY: kill(2) on a process group id we created; no memory is touched.
-            unsafe {
-                libc::kill(-pid, libc::SIGTERM);
-            }
+    for &pid in c.groups.iter() {
+        // SAFETY: kill(2) on a process group id we created; no memory is touched.
+        unsafe {
+            libc::kill(-pid, libc::SIGTERM);
         }
     }
 }
 
 /// Starts `argv` (argv[0] = the program) with piped stdout and stderr in its own process group, registered for
-/// [`stop_children`]; the caller unregisters it once waited for.
+/// [`stop_children`]; the caller waits for it with [`wait_child`]. Refused once the stop was called.
 pub(crate) fn spawn_grouped(argv: &[String]) -> Result<std::process::Child, PoseError> {
     use std::os::unix::process::CommandExt;
     let program = argv.first().cloned().unwrap_or_default();
+    let mut c = children();
+    if c.stopped {
+        return Err(PoseError::Engine { program, msg: "not started: pose was interrupted (Ctrl-C)".into() });
+    }
     let child = Command::new(&program)
         .args(argv.get(1..).unwrap_or_default())
         .stdin(Stdio::null())
@@ -171,7 +209,7 @@ pub(crate) fn spawn_grouped(argv: &[String]) -> Result<std::process::Child, Pose
         .process_group(0)
         .spawn()
         .map_err(|e| PoseError::Engine { program, msg: format!("cannot start it: {e}") })?;
-    register_child(child.id() as i32);
+    c.groups.push(child.id() as i32);
     Ok(child)
 }
 
@@ -185,7 +223,6 @@ pub fn run_logged(stage: &str, argv: &[String], log_file: &Path, on_line: &mut d
     let engine_err = |msg: String| PoseError::Engine { program: program.clone(), msg };
     let mut log = std::fs::File::create(log_file).map_err(|e| PoseError::io(log_file, e))?;
     let mut child = spawn_grouped(argv)?;
-    let pid = child.id() as i32;
     let (tx, rx) = std::sync::mpsc::channel::<String>();
     let pump = |stream: Box<dyn Read + Send>, tx: std::sync::mpsc::Sender<String>| {
         std::thread::spawn(move || {
@@ -218,9 +255,7 @@ pub fn run_logged(stage: &str, argv: &[String], log_file: &Path, on_line: &mut d
     for h in [h1, h2].into_iter().flatten() {
         let _ = h.join();
     }
-    let status = child.wait().map_err(|e| engine_err(format!("lost the child process: {e}")));
-    unregister_child(pid);
-    let status = status?;
+    let status = wait_child(&mut child).map_err(|e| engine_err(format!("lost the child process: {e}")))?;
     Ok(CommandRecord { stage: stage.into(), argv: argv.to_vec(), seconds: t0.elapsed().as_secs_f64(), exit_code: status.code() })
 }
 
@@ -241,17 +276,20 @@ mod tests {
     fn version_and_flags_from_recorded_help() {
         let i = info(HELP_3_8);
         assert_eq!((i.version.as_str(), i.cuda), ("3.8", false));
-        assert_eq!(i.extraction_gpu_flag(), ["--SiftExtraction.use_gpu".to_string(), "0".into()]);
-        assert_eq!(i.matching_gpu_flag(), ["--SiftMatching.use_gpu".to_string(), "0".into()]);
+        assert_eq!(i.extraction_gpu_flag(ColmapGpu::Auto), ["--SiftExtraction.use_gpu".to_string(), "0".into()]);
+        assert_eq!(i.matching_gpu_flag(ColmapGpu::Auto), ["--SiftMatching.use_gpu".to_string(), "0".into()]);
 
         let i = info(HELP_3_13);
         assert_eq!((i.version.as_str(), i.cuda), ("3.13.0", true));
-        assert_eq!(i.extraction_gpu_flag(), ["--FeatureExtraction.use_gpu".to_string(), "1".into()]);
-        assert_eq!(i.matching_gpu_flag(), ["--FeatureMatching.use_gpu".to_string(), "1".into()]);
+        assert_eq!(i.extraction_gpu_flag(ColmapGpu::Auto), ["--FeatureExtraction.use_gpu".to_string(), "1".into()]);
+        assert_eq!(i.matching_gpu_flag(ColmapGpu::Auto), ["--FeatureMatching.use_gpu".to_string(), "1".into()]);
+        // `--colmap-gpu off` keeps a CUDA build on the CPU.
+        assert_eq!(i.extraction_gpu_flag(ColmapGpu::Off), ["--FeatureExtraction.use_gpu".to_string(), "0".into()]);
+        assert_eq!(i.matching_gpu_flag(ColmapGpu::Off), ["--FeatureMatching.use_gpu".to_string(), "0".into()]);
 
         let i = info(HELP_4_1);
         assert_eq!((i.version.as_str(), i.cuda), ("4.1.0", false));
-        assert_eq!(i.extraction_gpu_flag()[0], "--FeatureExtraction.use_gpu");
+        assert_eq!(i.extraction_gpu_flag(ColmapGpu::Auto)[0], "--FeatureExtraction.use_gpu");
     }
 
     #[test]

@@ -20,6 +20,9 @@ pub enum PoseError {
     /// prediction that cannot be used.
     #[error("{0}")]
     Vggt(String),
+    /// Another run holds the output folder (the message names it, the lock file and the process).
+    #[error("{0}")]
+    Busy(String),
     #[error("{stage} was stopped (Ctrl-C); the finished stages are kept in {work} and a rerun continues from them")]
     Interrupted { stage: String, work: PathBuf },
 }

@@ -1,18 +1,20 @@
 //! The COLMAP runs, as nerfstudio's `ns-process-data` drives them: feature extraction with one shared camera
-//! (per image size), a sequential (video; its first and last frames also matched, for loop closure) or exhaustive
+//! (per device: image size and EXIF make, model and focal length), a sequential (video; its first and last frames also matched, for loop closure) or exhaustive
 //! (photos) matcher, the incremental mapper, then `image_undistorter` to a PINHOLE model. Each stage feeds a
 //! progress bar from COLMAP's own log lines.
 
 use std::path::{Path, PathBuf};
 
 use crate::colmap_log::{self, MapperLog};
-use crate::engine::{run_logged, ColmapInfo, CommandRecord};
+use crate::engine::{run_logged, ColmapGpu, ColmapInfo, CommandRecord};
 use crate::error::PoseError;
 use crate::Progress;
 
 /// Camera models `--camera-model` takes (perspective models that `image_undistorter` turns into PINHOLE).
 pub const CAMERA_MODELS: [&str; 6] = ["SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV", "SIMPLE_PINHOLE", "PINHOLE"];
 
+/// `--matcher`; without it a video, or more than [`crate::EXHAUSTIVE_MAX`] photos, is matched in sequence and
+/// fewer photos exhaustively.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Matcher {
@@ -21,7 +23,7 @@ pub enum Matcher {
 }
 
 impl Matcher {
-    fn command(self) -> &'static str {
+    pub(crate) fn command(self) -> &'static str {
         match self {
             Matcher::Sequential => "sequential_matcher",
             Matcher::Exhaustive => "exhaustive_matcher",
@@ -80,22 +82,24 @@ pub struct Work<'a> {
     pub images: PathBuf,
     pub database: PathBuf,
     pub logs: PathBuf,
+    pub gpu: ColmapGpu,
 }
 
 impl Work<'_> {
     pub fn extract(&self, camera_model: &str, per_folder: bool, n: u64, progress: &dyn Progress) -> Result<CommandRecord, PoseError> {
         let mut args = vec!["--database_path".into(), s(&self.database), "--image_path".into(), s(&self.images)];
         args.extend(["--ImageReader.camera_model".into(), camera_model.into()]);
-        // One camera for all frames of one device: intrinsics are shared, which keeps the focal from drifting.
+        // One camera for all frames of one device (a folder each when there are several, see
+        // `photos::camera_groups`): intrinsics are shared, which keeps the focal from drifting.
         let single = if per_folder { "--ImageReader.single_camera_per_folder" } else { "--ImageReader.single_camera" };
         args.extend([single.into(), "1".into()]);
-        args.extend(self.colmap.extraction_gpu_flag());
+        args.extend(self.colmap.extraction_gpu_flag(self.gpu));
         colmap_stage(self.colmap, "feature_extractor", args, &self.logs, n, progress, &mut |l| colmap_log::extraction_progress(l).map(|p| p.0), false)
     }
 
     pub fn matches(&self, matcher: Matcher, n: u64, progress: &dyn Progress) -> Result<CommandRecord, PoseError> {
         let mut args = vec!["--database_path".into(), s(&self.database)];
-        args.extend(self.colmap.matching_gpu_flag());
+        args.extend(self.colmap.matching_gpu_flag(self.gpu));
         let mut total = n;
         colmap_stage(
             self.colmap,
@@ -127,7 +131,7 @@ impl Work<'_> {
         let text: String = pairs.iter().map(|(a, b)| format!("{a} {b}\n")).collect();
         std::fs::write(&list, text).map_err(|e| PoseError::io(&list, e))?;
         let mut args = vec!["--database_path".into(), s(&self.database), "--match_list_path".into(), s(&list), "--match_type".into(), "pairs".into()];
-        args.extend(self.colmap.matching_gpu_flag());
+        args.extend(self.colmap.matching_gpu_flag(self.gpu));
         let rec = colmap_stage(self.colmap, "matches_importer", args, &self.logs, 0, progress, &mut |l| colmap_log::matching_progress(l).map(|p| p.0), false)?;
         Ok(Some(rec))
     }

@@ -404,6 +404,7 @@ pub fn pose_vggt(dir: &Path, out: &Path, opts: &VggtPoseOptions, progress: &dyn 
     let weights_sha = weights_sha?;
     let fp = fingerprint_of(&photos, &src, &weights_sha, opts)?;
     stages.push(("fingerprint".into(), t.elapsed().as_secs_f64()));
+    let _lock = crate::lock_out(out)?;
     if out.exists() {
         return match read_report(out) {
             Some(r) if r.fingerprint == fp => {

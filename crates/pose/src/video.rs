@@ -271,8 +271,7 @@ pub fn extract(ffmpeg: &Path, input: &Path, info: &VideoInfo, n: u64, max_size: 
     if result.is_err() {
         let _ = child.kill();
     }
-    let status = child.wait();
-    crate::engine::unregister_child(child.id() as i32);
+    let status = crate::engine::wait_child(&mut child);
     let err_text = err_thread.join().unwrap_or_default();
     result?;
     flush(&mut best, &mut kept)?;

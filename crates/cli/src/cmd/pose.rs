@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use mvsplat360_pose::vggt::{VggtPoseOptions, VggtPoseReport, AUTO_MAX_PHOTOS, MIN_PHOTOS, WEIGHTS_HELP};
-use mvsplat360_pose::{InputKind, PoseError, PoseOptions, PoseReport};
+use mvsplat360_pose::{ColmapGpu, InputKind, Matcher, PoseError, PoseOptions, PoseReport};
 
 /// Which engine poses the input.
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
@@ -17,6 +17,28 @@ pub enum EngineChoice {
     Vggt,
     /// COLMAP only.
     Colmap,
+}
+
+/// COLMAP's feature matcher.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum MatcherChoice {
+    /// Sequential for a video or more than 100 photos, exhaustive for fewer.
+    Auto,
+    /// Every pair of images (about n²/2 pairs: 10 minutes for 100 photos on 2 CPU cores); for photos in no order.
+    Exhaustive,
+    /// Each image with the next ones in name (capture) order, plus the first and last frames for loop closure;
+    /// for a video or photos taken walking along.
+    Sequential,
+}
+
+/// Whether COLMAP may use the GPU.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum GpuChoice {
+    /// The GPU for SIFT extraction and matching when COLMAP was built with CUDA (`colmap -h` says so).
+    Auto,
+    /// The CPU only, even for a CUDA build (`--SiftExtraction.use_gpu 0`, `--SiftMatching.use_gpu 0`), e.g. on a
+    /// machine whose GPU is busy or has no driver.
+    Off,
 }
 
 /// COLMAP, ffmpeg and VGGT settings shared by `pose` and by `render` on a video or a photo folder.
@@ -42,7 +64,8 @@ pub struct PoseFlags {
     /// keeps.)
     #[arg(long, default_value_t = 1000)]
     pub max_size: u32,
-    /// COLMAP camera model, one camera shared by all images of one size: SIMPLE_RADIAL (default; steady on
+    /// COLMAP camera model, one camera shared by all images of one device (size and EXIF make, model, focal
+    /// length): SIMPLE_RADIAL (default; steady on
     /// weak data), RADIAL, OPENCV, FULL_OPENCV, SIMPLE_PINHOLE or PINHOLE. The scene is undistorted to PINHOLE
     /// either way.
     #[arg(long, default_value = "SIMPLE_RADIAL")]
@@ -53,6 +76,14 @@ pub struct PoseFlags {
     /// The `ffmpeg` program, with `ffprobe` beside it (default: the ones on PATH; Debian: `apt-get install ffmpeg`).
     #[arg(long)]
     pub ffmpeg: Option<PathBuf>,
+    /// COLMAP's matcher: auto (default: sequential for a video or more than 100 photos, exhaustive for fewer),
+    /// exhaustive (every pair) or sequential (neighbours in name order, plus loop closure).
+    #[arg(long, value_enum, default_value_t = MatcherChoice::Auto)]
+    pub matcher: MatcherChoice,
+    /// COLMAP on the GPU: auto (default: for SIFT extraction and matching when COLMAP was built with CUDA) or
+    /// off (the CPU only, even for a CUDA build).
+    #[arg(long, value_enum, default_value_t = GpuChoice::Auto)]
+    pub colmap_gpu: GpuChoice,
 }
 
 impl PoseFlags {
@@ -64,6 +95,15 @@ impl PoseFlags {
             max_size: self.max_size,
             camera_model: self.camera_model.clone(),
             min_views,
+            matcher: match self.matcher {
+                MatcherChoice::Auto => None,
+                MatcherChoice::Exhaustive => Some(Matcher::Exhaustive),
+                MatcherChoice::Sequential => Some(Matcher::Sequential),
+            },
+            colmap_gpu: match self.colmap_gpu {
+                GpuChoice::Auto => ColmapGpu::Auto,
+                GpuChoice::Off => ColmapGpu::Off,
+            },
         }
     }
 
@@ -81,7 +121,9 @@ pub struct Args {
     pub input: PathBuf,
     /// The scene folder to create: images/ (undistorted by COLMAP; as decoded by VGGT), sparse/0 (a PINHOLE
     /// COLMAP model), pose.json (the report), logs/ (COLMAP's logs). It must not exist, unless it was posed from
-    /// this same input.
+    /// this same input. One run at a time per folder: a second run into it is refused at once, naming the
+    /// process posing it (the lock file `.NAME.pose.lock` beside it); rerun when that one is done to reuse its
+    /// scene.
     #[arg(long)]
     pub out: PathBuf,
     #[command(flatten)]
