@@ -20,7 +20,8 @@ pub enum PoseError {
     /// prediction that cannot be used.
     #[error("{0}")]
     Vggt(String),
-    /// Another run holds the output folder (the message names it, the lock file and the process).
+    /// The output folder's lock was not taken: another run holds it (the message names the lock file and the
+    /// process), or the file system refused it.
     #[error("{0}")]
     Busy(String),
     #[error("{stage} was stopped (Ctrl-C); the finished stages are kept in {work} and a rerun continues from them")]

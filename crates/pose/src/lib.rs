@@ -235,7 +235,7 @@ pub fn lock_out(out: &Path) -> Result<DirLock, PoseError> {
     if let Some(parent) = lock.parent().filter(|p| !p.as_os_str().is_empty()) {
         std::fs::create_dir_all(parent).map_err(|e| PoseError::io(parent, e))?;
     }
-    DirLock::acquire(&lock, "pose run", "choose another --out").map_err(|m| PoseError::Busy(format!("{} is in use: {m}", out.display())))
+    DirLock::acquire(&lock, "pose run", "choose another --out").map_err(|m| PoseError::Busy(format!("{}: {m}", out.display())))
 }
 
 struct Engines {

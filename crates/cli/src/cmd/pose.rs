@@ -76,12 +76,10 @@ pub struct PoseFlags {
     /// The `ffmpeg` program, with `ffprobe` beside it (default: the ones on PATH; Debian: `apt-get install ffmpeg`).
     #[arg(long)]
     pub ffmpeg: Option<PathBuf>,
-    /// COLMAP's matcher: auto (default: sequential for a video or more than 100 photos, exhaustive for fewer),
-    /// exhaustive (every pair) or sequential (neighbours in name order, plus loop closure).
+    /// COLMAP's feature matcher (the scene's fingerprint includes a chosen one).
     #[arg(long, value_enum, default_value_t = MatcherChoice::Auto)]
     pub matcher: MatcherChoice,
-    /// COLMAP on the GPU: auto (default: for SIFT extraction and matching when COLMAP was built with CUDA) or
-    /// off (the CPU only, even for a CUDA build).
+    /// Whether COLMAP may use the GPU (bundle adjustment runs on the CPU either way).
     #[arg(long, value_enum, default_value_t = GpuChoice::Auto)]
     pub colmap_gpu: GpuChoice,
 }
