@@ -36,7 +36,21 @@ use std::path::{Path, PathBuf};
 pub const DEFAULT_ENDPOINT: &str = "https://huggingface.co";
 
 /// What a download reports while it runs. Every method has an empty default; implementations use interior
-/// mutability (an `indicatif::ProgressBar` fits as is).
+/// mutability (an `indicatif::ProgressBar` fits as is):
+///
+/// ```ignore
+/// struct Bar(indicatif::ProgressBar);
+/// impl mvsplat360_hub::Progress for Bar {
+///     fn note(&self, m: &str) { self.0.println(m) }
+///     fn start(&self, file: &str, total: Option<u64>, from: u64) {
+///         self.0.set_length(total.unwrap_or(0));
+///         self.0.set_position(from);
+///         self.0.set_message(file.to_string());
+///     }
+///     fn advance(&self, n: u64) { self.0.inc(n) }
+///     fn finish(&self, _file: &str) { self.0.finish() }
+/// }
+/// ```
 pub trait Progress: Sync {
     /// A remark worth showing: waiting for another process's download, a cached copy used because the Hub is
     /// unreachable, a file without a checksum.

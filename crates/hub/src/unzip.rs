@@ -28,7 +28,9 @@ pub fn unpack_zip(zip: &Path, cache_root: &Path) -> Result<PathBuf> {
     unpack_zip_with(zip, cache_root, UnpackLimits::default())
 }
 
-/// Unpacks `zip` into `cache_root/<sha256 of the zip>/` unless that folder exists already, and returns it.
+/// Unpacks `zip` into `cache_root/<sha256 of the zip>/` unless that folder exists already, and returns it. The
+/// project's data go under its own cache (`$MVSPLAT360_CACHE`, `mvsplat360_pipeline::model::cache_dir()`), e.g.
+/// `cache_dir().join("data")`; a concurrent unpacker of the same zip is harmless (the first rename wins).
 pub fn unpack_zip_with(zip: &Path, cache_root: &Path, limits: UnpackLimits) -> Result<PathBuf> {
     let mut f = std::fs::File::open(zip).map_err(|e| io("cannot open", zip, e))?;
     let mut h = sha2::Sha256::new();

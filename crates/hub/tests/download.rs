@@ -105,6 +105,21 @@ fn a_cut_transfer_is_an_interruption_then_resumed_where_it_stopped() {
 }
 
 #[test]
+fn a_server_that_ignores_range_restarts_the_file() {
+    let s = StandIn::start();
+    let big = bytes(90_000, 13);
+    s.add(REPO, &[("model.pt", &big, true)]);
+    let tmp = tempfile::tempdir().unwrap();
+    let hub = s.hub(tmp.path(), None, false);
+    s.set(|st| st.cut_next_body_after = Some(30_000));
+    assert!(matches!(hub.fetch(&file("model.pt"), &Quiet), Err(Error::Interrupted(_))));
+    s.set(|st| st.ignore_range = true);
+    assert_eq!(std::fs::read(hub.fetch(&file("model.pt"), &Quiet).unwrap()).unwrap(), big);
+    assert!(s.gets().last().unwrap().range.is_some());
+    assert!(no_partials(tmp.path()));
+}
+
+#[test]
 fn a_partial_download_left_by_python_is_resumed() {
     let s = StandIn::start();
     let big = bytes(120_000, 4);

@@ -66,6 +66,8 @@ pub struct State {
     pub corrupt: bool,
     /// A body of this path is held after half of it until this many HEAD requests for it arrived.
     pub hold: Option<(String, usize)>,
+    /// `Range` is ignored: the whole body with 200, as some proxies do.
+    pub ignore_range: bool,
 }
 
 pub struct StandIn {
@@ -241,7 +243,7 @@ fn serve(s: TcpStream, is_cdn: bool, state: &Mutex<State>, cdn: &str) -> std::io
 /// A file's body, `Range: bytes=N-` honoured, faults applied.
 fn body(w: &mut TcpStream, state: &Mutex<State>, req: &Req, name: &str, content: &[u8], extra: &[(&str, &str)], head: bool) -> std::io::Result<()> {
     let mut content = content.to_vec();
-    let (cut, hold) = {
+    let (cut, hold, ignore_range) = {
         let mut st = state.lock().unwrap();
         if st.corrupt && !content.is_empty() {
             let mid = content.len() / 2;
@@ -249,9 +251,15 @@ fn body(w: &mut TcpStream, state: &Mutex<State>, req: &Req, name: &str, content:
         }
         let cut = if head { None } else { st.cut_next_body_after.take() };
         let hold = if head { None } else { st.hold.clone().filter(|(p, _)| name == p) };
-        (cut, hold)
+        (cut, hold, st.ignore_range)
     };
-    let start = req.range.as_deref().and_then(|r| r.strip_prefix("bytes=")).and_then(|r| r.strip_suffix('-')).and_then(|s| s.parse::<usize>().ok());
+    let start = req
+        .range
+        .as_deref()
+        .filter(|_| !ignore_range)
+        .and_then(|r| r.strip_prefix("bytes="))
+        .and_then(|r| r.strip_suffix('-'))
+        .and_then(|s| s.parse::<usize>().ok());
     let mut headers: Vec<(String, String)> = extra.iter().map(|(k, v)| (k.to_string(), v.to_string())).collect();
     let (status, slice) = match start {
         Some(s) if s >= content.len() => return respond(w, 416, &[], b"", head),
