@@ -38,7 +38,7 @@ pub const DEFAULT_ENDPOINT: &str = "https://huggingface.co";
 /// What a download reports while it runs. Every method has an empty default; implementations use interior
 /// mutability (an `indicatif::ProgressBar` fits as is):
 ///
-/// ```ignore
+/// ```text
 /// struct Bar(indicatif::ProgressBar);
 /// impl mvsplat360_hub::Progress for Bar {
 ///     fn note(&self, m: &str) { self.0.println(m) }
