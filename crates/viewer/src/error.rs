@@ -12,6 +12,8 @@ pub enum ViewerError {
     BadFile { path: PathBuf, msg: String },
     #[error("{path}: {source}", path = .path.display())]
     Io { path: PathBuf, source: std::io::Error },
+    #[error("port {port} on {host} is already in use (by another program, or another mvsplat360 server): pass --port with a free port, or --port 0 for any free one")]
+    PortInUse { host: String, port: u16 },
     #[error("cannot listen on {addr}: {msg} (try another --port, or --port 0 for any free one)")]
     Bind { addr: String, msg: String },
     #[error("{path}: {msg}", path = .path.display())]
