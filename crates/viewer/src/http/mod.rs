@@ -355,8 +355,33 @@ fn discard_body(s: &mut TcpStream, buf: &mut Vec<u8>, n: u64, lim: &Limits) -> b
     true
 }
 
+/// Bound how long sent data may stay unacknowledged before the kernel gives the connection up (Linux's
+/// `TCP_USER_TIMEOUT`): a client whose machine vanished (no FIN, no reset: a closed laptop, a dropped network)
+/// then fails the next write of an event stream's heartbeat within the write limit, although its socket buffer
+/// never fills. Elsewhere such a client is noticed when the buffer fills or the system's retransmissions end.
+fn bound_unacked(s: &TcpStream, limit: Duration) {
+    #[cfg(target_os = "linux")]
+    {
+        use std::os::fd::AsRawFd;
+        let ms = limit.as_millis().clamp(1, u32::MAX as u128) as libc::c_uint;
+        // SAFETY: a valid socket descriptor and a pointer to a c_uint of the size given.
+        unsafe {
+            libc::setsockopt(
+                s.as_raw_fd(),
+                libc::IPPROTO_TCP,
+                libc::TCP_USER_TIMEOUT,
+                (&ms as *const libc::c_uint).cast(),
+                std::mem::size_of::<libc::c_uint>() as libc::socklen_t,
+            );
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    let _ = (s, limit);
+}
+
 fn connection<H: Handler>(mut s: TcpStream, sh: &Shared<H>) {
     let _ = s.set_nodelay(true);
+    bound_unacked(&s, sh.limits.write);
     if s.set_write_timeout(Some(sh.limits.write)).is_err() {
         return;
     }
@@ -405,5 +430,24 @@ fn connection<H: Handler>(mut s: TcpStream, sh: &Shared<H>) {
         if !discard_body(&mut s, &mut buf, drainable.unwrap_or(0), &sh.limits) {
             return;
         }
+    }
+}
+
+#[cfg(all(test, target_os = "linux"))]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn unacknowledged_data_is_bounded_by_the_write_limit() {
+        let l = TcpListener::bind("127.0.0.1:0").unwrap();
+        let _c = TcpStream::connect(l.local_addr().unwrap()).unwrap();
+        let (s, _) = l.accept().unwrap();
+        bound_unacked(&s, Duration::from_millis(1500));
+        let mut ms: libc::c_uint = 0;
+        let mut n = std::mem::size_of::<libc::c_uint>() as libc::socklen_t;
+        use std::os::fd::AsRawFd;
+        // SAFETY: a valid socket and a buffer of the size given.
+        let rc = unsafe { libc::getsockopt(s.as_raw_fd(), libc::IPPROTO_TCP, libc::TCP_USER_TIMEOUT, (&mut ms as *mut libc::c_uint).cast(), &mut n) };
+        assert_eq!((rc, ms), (0, 1500));
     }
 }
