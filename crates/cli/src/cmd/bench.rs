@@ -169,8 +169,9 @@ enum What {
     /// scene's context views: seconds per fit and per step (median after --warmup untimed fits) and peak memory.
     /// The encoder runs once, untimed. Defaults: the shipped model on the bundled scene, as `demo` runs it.
     Fit {
-        /// Model folder (default: the shipped model, assets/models/default).
-        #[arg(long)]
+        /// Model folder (default: the shipped model, assets/models/default), a path or a name (`default`,
+        /// `hf:OWNER/REPO[@REV]`; an existing path wins).
+        #[arg(long, value_name = "DIR|NAME")]
         model: Option<std::path::PathBuf>,
         /// Scene folder (default: the bundled scene, assets/woodbox).
         #[arg(long)]
@@ -291,7 +292,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         What::Train { config, runs, warmup, device, threads } => mvsplat360_train::bench::run_train_bench(&config, runs, warmup, threads.count(), device)?,
         What::Fit { model, scene, views, steps, runs, warmup, device, threads } => {
             let model = match model {
-                Some(m) => m,
+                Some(m) => super::names::resolve(&m, "--model", super::names::Default::ModelFolder, super::names::Freshness::Ask, false)?,
                 None => mvsplat360_pipeline::model::default_model_dir()
                     .ok_or_else(|| anyhow::anyhow!("bench fit: the shipped model assets/models/default is missing; pass --model DIR"))?,
             };

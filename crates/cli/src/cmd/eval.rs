@@ -12,18 +12,23 @@ use mvsplat360_pipeline::compute::DeviceSpec;
 use mvsplat360_pipeline::eval::EvalRequest;
 use mvsplat360_pipeline::launch::{LaunchError, Launcher, Place};
 
+use super::names::{self, Freshness};
 use super::views::{ModelFlags, RefineFlags};
 
 #[derive(clap::Args)]
 pub struct Args {
     /// Folder of `.torch` chunks (with the dataset's `index.json` mapping scenes to chunks), e.g.
-    /// `datasets/dl3dv/test`.
-    #[arg(long)]
+    /// `datasets/dl3dv/test`; or a `.zip` of chunks, or a name: `dl3dv-tiny` (5 DL3DV test scenes from the Hub),
+    /// `hf:OWNER/REPO/FILE.zip[@REV]`, a Hub URL. A zip is unpacked once into `$MVSPLAT360_CACHE/data/<SHA-256>`
+    /// and the folder with its chunks taken (itself, its `test/`, or a chain of single folders leading there).
+    #[arg(long, value_name = "DIR|ZIP|NAME")]
     pub data: PathBuf,
     /// Evaluation index: `{scene: {"context": [...], "target": [...], "target_quantify"?: [...]} | null}`
     /// (e.g. the official `dl3dv_ctx_5v_tgt_56v.json`, its `_n150` variant, or `re10k_inter_14_target_views_match.json`).
+    /// Default: `dl3dv_ctx_5v_tgt_56v.json` beside the chunks (or in --out), made by `eval-index`'s code with the
+    /// official settings when absent (written beside the chunks, or into --out where that folder is read-only).
     #[arg(long)]
-    pub index: PathBuf,
+    pub index: Option<PathBuf>,
     /// Output folder: ImagesGT/, ImagesGSplat/, ImagesRefined0/, ImagesPostprocessed0V2/, scenes/, metrics.json,
     /// metrics.md. A re-run with the same settings resumes: complete scenes are skipped.
     #[arg(long, default_value = "out/eval")]
@@ -92,7 +97,7 @@ pub struct Args {
 pub fn request(a: &Args) -> EvalRequest {
     EvalRequest {
         data: a.data.clone(),
-        index: a.index.clone(),
+        index: a.index.clone().unwrap_or_default(),
         model: a.model.model_args(),
         size: a.model.size,
         scene_scale: a.model.scene_scale,
@@ -113,9 +118,12 @@ pub fn request(a: &Args) -> EvalRequest {
     }
 }
 
-pub fn run(args: Args, quiet: bool) -> anyhow::Result<()> {
-    let mut req = request(&args);
+pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<()> {
     let place = Place::from_env().context("finding this process's rank")?.filter(|_| !args.merge);
+    // Ranks this command started take what it fetched and made (no request, the same files).
+    let fresh = if place.is_some_and(|p| p.launcher == Launcher::Project) { Freshness::CachedFirst } else { Freshness::Ask };
+    resolve_data(&mut args, fresh, quiet || place.is_some())?;
+    let mut req = request(&args);
     // `srun -n 1 mvsplat360 eval --world-size 8` (one task, our own ranks): the task is not a rank.
     let place = place.filter(|p| !(p.launcher != Launcher::Project && p.world == 1 && args.world_size > 1));
     if let Some(place) = place {
@@ -136,7 +144,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<()> {
         req.merge_only = true;
     }
     super::progress::clean_partials_on_interrupt(&req.out);
-    let s = mvsplat360_pipeline::eval::run(&req, &bars).with_context(|| format!("evaluating {} on {}", args.index.display(), args.data.display()))?;
+    let s = mvsplat360_pipeline::eval::run(&req, &bars).with_context(|| format!("evaluating {} on {}", req.index.display(), req.data.display()))?;
     if !s.incomplete.is_empty() {
         anyhow::bail!(
             "{}: {} scene(s) have no complete record yet ({}); run the evaluation for them first (the same command without --merge)",
@@ -172,6 +180,70 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<()> {
         );
     }
     fail_on_failures(&s)
+}
+
+/// Names in the model flags and `--data` → local paths; a zip unpacked, the chunk folder chosen; without
+/// `--index`, the official index found or made beside the chunks ([`default_index`]).
+fn resolve_data(args: &mut Args, fresh: Freshness, quiet: bool) -> anyhow::Result<()> {
+    args.model.resolve_names(fresh, quiet)?;
+    let (dir, zipped) = names::data(&args.data, quiet)?;
+    if zipped || (args.index.is_none() && dir.is_dir()) {
+        let (chunks, why) = names::chunk_folder(&dir)?;
+        if let (Some(why), false) = (why, quiet) {
+            eprintln!("--data: the chunks in {} ({why})", chunks.display());
+        }
+        args.data = chunks;
+    } else {
+        args.data = dir;
+    }
+    if args.index.is_none() {
+        args.index = Some(default_index(&args.data, &args.out, quiet)?);
+    }
+    Ok(())
+}
+
+/// The official index of the chunks in `data` (`dl3dv_ctx_5v_tgt_56v.json`): the file beside them, else one in
+/// `out`, else made by `eval-index`'s code with the official settings and written (atomically) beside the chunks,
+/// or into `out` when their folder is read-only.
+fn default_index(data: &std::path::Path, out: &std::path::Path, quiet: bool) -> anyhow::Result<PathBuf> {
+    let opts = IndexOptions::default();
+    let name = opts.official_file_name();
+    for p in [data.join(&name), out.join(&name)] {
+        if p.is_file() {
+            if !quiet {
+                eprintln!("--index: {} (found; give --index FILE to take another)", p.display());
+            }
+            return Ok(p);
+        }
+    }
+    let bars = super::progress::Bars::new(quiet);
+    let g = mvsplat360_pipeline::eval::generate_index(data, &opts, &bars).with_context(|| format!("making the evaluation index of {}", data.display()))?;
+    if !quiet {
+        for w in &g.warnings {
+            eprintln!("warning: {w}");
+        }
+    }
+    let beside = data.join(&name);
+    let path = match mvsplat360_pipeline::eval::write_index(&beside, &g) {
+        Ok(()) => beside,
+        Err(e) => {
+            let p = out.join(&name);
+            mvsplat360_pipeline::eval::write_index(&p, &g).with_context(|| format!("writing the evaluation index (beside the chunks: {e})"))?;
+            p
+        }
+    };
+    if !quiet {
+        let nulls = g.entries.iter().filter(|(_, e)| e.is_none()).count();
+        eprintln!(
+            "--index: made {} as `mvsplat360 eval-index` does ({} context, {} target views; {} scenes, {} null)",
+            path.display(),
+            opts.num_context,
+            opts.num_target,
+            g.entries.len(),
+            nulls
+        );
+    }
+    Ok(path)
 }
 
 /// Exit non-zero while scenes failed (the tables of the others are written).

@@ -29,7 +29,8 @@ pub struct Args {
     pub json: Option<PathBuf>,
 }
 
-pub fn run(a: Args, quiet: bool) -> anyhow::Result<()> {
+pub fn run(mut a: Args, quiet: bool) -> anyhow::Result<()> {
+    a.model.resolve_names(super::names::Freshness::Ask, quiet)?;
     let req = ScenesRequest {
         scenes: a.scenes.clone(),
         model: a.model.model_args(),

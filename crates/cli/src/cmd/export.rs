@@ -13,8 +13,9 @@ use super::views::ContextArgs;
 #[derive(clap::Args)]
 pub struct Args {
     /// Weights: the official Lightning `.ckpt`, a model folder, or a safetensors/`.pth` file with `encoder.*`
-    /// keys (DL3DV config). Default: `assets/models/default/`.
-    #[arg(long)]
+    /// keys (DL3DV config); a path or a name (`dl3dv`, `default`, `hf:OWNER/REPO[/FILE][@REV]`, a Hub URL; see
+    /// `mvsplat360 weights list`; an existing path wins). Default: `assets/models/default/`.
+    #[arg(long, value_name = "PATH|NAME")]
     ckpt: Option<PathBuf>,
     /// Scene: a transforms.json (or its folder), a COLMAP folder, or a `.torch` chunk.
     scene: PathBuf,
@@ -44,7 +45,8 @@ pub struct Args {
     fit_steps: Option<usize>,
 }
 
-pub fn run(args: Args, quiet: bool) -> anyhow::Result<()> {
+pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<()> {
+    super::names::resolve_opt(&mut args.ckpt, "--ckpt", super::names::Default::ModelFolder, super::names::Freshness::Ask, quiet)?;
     let mut model = ModelArgs { refiner: Some(RefinerArg::None), experiment: args.experiment.clone(), fit_steps: args.fit_steps, ..Default::default() };
     // A file is encoder weights alone; a folder (or none: the shipped model) is a whole model.
     match &args.ckpt {

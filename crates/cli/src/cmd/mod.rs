@@ -6,6 +6,7 @@ pub mod eval_scenes;
 pub mod export;
 pub mod inspect;
 pub mod metrics;
+pub mod names;
 pub mod pose;
 pub mod progress;
 pub mod render;

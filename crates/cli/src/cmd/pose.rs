@@ -52,8 +52,10 @@ pub struct PoseFlags {
     pub engine: EngineChoice,
     /// VGGT weights: the official model.pt of VGGT-1B (https://huggingface.co/facebook/VGGT-1B, CC BY-NC 4.0,
     /// non-commercial) or of VGGT-1B-Commercial (gated by Meta), or a VGGT model folder (config.json +
-    /// model.safetensors or model.pt). VGGT runs on the CPU in f32 (about 5 GB of weights for VGGT-1B).
-    #[arg(long)]
+    /// model.safetensors or model.pt); a path, or a name fetched into the Hugging Face cache when VGGT runs:
+    /// `vggt-1b`, `vggt-1b-commercial` (HF_TOKEN with access), `hf:OWNER/REPO[/FILE][@REV]`, a Hub URL (an
+    /// existing path wins). VGGT runs on the CPU in f32 (about 5 GB of weights for VGGT-1B).
+    #[arg(long, value_name = "PATH|NAME")]
     pub vggt_weights: Option<PathBuf>,
     /// Frames sampled from a video: the sharpest frame of each of this many equal intervals (at least 60 for a
     /// full orbit).
@@ -197,7 +199,8 @@ pub fn reusable(input: &Path, scene: &Path, flags: &PoseFlags, min_views: usize)
     let (plan, _) = plan(input, flags)?;
     Ok(match (engine.as_str(), &plan) {
         ("vggt", Plan::Vggt { weights } | Plan::Colmap { fallback: Some(weights) }) => {
-            mvsplat360_pose::vggt::fingerprint(input, &flags.vggt_options(weights))? == fp
+            let weights = vggt_weights(weights, true)?;
+            mvsplat360_pose::vggt::fingerprint(input, &flags.vggt_options(&weights))? == fp
         }
         ("colmap", _) if flags.engine != EngineChoice::Vggt => mvsplat360_pose::fingerprint(input, &flags.options(min_views))? == fp,
         _ => false,
@@ -276,7 +279,14 @@ fn run_colmap(input: &Path, out: &Path, opts: &PoseOptions, quiet: bool) -> Resu
     Ok(report)
 }
 
+/// `--vggt-weights` as a local path: a name is fetched (only once VGGT is to run; see [`super::names`]).
+fn vggt_weights(w: &Path, quiet: bool) -> anyhow::Result<PathBuf> {
+    let refuse = super::names::Default::Refuse("VGGT weights (give vggt-1b or a path)");
+    super::names::resolve(w, "--vggt-weights", refuse, super::names::Freshness::Ask, quiet)
+}
+
 fn run_vggt(input: &Path, out: &Path, flags: &PoseFlags, weights: &Path, quiet: bool) -> anyhow::Result<Posed> {
+    let weights = &vggt_weights(weights, quiet)?;
     let bars = super::progress::Bars::new(quiet);
     let r = mvsplat360_pose::vggt::pose_vggt(input, out, &flags.vggt_options(weights), &bars)?;
     if !quiet {

@@ -120,3 +120,63 @@ pub fn clean_partials_on_interrupt(dir: &Path) {
         std::process::exit(130);
     });
 }
+
+/// A download bar for the Hub client (weights and data by name): bytes with speed and ETA on stderr, the
+/// client's notes (waiting for another process, a cached copy used offline) as lines; nothing when quiet.
+pub struct DownloadBar {
+    quiet: bool,
+    bar: Mutex<Option<ProgressBar>>,
+}
+
+impl DownloadBar {
+    pub fn new(quiet: bool) -> Self {
+        Self { quiet, bar: Mutex::new(None) }
+    }
+}
+
+impl mvsplat360_hub::Progress for DownloadBar {
+    fn note(&self, msg: &str) {
+        if self.quiet {
+            return;
+        }
+        match self.bar.lock().ok().and_then(|b| b.clone()) {
+            Some(pb) if !pb.is_hidden() => pb.println(msg),
+            _ => eprintln!("{msg}"),
+        }
+    }
+    fn start(&self, file: &str, total: Option<u64>, resumed_from: u64) {
+        if self.quiet {
+            return;
+        }
+        let pb = ProgressBar::new(total.unwrap_or(0));
+        pb.set_style(
+            ProgressStyle::with_template("{msg:>14} [{bar:30}] {bytes}/{total_bytes} {bytes_per_sec} ETA {eta}")
+                .unwrap_or_else(|_| ProgressStyle::default_bar())
+                .progress_chars("=> "),
+        );
+        pb.set_position(resumed_from);
+        let name = file.rsplit('/').next().unwrap_or(file);
+        pb.set_message(name.to_string());
+        if pb.is_hidden() {
+            let from = if resumed_from > 0 { format!(" (resuming at {resumed_from} bytes)") } else { String::new() };
+            eprintln!("downloading {file}{from}");
+        }
+        if let Ok(mut b) = self.bar.lock() {
+            *b = Some(pb);
+        }
+    }
+    fn advance(&self, bytes: u64) {
+        if let Ok(b) = self.bar.lock() {
+            if let Some(pb) = b.as_ref() {
+                pb.inc(bytes);
+            }
+        }
+    }
+    fn finish(&self, _file: &str) {
+        if let Ok(mut b) = self.bar.lock() {
+            if let Some(pb) = b.take() {
+                pb.finish_and_clear();
+            }
+        }
+    }
+}

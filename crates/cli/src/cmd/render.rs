@@ -105,7 +105,7 @@ fn posed_scene(a: &Args, quiet: bool) -> anyhow::Result<PathBuf> {
 /// otherwise find out only from the result.
 const SHIPPED_MODEL_NOTE: &str = "model: the shipped small model (assets/models/default: 128x64 input, trained on synthetic POV-Ray \
 scenes, no refiner) — fine for the bundled demo, not for real photos. For real scenes use the official weights: \
---ckpt dl3dv_480p.ckpt (Hugging Face repo donydchen/mvsplat360; ~9 GB with its refiner, converted once into \
+--ckpt dl3dv (fetched from the Hugging Face repo donydchen/mvsplat360 into its cache; ~9 GB with its refiner, converted once into \
 $MVSPLAT360_CACHE or ~/.cache/mvsplat360) and --device cuda on a GPU build. See docs/weights.md and docs/pose.md, \"Your own scene\".";
 
 pub fn request(a: &Args) -> RenderRequest {
@@ -142,6 +142,8 @@ pub fn request(a: &Args) -> RenderRequest {
 
 pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<()> {
     super::progress::clean_partials_on_interrupt(&args.out);
+    // Names fail (or download) before minutes of posing.
+    args.model.resolve_names(super::names::Freshness::Ask, quiet)?;
     if needs_posing(&args.scene) {
         let scene = posed_scene(&args, quiet)?;
         args.scene = scene;

@@ -9,6 +9,8 @@ use anyhow::Context;
 use indicatif::{ProgressBar, ProgressStyle};
 use mvsplat360_train::{Monitor, RunOptions, StepRecord, TrainConfig, TrainError};
 
+use super::names::{self, Freshness};
+
 #[derive(clap::Args)]
 pub struct Args {
     /// Training config (TOML): `[model]` size and encoder, `[data]` sources and views, `[train]` steps, lr,
@@ -112,6 +114,11 @@ pub fn run(a: Args, quiet: bool) -> anyhow::Result<()> {
     if let Some(o) = a.out {
         cfg.train.out = o;
     }
+    let rank = mvsplat360_train::dist::Rank::from_env()?;
+    // A resume, an export and the ranks this command starts take the file the run started with (the cache's,
+    // no request): the checkpoint records the config with the resolved paths.
+    let fresh = if a.resume || a.export.is_some() || rank.is_some() { Freshness::CachedFirst } else { Freshness::Ask };
+    resolve_inits(&mut cfg, fresh, quiet || rank.as_ref().is_some_and(|r| r.rank > 0))?;
     if let Some(Step(step)) = a.export {
         let (step, dir) = mvsplat360_train::export_checkpoint(&cfg, step, a.export_to.as_deref())
             .with_context(|| format!("exporting a checkpoint of {}", cfg.train.out.display()))?;
@@ -119,7 +126,6 @@ pub fn run(a: Args, quiet: bool) -> anyhow::Result<()> {
         blender_note(&cfg, &dir);
         return Ok(());
     }
-    let rank = mvsplat360_train::dist::Rank::from_env()?;
     if let Some(r) = rank.as_ref().filter(|r| r.place.launcher != mvsplat360_pipeline::launch::Launcher::Project && a.world_size > 1) {
         anyhow::bail!(
             "--world-size {} under {} with {} ranks: each rank would start its own; give the ranks to one of them (drop --world-size, or start one task)",
@@ -198,6 +204,14 @@ pub fn run(a: Args, quiet: bool) -> anyhow::Result<()> {
         Err(e) if rank_no > 0 => Err(e).with_context(|| format!("rank {rank_no}: training with {}", config.display())),
         Err(e) => Err(e).with_context(|| format!("training with {}", config.display())),
     }
+}
+
+/// Names in `train.init` and `train.refiner_init` → local paths (see [`super::names`]); `default` is the shipped
+/// model folder for `init`.
+pub fn resolve_inits(cfg: &mut TrainConfig, fresh: Freshness, quiet: bool) -> anyhow::Result<()> {
+    names::resolve_opt(&mut cfg.train.init, "train.init", names::Default::ModelFolder, fresh, quiet)?;
+    let refiner_default = names::Default::Refuse("refiner weights (the shipped model has no refiner)");
+    names::resolve_opt(&mut cfg.train.refiner_init, "train.refiner_init", refiner_default, fresh, quiet)
 }
 
 /// A trained encoder changes what a learned blender sees, so the written folder has none; say so when the

@@ -9,9 +9,10 @@ use mvsplat360_train::blend::{BlendRequest, SceneSource};
 
 #[derive(clap::Args)]
 pub struct Args {
-    /// Model folder whose encoder and test-time fitting make the blender's inputs (default: the shipped model).
+    /// Model folder whose encoder and test-time fitting make the blender's inputs (default: the shipped model),
+    /// a path or a name (`default`, `hf:OWNER/REPO[@REV]` = that repository as a folder; an existing path wins).
     /// Its own blender, if any, is not used and is replaced in OUT/model.
-    #[arg(long)]
+    #[arg(long, value_name = "DIR|NAME")]
     pub model: Option<PathBuf>,
     /// Training scenes: scene folders, folders of scene folders, or `procedural:FIRST-LAST` (generated scenes
     /// with these seeds, written under OUT/procedural). Each runs the held-out protocol: 5 context views by
@@ -69,7 +70,7 @@ fn parse_layout(s: &str) -> Result<(usize, usize, f64), String> {
 
 pub fn run(a: Args, quiet: bool) -> anyhow::Result<()> {
     let model = match a.model {
-        Some(m) => m,
+        Some(m) => super::names::resolve(&m, "--model", super::names::Default::ModelFolder, super::names::Freshness::Ask, quiet)?,
         None => mvsplat360_pipeline::model::default_model_dir().context("the shipped model assets/models/default is missing; give --model")?,
     };
     let (planes, views, span) = a.layout;

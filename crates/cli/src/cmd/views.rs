@@ -10,6 +10,8 @@ use mvsplat360_pipeline::render::RefineSettings;
 use mvsplat360_pipeline::scale::SceneScale;
 use mvsplat360_pipeline::views::{parse_list, ContextSpec};
 
+use super::names::{self, Freshness};
+
 /// A comma-separated list of view indices (one clap value, so clap does not treat it as repeated values).
 #[derive(Debug, Clone)]
 pub struct ViewList(pub Vec<usize>);
@@ -51,15 +53,18 @@ impl ContextArgs {
 #[derive(clap::Args, Debug, Clone)]
 pub struct ModelFlags {
     /// Model: an official MVSplat360 Lightning `.ckpt` (encoder + refiner, DL3DV config) or a model folder
-    /// (`config.json` + `model.safetensors`). Default: `assets/models/default/`.
-    #[arg(long)]
+    /// (`config.json` + `model.safetensors`); a path, or a name fetched into the Hugging Face cache: `dl3dv` (the
+    /// official checkpoint), `default`, `hf:OWNER/REPO[/FILE][@REV]`, a Hub URL (`mvsplat360 weights list`; an
+    /// existing path wins). Default: `assets/models/default/`.
+    #[arg(long, value_name = "PATH|NAME")]
     pub ckpt: Option<PathBuf>,
-    /// Encoder weights alone (safetensors / `.ckpt` with `encoder.*` keys, DL3DV config); needs `--refiner`.
-    #[arg(long)]
+    /// Encoder weights alone (safetensors / `.ckpt` with `encoder.*` keys, DL3DV config), a path or a name as
+    /// for --ckpt; needs `--refiner`.
+    #[arg(long, value_name = "PATH|NAME")]
     pub encoder: Option<PathBuf>,
-    /// `none` for the 3DGS-only result, or a file with the refiner's weights (an official `.ckpt`, its
-    /// safetensors copy, or Stability's `svd.safetensors`).
-    #[arg(long)]
+    /// `none` for the 3DGS-only result, or the refiner's weights (an official `.ckpt`, its safetensors copy, or
+    /// Stability's `svd.safetensors`): a path or a name as for --ckpt (`dl3dv`, `svd`, `hf:…`).
+    #[arg(long, value_name = "none|PATH|NAME")]
     pub refiner: Option<RefinerArg>,
     /// Data conventions for weights without a config (`dl3dv`: 480×270 → 448×256, `re10k`: 320×180 → 320×176,
     /// all-view cost volume).
@@ -96,6 +101,18 @@ pub struct ModelFlags {
 }
 
 impl ModelFlags {
+    /// Names in `--ckpt`, `--encoder` and `--refiner` → local paths (fetched into the Hugging Face cache when
+    /// needed; see [`super::names`]). `fresh`: [`Freshness::CachedFirst`] in ranks a command started.
+    pub fn resolve_names(&mut self, fresh: Freshness, quiet: bool) -> anyhow::Result<()> {
+        names::resolve_opt(&mut self.ckpt, "--ckpt", names::Default::ModelFolder, fresh, quiet)?;
+        names::resolve_opt(&mut self.encoder, "--encoder", names::Default::Refuse("encoder weights alone (give --ckpt default)"), fresh, quiet)?;
+        if let Some(RefinerArg::File(f)) = &self.refiner {
+            let p = names::resolve(f, "--refiner", names::Default::Refuse("refiner weights (the shipped model has no refiner)"), fresh, quiet)?;
+            self.refiner = Some(RefinerArg::File(p));
+        }
+        Ok(())
+    }
+
     pub fn model_args(&self) -> ModelArgs {
         ModelArgs {
             ckpt: self.ckpt.clone(),
