@@ -218,6 +218,14 @@ fn uploads_are_limited_named_plainly_and_never_left_half() {
     assert_eq!(chunked.status, 411);
     assert!(tree(&r.staging).is_empty());
 
+    // A length that could frame the body two ways: refused, nothing written.
+    for lens in ["Content-Length: 3\r\nContent-Length: 3\r\n", "Content-Length: 3\r\nTransfer-Encoding: chunked\r\n"] {
+        assert_eq!(exchange(a, &format!("PUT /upload/d.jpg HTTP/1.1\r\nHost: {a}\r\n{tok}{lens}"), b"abc").status, 400, "{lens}");
+    }
+    assert_eq!(put("e.jpg", 0, b"").status, 201, "an empty file");
+    std::fs::remove_file(r.staging.join("e.jpg")).unwrap();
+    assert!(tree(&r.staging).is_empty());
+
     // Names that are not plain: refused (the request line sent byte for byte).
     for name in [
         "..%2f..%2fevil.jpg",

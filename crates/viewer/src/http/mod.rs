@@ -213,6 +213,8 @@ impl HttpServer {
     /// write side shut and the rest drained briefly, so no reset destroys the answer).
     pub fn serve(self, handler: impl Handler) {
         let Self { listener, policy, token, limits, body, heartbeat, stats, .. } = self;
+        // Uploads never take every connection: one is always left for the page and its event stream.
+        let body = BodyLimits { uploads: body.uploads.min(limits.connections.saturating_sub(1)).max(1), ..body };
         let shared = Arc::new(Shared { handler, policy, token, limits, body, heartbeat, uploads: stats.uploads.clone() });
         let refusers = Arc::new(AtomicUsize::new(0));
         for conn in listener.incoming() {
@@ -399,9 +401,17 @@ fn connection<H: Handler>(mut s: TcpStream, sh: &Shared<H>) {
         };
         buf.drain(..n);
         // None: a length the server cannot frame (chunked, malformed): never read, the connection closed after.
-        let len = match (req.header("Content-Length"), req.header("Transfer-Encoding")) {
+        // Two lengths (or one with a length besides a transfer coding) could frame the body two ways: refused.
+        let lengths: Vec<&str> = req.headers_named("Content-Length").collect();
+        if lengths.len() > 1 || (lengths.len() == 1 && req.header("Transfer-Encoding").is_some()) {
+            if send(&mut s, Response::text(400, "ambiguous body length"), false, false, sh.heartbeat) {
+                linger_close(s);
+            }
+            return;
+        }
+        let len = match (lengths.first(), req.header("Transfer-Encoding")) {
             (_, Some(_)) => None,
-            (Some(v), None) => v.trim().parse::<u64>().ok(),
+            (Some(v), None) => Some(v.trim()).filter(|v| !v.is_empty() && v.bytes().all(|b| b.is_ascii_digit())).and_then(|v| v.parse::<u64>().ok()),
             (None, None) => Some(0),
         };
         let expect_continue = req.header("Expect").is_some_and(|v| v.trim().eq_ignore_ascii_case("100-continue"));
