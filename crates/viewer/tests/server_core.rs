@@ -226,6 +226,27 @@ fn uploads_are_limited_named_plainly_and_never_left_half() {
     std::fs::remove_file(r.staging.join("e.jpg")).unwrap();
     assert!(tree(&r.staging).is_empty());
 
+    // `Expect: 100-continue` (curl's way for large bodies): the body is asked for, then stored.
+    let mut s = TcpStream::connect(a).unwrap();
+    s.set_read_timeout(Some(HANG)).unwrap();
+    write!(s, "PUT /upload/cont.jpg HTTP/1.1\r\nHost: {a}\r\n{tok}Content-Length: 3\r\nExpect: 100-continue\r\nConnection: close\r\n\r\n").unwrap();
+    let mut got = String::new();
+    read_until(&mut s, &mut got, "HTTP/1.1 100 Continue\r\n\r\n", Instant::now() + HANG);
+    s.write_all(b"abc").unwrap();
+    let mut rest = Vec::new();
+    let _ = s.read_to_end(&mut rest);
+    assert_eq!(parse(&rest).status, 201);
+    assert_eq!(std::fs::read(r.staging.join("cont.jpg")).unwrap(), b"abc");
+    std::fs::remove_file(r.staging.join("cont.jpg")).unwrap();
+    // Refused before it is asked for: answered at once, the body never sent.
+    let mut s = TcpStream::connect(a).unwrap();
+    write!(s, "PUT /upload/cont.jpg HTTP/1.1\r\nHost: {a}\r\nContent-Length: 3\r\nExpect: 100-continue\r\n\r\n").unwrap();
+    let t0 = Instant::now();
+    let got = read_reply(&mut s);
+    assert_eq!(got.status, 403);
+    assert!(t0.elapsed() < HANG);
+    assert!(tree(&r.staging).is_empty());
+
     // Names that are not plain: refused (the request line sent byte for byte).
     for name in [
         "..%2f..%2fevil.jpg",

@@ -422,7 +422,9 @@ fn connection<H: Handler>(mut s: TcpStream, sh: &Shared<H>) {
                 Err(refusal) => refusal.response(),
                 Ok(()) => sh.handler.handle(&req, &mut body),
             };
-            let remaining = if body.broken { None } else { body.remaining() };
+            // A client that waits for `100 Continue` may never send a body the route left unread: close.
+            let waiting = body.expect_continue && body.remaining() != Some(0);
+            let remaining = if body.broken || waiting { None } else { body.remaining() };
             (r, remaining)
         };
         let drainable = remaining.filter(|&n| n <= MAX_DISCARD);
