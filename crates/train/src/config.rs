@@ -149,10 +149,13 @@ pub struct TrainSection {
     #[serde(default)]
     pub freeze: Vec<String>,
     /// Initial weights: a model folder or a weights file with `encoder.*` keys (official checkpoints included).
+    /// `mvsplat360 train` also takes a name here (`default`, `dl3dv`, `hf:OWNER/REPO[/FILE][@REV]`), resolved to a
+    /// local path before the run (docs/weights.md, "Names"); an existing path wins.
     #[serde(default)]
     pub init: Option<PathBuf>,
     /// Refiner weights (with `[model.refiner]`): svd.safetensors, a converted MVSplat360 checkpoint, a model
     /// folder or a diffusers SVD folder (`unet/`, `vae/`, `image_encoder/`); absent = seeded random weights.
+    /// `mvsplat360 train` also takes a name (`svd`, `dl3dv`, `hf:…`), as for `init`.
     /// Stage `vae`: the autoencoder to continue from (its keys only; e.g. an earlier `vae` run's model folder).
     #[serde(default)]
     pub refiner_init: Option<PathBuf>,
