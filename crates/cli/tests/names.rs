@@ -213,6 +213,17 @@ fn eval_takes_data_by_name_or_zip_and_makes_the_index_as_eval_index_does() {
     assert_eq!(mj["scenes"]["evaluated"], 2, "{mj}");
     assert_eq!(std::fs::read_dir(tmp.path().join("cache/data")).unwrap().count(), 1, "unpacked once");
 
+    // Ranks this command starts take the cached zip without asking the Hub again.
+    s.clear_log();
+    let mut c = bin(&s, tmp.path());
+    c.args(["eval", "--data", "dl3dv-tiny", "--ckpt", "hf:owner/tiny", "--steps", "1", "--window", "3", "--world-size", "2", "--weights-dir"]);
+    let out4 = tmp.path().join("e4");
+    ok(&c.arg(&empty).arg("--index").arg(&index).arg("--out").arg(&out4).env("RAYON_NUM_THREADS", "1").output().unwrap());
+    let zip_heads = s.log().iter().filter(|r| r.method == "HEAD" && r.path.ends_with("dl3dv_tiny.zip")).count();
+    assert_eq!(zip_heads, 1, "{:?}", s.log());
+    let mj: serde_json::Value = serde_json::from_slice(&std::fs::read(out4.join("metrics.json")).unwrap()).unwrap();
+    assert_eq!(mj["scenes"]["evaluated"], 2, "{mj}");
+
     // An hf: file name for the data; without --index the index made before is found beside the chunks.
     let out3 = tmp.path().join("e3");
     let err = ok(&eval("hf:donydchen/mvsplat360/dl3dv_tiny.zip", None, "hf:owner/tiny", tmp.path(), &out3));
@@ -316,6 +327,23 @@ fn weights_list_and_get() {
     let text = bin(&s, tmp.path()).args(["weights", "list"]).output().unwrap();
     let text = String::from_utf8_lossy(&text.stdout);
     assert!(text.contains("vggt-1b") && text.contains("cached, 15 B") && text.contains("not cached"), "{text}");
+
+    // Offline: the cached file without a request; a name not cached fails with the message, before any work.
+    s.clear_log();
+    let o = bin(&s, tmp.path()).env("HF_HUB_OFFLINE", "1").args(["weights", "get", "vggt-1b"]).output().unwrap();
+    ok(&o);
+    assert!(s.log().is_empty(), "{:?}", s.log());
+    let o = bin(&s, tmp.path())
+        .env("HF_HUB_OFFLINE", "1")
+        .args(["export", "--ckpt", "dl3dv", "--out"])
+        .arg(tmp.path().join("x.ply"))
+        .arg(root().join("assets/woodbox"))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(err.contains("--ckpt dl3dv") && err.contains("HF_HUB_OFFLINE") && err.contains("dl3dv_480p.ckpt"), "{err}");
+    assert!(s.log().is_empty() && !tmp.path().join("x.ply").exists());
 
     let o = bin(&s, tmp.path()).args(["weights", "get", "vggt-1b-commercial"]).output().unwrap();
     let err = String::from_utf8_lossy(&o.stderr);

@@ -186,7 +186,7 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<()> {
 /// `--index`, the official index found or made beside the chunks ([`default_index`]).
 fn resolve_data(args: &mut Args, fresh: Freshness, quiet: bool) -> anyhow::Result<()> {
     args.model.resolve_names(fresh, quiet)?;
-    let (dir, zipped) = names::data(&args.data, quiet)?;
+    let (dir, zipped) = names::data(&args.data, fresh, quiet)?;
     if zipped || (args.index.is_none() && dir.is_dir()) {
         let (chunks, why) = names::chunk_folder(&dir)?;
         if let (Some(why), false) = (why, quiet) {

@@ -24,7 +24,8 @@ pub enum Freshness {
     /// As the Python client: ask the Hub which commit the revision is at (one HEAD request), download if it moved.
     Ask,
     /// The cached file if there is one, without a request: the file a run started with (a `train --resume`,
-    /// `--export`, the ranks a command started after fetching it).
+    /// `--export`, the ranks a command started after fetching it). A whole repository (`hf:OWNER/REPO`) is asked
+    /// for as with `Ask`.
     CachedFirst,
 }
 
@@ -36,7 +37,9 @@ pub fn resolve(spec: &Path, flag: &str, default: Default, fresh: Freshness, quie
     // A path that is not UTF-8 is no name: left to the command, which says it does not exist.
     let Some(text) = spec.to_str() else { return Ok(spec.to_path_buf()) };
     let hub = Hub::from_env();
-    if fresh == Freshness::CachedFirst {
+    // A file only: a repository's snapshot folder in the cache may hold some of its files (those fetched one by one).
+    let one_file = matches!(hub.parse(text), Ok(mvsplat360_hub::Name::Hub(f)) if f.path.is_some());
+    if fresh == Freshness::CachedFirst && one_file {
         if let Some(p) = hub.cached(text) {
             return Ok(p);
         }
@@ -81,8 +84,8 @@ pub fn resolve_opt(spec: &mut Option<PathBuf>, flag: &str, default: Default, fre
 /// Data given to `eval --data`: a folder as it is; a `.zip` (local, or a name's file such as `dl3dv-tiny`) unpacked
 /// once into `$MVSPLAT360_CACHE/data/<its SHA-256>`; a name of a whole repository: its snapshot folder. Returns the
 /// folder and whether it came from a zip.
-pub fn data(spec: &Path, quiet: bool) -> anyhow::Result<(PathBuf, bool)> {
-    let p = resolve(spec, "--data", Default::Refuse("data (give a folder of .torch chunks, a .zip of them, or dl3dv-tiny)"), Freshness::Ask, quiet)?;
+pub fn data(spec: &Path, fresh: Freshness, quiet: bool) -> anyhow::Result<(PathBuf, bool)> {
+    let p = resolve(spec, "--data", Default::Refuse("data (give a folder of .torch chunks, a .zip of them, or dl3dv-tiny)"), fresh, quiet)?;
     if p.is_dir() || !p.exists() {
         // A missing folder is reported by `eval` with the flag's usual message.
         return Ok((p, false));
