@@ -75,6 +75,14 @@ pub fn write_bytes_synced(path: &Path, bytes: &[u8]) -> io::Result<()> {
     })
 }
 
+/// Flushes a folder's entries (names created, renamed or removed in it) to disk, so that a rename survives a power
+/// loss; best effort (a file system without it keeps what it can).
+pub fn sync_dir(dir: &Path) {
+    if let Ok(f) = std::fs::File::open(dir) {
+        let _ = f.sync_all();
+    }
+}
+
 /// The SHA-256 of a file's content, hex (streamed: any size).
 pub fn sha256_file(p: &Path) -> io::Result<String> {
     use io::Read;

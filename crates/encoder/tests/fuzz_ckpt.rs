@@ -37,7 +37,8 @@ fn lightning_checkpoints() {
                 panics.push(case);
             }
         }
-        assert!(t.elapsed() < Duration::from_secs(5), "case {case} took {:?}", t.elapsed());
+        // A hang deadline, not a speed check (a case reads in milliseconds).
+        assert!(t.elapsed() < Duration::from_secs(60), "case {case} took {:?}: a hang", t.elapsed());
     }
     eprintln!("model.ckpt: {n} cases ({ok} read, {refused} refused) in {:.1} s, seed {seed}", t0.elapsed().as_secs_f64());
     if !panics.is_empty() {

@@ -1,15 +1,25 @@
 //! Ranks: where a process stands among the processes of one run ([`Place::from_env`]), whichever launcher started
 //! it — the project's own `--world-size N` (below: one program runs itself again as N ranks, waits for them,
 //! forwards an interrupt and stops the others when one fails), torchrun, SLURM's srun or Open MPI's mpirun — and
-//! which GPU it takes ([`Place::gpu`]). What the ranks share beyond their place (a gradient hub, an NCCL id) is
-//! the caller's, passed as extra environment.
+//! which GPU it takes ([`Place::gpu`]) — and where ranks that must meet find rank 0 ([`Rendezvous::from_vars`]:
+//! training; `eval` needs no rendezvous). What the ranks share beyond that (a gradient hub, an NCCL id) is the
+//! caller's, passed as extra environment.
 
+use std::net::IpAddr;
 use std::process::{Child, Command, ExitStatus};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
 pub const ENV_RANK: &str = "MVSPLAT360_DIST_RANK";
 pub const ENV_WORLD: &str = "MVSPLAT360_DIST_WORLD";
+/// `host:port` of rank 0's rendezvous; set by this program's own launcher, and wins over MASTER_ADDR/MASTER_PORT.
+pub const ENV_ADDR: &str = "MVSPLAT360_DIST_ADDR";
+/// The rendezvous port under an outside launcher (default: MASTER_PORT, under torchrun MASTER_PORT + 1).
+pub const ENV_PORT: &str = "MVSPLAT360_DIST_PORT";
+/// Seconds a rank waits for the rendezvous and for each collective (default [`DEFAULT_TIMEOUT`]).
+pub const ENV_TIMEOUT: &str = "MVSPLAT360_DIST_TIMEOUT";
+/// PyTorch's default process-group timeout; it must outlast rank 0's checkpoint writes, which the others wait out.
+pub const DEFAULT_TIMEOUT: Duration = Duration::from_secs(1800);
 
 /// Why a launch did not complete.
 #[derive(Debug, thiserror::Error)]
@@ -22,6 +32,9 @@ pub enum LaunchError {
     Interrupted,
     #[error("launcher: {0}")]
     Io(String),
+    /// The rendezvous variables are missing or wrong (the message names the variable and the fix).
+    #[error("{0}")]
+    Rendezvous(String),
 }
 
 /// Which launcher started this process as a rank.
@@ -139,6 +152,83 @@ impl Place {
             ))),
         }
     }
+}
+
+/// Where the ranks of a run meet: rank 0's `host:port`, and how long each waits there and in each collective.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Rendezvous {
+    pub addr: String,
+    pub timeout: Duration,
+}
+
+impl Rendezvous {
+    /// Read for `place`: [`ENV_ADDR`] (this program's launcher), else `MASTER_ADDR` and the port [`ENV_PORT`], else
+    /// `MASTER_PORT` — plus one under torchrun, whose own store holds `MASTER_PORT`. A multi-node place whose
+    /// address is loopback on every machine is refused, naming the variable.
+    pub fn from_vars(place: &Place, get: &dyn Fn(&str) -> Option<String>) -> Result<Self, LaunchError> {
+        let who = place.launcher.name();
+        let err = |what: &str, msg: String| LaunchError::Rendezvous(format!("{what}: {msg}"));
+        // mpirun passes no rendezvous address of its own; the others are started by scripts that set one.
+        let hint = if place.launcher == Launcher::Mpi {
+            "mpirun passes none: start it as `mpirun -x MASTER_ADDR=<rank 0's host> -x MASTER_PORT=<free port> …`"
+        } else {
+            "scripts/slurm/train.sbatch sets them from `scontrol show hostnames`"
+        };
+        // The address and the variable it came from, as given.
+        let (var, given, addr) = match get(ENV_ADDR) {
+            Some(a) => (ENV_ADDR, a.rsplit_once(':').map_or(a.as_str(), |(h, _)| h).to_string(), a),
+            None => {
+                let host = get("MASTER_ADDR").filter(|h| !h.trim().is_empty()).ok_or_else(|| {
+                    err(who, format!("MASTER_ADDR is not set: training ranks meet at rank 0's host; set MASTER_ADDR and MASTER_PORT ({hint})"))
+                })?;
+                let port = match get(ENV_PORT) {
+                    Some(p) => p.trim().parse::<u16>().map_err(|_| err(ENV_PORT, format!("`{p}` is not a port")))?,
+                    None => {
+                        let p = get("MASTER_PORT").ok_or_else(|| err(who, format!("MASTER_PORT is not set (rank 0's rendezvous port; {hint})")))?;
+                        let p = p.trim().parse::<u16>().map_err(|_| err("MASTER_PORT", format!("`{p}` is not a port")))?;
+                        if place.launcher == Launcher::Torchrun {
+                            p.checked_add(1).ok_or_else(|| err("MASTER_PORT", format!("{p} + 1 is not a port; set {ENV_PORT}")))?
+                        } else {
+                            p
+                        }
+                    }
+                };
+                let host = host.trim();
+                let addr = if host.contains(':') && !host.starts_with('[') { format!("[{host}]:{port}") } else { format!("{host}:{port}") };
+                ("MASTER_ADDR", host.to_string(), addr)
+            }
+        };
+        if place.multi_node() && loopback_everywhere(&given) {
+            return Err(err(
+                who,
+                format!(
+                    "{var} is {given}, a loopback address (this very machine on every node), but the {} ranks run on more than one \
+                     machine ({} here): the others could never reach rank 0; set {var} to rank 0's host name or address as the other \
+                     machines reach it ({hint})",
+                    place.world,
+                    place.local_world.unwrap_or(0)
+                ),
+            ));
+        }
+        let timeout = match get(ENV_TIMEOUT) {
+            None => DEFAULT_TIMEOUT,
+            Some(t) => match t.trim().parse::<f64>() {
+                Ok(s) if s > 0.0 && s.is_finite() => Duration::from_secs_f64(s),
+                _ => return Err(err(ENV_TIMEOUT, format!("`{t}` is not a number of seconds"))),
+            },
+        };
+        Ok(Self { addr, timeout })
+    }
+}
+
+/// Whether `host` (a name or an address, IPv6 bracketed or not) is a loopback address on every machine:
+/// `localhost` (and Debian's `ip6-localhost`/`ip6-loopback`), 127.0.0.0/8, `::1`. Machine-specific names are not
+/// resolved: Debian maps a machine's own name to 127.0.1.1 there, yet the other machines reach it by that name.
+pub fn loopback_everywhere(host: &str) -> bool {
+    let h = host.trim().trim_start_matches('[').trim_end_matches(']').trim_end_matches('.').to_ascii_lowercase();
+    ["localhost", "ip6-localhost", "ip6-loopback"].contains(&h.as_str())
+        || h.ends_with(".localhost")
+        || h.parse::<IpAddr>().is_ok_and(|ip| ip.to_canonical().is_loopback())
 }
 
 /// How many GPUs this process may use: `CUDA_VISIBLE_DEVICES`'s count when set (empty = none), else `count()`.

@@ -1,6 +1,7 @@
 //! `render`: posed photos → Gaussians → 3DGS renders (RGB + latent features) at every target → SVD refiner over
 //! temporal windows → colour-histogram matching → frames, videos, cameras and a run record.
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -577,12 +578,79 @@ fn run_staged(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSumm
     if txn.resumed > 0 {
         progress.note(&format!("--resume: keeping the {} refined window(s) the interrupted render finished", txn.resumed));
     }
-    let stage = txn.stage.clone();
-    let st = &stage;
-    let mkdir = |d: &Path| std::fs::create_dir_all(d).map_err(|e| PipelineError::Write { path: d.to_path_buf(), msg: e.to_string() });
+    let st = &txn.stage.clone();
     times.push(("prepare".into(), t.elapsed().as_secs_f64()));
-
     // Cameras first (in the stage, they describe what is being rendered).
+    write_cameras(st, &p)?;
+
+    let t = Instant::now();
+    let g = encode(&p, progress)?;
+    times.push(("encoder".into(), t.elapsed().as_secs_f64()));
+    let t = Instant::now();
+    let (g, fit_losses) = fit_to_context(&p, g, progress)?;
+    if let Some([a, b]) = fit_losses {
+        progress.note(&format!("fitting: loss {a:.5} → {b:.5} in {} steps", p.spec.fit.steps));
+        times.push(("fit".into(), t.elapsed().as_secs_f64()));
+    }
+    let n_gauss = g.means.dim(0).map_err(compute("encoder"))?;
+    let t = Instant::now();
+    export_gaussians(st, &g, req.splat)?;
+    times.push(("export".into(), t.elapsed().as_secs_f64()));
+
+    let t = Instant::now();
+    let renders = frames_3dgs(&p, &g, progress)?;
+    drop(g);
+    let (gsplat, stage, feats) = write_3dgs_frames(st, &p, renders)?;
+    times.push(("rasterize".into(), t.elapsed().as_secs_f64()));
+    let final_frames: Vec<ImageF32> = match &refine_file {
+        Some(wf) => {
+            let t = Instant::now();
+            let mut parts = Vec::new();
+            let refined = refine_frames_timed(&p, &feats, wf, &req.refine, progress, &mut parts, txn.windows.as_deref())?;
+            times.push(("refine".into(), t.elapsed().as_secs_f64()));
+            times.extend(parts);
+            let t = Instant::now();
+            let finals = write_refined_frames(st, &refined, &stage)?;
+            times.push(("histogram".into(), t.elapsed().as_secs_f64()));
+            finals
+        }
+        None => {
+            let fd = st.join("frames/final");
+            mkdir(&fd)?;
+            for (i, img) in stage.iter().enumerate() {
+                write_png(&fd.join(frame_name(i)), img)?;
+            }
+            stage
+        }
+    };
+    drop(feats);
+
+    if req.video {
+        let t = Instant::now();
+        write_videos(st, &p, &final_frames, &gsplat, req.fps, progress)?;
+        times.push(("video".into(), t.elapsed().as_secs_f64()));
+    }
+    if req.metrics && p.target_photos.iter().all(|x| x.is_some()) {
+        let t = Instant::now();
+        let metrics = score_stage(st, req, refine_file.is_some(), progress)?;
+        write_json(&st.join("metrics.json"), &metrics)?;
+        times.push(("metrics".into(), t.elapsed().as_secs_f64()));
+    }
+    times.push(("total".into(), t_all.elapsed().as_secs_f64()));
+    let peak = crate::setup::peak_rss_mib();
+    let facts = RunFacts { frames: final_frames.len(), gaussians: n_gauss, refiner: refine_file.is_some(), fit_losses, peak };
+    let run = run_json(req, &p, &facts, &times, &key, txn.hash_stage()?);
+    write_json(&st.join("run.json"), &run)?;
+    txn.commit()?;
+    Ok(RenderSummary { out: out.clone(), frames: facts.frames, gaussians: n_gauss, refined: facts.refiner, stage_seconds: times, peak_mib: peak })
+}
+
+fn mkdir(d: &Path) -> Result<()> {
+    std::fs::create_dir_all(d).map_err(|e| PipelineError::Write { path: d.to_path_buf(), msg: e.to_string() })
+}
+
+/// `cameras.json`: every context and target camera as the model sees it.
+fn write_cameras(st: &Path, p: &Prepared) -> Result<()> {
     let mut cams = Vec::new();
     for (k, c) in p.context_cameras.iter().enumerate() {
         cams.push(camera_json(c, "context", Some(p.choice.context[k]), &p.scene));
@@ -597,37 +665,26 @@ fn run_staged(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSumm
             "scene_to_model": p.transform.to_json(),
             "cameras": cams,
         }),
-    )?;
+    )
+}
 
-    let t = Instant::now();
-    let g = encode(&p, progress)?;
-    times.push(("encoder".into(), t.elapsed().as_secs_f64()));
-    let t = Instant::now();
-    let (g, fit_losses) = fit_to_context(&p, g, progress)?;
-    if let Some([a, b]) = fit_losses {
-        progress.note(&format!("fitting: loss {a:.5} → {b:.5} in {} steps", p.spec.fit.steps));
-        times.push(("fit".into(), t.elapsed().as_secs_f64()));
-    }
-    let n_gauss = g.means.dim(0).map_err(compute("encoder"))?;
-
-    let t = Instant::now();
-    let eg = mvsplat360_splat::io::ExportGaussians::from_gaussians(&g).map_err(compute("export"))?;
+/// `gaussians.ply`, and `gaussians.splat` with `--splat`.
+fn export_gaussians(st: &Path, g: &Gaussians, splat: bool) -> Result<()> {
+    let eg = mvsplat360_splat::io::ExportGaussians::from_gaussians(g).map_err(compute("export"))?;
     output::atomic_write(&st.join("gaussians.ply"), |tmp| mvsplat360_splat::io::write_ply(tmp, &eg).map_err(|e| e.to_string()))?;
-    if req.splat {
+    if splat {
         output::atomic_write(&st.join("gaussians.splat"), |tmp| mvsplat360_splat::io::write_splat(tmp, &eg).map_err(|e| e.to_string()))?;
     }
-    drop(eg);
-    times.push(("export".into(), t.elapsed().as_secs_f64()));
+    Ok(())
+}
 
-    let t = Instant::now();
-    let (near, far) = (p.spec.encoder.near, p.spec.encoder.far);
-    let renders = frames_3dgs(&p, &g, progress)?;
-    drop(g);
+/// Writes the 3DGS renders (and the blender's frames, and the target photos) into the stage; returns the renders,
+/// the stage's output (the blender's frames when it ran, else the renders) and the feature maps for the refiner.
+fn write_3dgs_frames(st: &Path, p: &Prepared, renders: Vec<StageFrame>) -> Result<(Vec<ImageF32>, Vec<ImageF32>, Vec<Tensor>)> {
     let gs_dir = st.join("frames/gsplat");
     mkdir(&gs_dir)?;
     let mut gsplat = Vec::with_capacity(renders.len());
     let mut feats = Vec::with_capacity(renders.len());
-    // The stage's output: the blender's frames when it ran (also in frames/blended), else the renders.
     let mut stage = Vec::with_capacity(renders.len());
     let bd = st.join("frames/blended");
     if renders.iter().any(|r| r.blended.is_some()) {
@@ -646,8 +703,7 @@ fn run_staged(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSumm
         gsplat.push(img);
         feats.push(r.features);
     }
-    let have_gt = p.target_photos.iter().any(|x| x.is_some());
-    if have_gt {
+    if p.target_photos.iter().any(|x| x.is_some()) {
         let gt_dir = st.join("frames/gt");
         mkdir(&gt_dir)?;
         for (i, ph) in p.target_photos.iter().enumerate() {
@@ -656,96 +712,95 @@ fn run_staged(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSumm
             }
         }
     }
-    times.push(("rasterize".into(), t.elapsed().as_secs_f64()));
+    Ok((gsplat, stage, feats))
+}
 
-    let final_frames: Vec<ImageF32> = match &refine_file {
-        Some(wf) => {
-            let t = Instant::now();
-            let mut parts = Vec::new();
-            let refined = refine_frames_timed(&p, &feats, wf, &req.refine, progress, &mut parts, txn.windows.as_deref())?;
-            times.push(("refine".into(), t.elapsed().as_secs_f64()));
-            times.extend(parts);
-            let t = Instant::now();
-            let (rd, fd) = (st.join("frames/refined"), st.join("frames/final"));
-            mkdir(&rd)?;
-            mkdir(&fd)?;
-            let mut finals = Vec::with_capacity(refined.len());
-            for (i, r) in refined.iter().enumerate() {
-                let img = output::tensor_image(r)?;
-                write_png(&rd.join(frame_name(i)), &img)?;
-                let fin = histogram_match(&img, &stage[i])?;
-                write_png(&fd.join(frame_name(i)), &fin)?;
-                finals.push(fin);
+/// `frames/refined` and `frames/final` (refined, histogram-matched to the stage's output); returns the finals.
+fn write_refined_frames(st: &Path, refined: &[Tensor], stage: &[ImageF32]) -> Result<Vec<ImageF32>> {
+    let (rd, fd) = (st.join("frames/refined"), st.join("frames/final"));
+    mkdir(&rd)?;
+    mkdir(&fd)?;
+    let mut finals = Vec::with_capacity(refined.len());
+    for (i, r) in refined.iter().enumerate() {
+        let img = output::tensor_image(r)?;
+        write_png(&rd.join(frame_name(i)), &img)?;
+        let fin = histogram_match(&img, &stage[i])?;
+        write_png(&fd.join(frame_name(i)), &fin)?;
+        finals.push(fin);
+    }
+    Ok(finals)
+}
+
+/// `video.mp4` of the final frames and `compare.mp4` (3DGS | final | photo where there is one).
+fn write_videos(st: &Path, p: &Prepared, final_frames: &[ImageF32], gsplat: &[ImageF32], fps: u32, progress: &dyn Progress) -> Result<()> {
+    progress.begin("encoding video", 2);
+    let frames: Vec<_> = final_frames.iter().map(output::video_frame).collect();
+    output::atomic_write(&st.join("video.mp4"), |tmp| crate::video::write_mp4(tmp, &frames, fps).map_err(|e| e.to_string()))?;
+    progress.advance(1);
+    let compare: Vec<_> = (0..final_frames.len())
+        .map(|i| {
+            let a = output::video_frame(&gsplat[i]);
+            let b = &frames[i];
+            match p.target_photos[i].as_ref().map(output::video_frame) {
+                Some(gt) => crate::video::side_by_side(&[&a, b, &gt]),
+                None => crate::video::side_by_side(&[&a, b]),
             }
-            times.push(("histogram".into(), t.elapsed().as_secs_f64()));
-            finals
+        })
+        .collect();
+    output::atomic_write(&st.join("compare.mp4"), |tmp| crate::video::write_mp4(tmp, &compare, fps).map_err(|e| e.to_string()))?;
+    progress.advance(1);
+    progress.end();
+    Ok(())
+}
+
+/// The frames' scores against the target photos: the paper scores the refined frames; the histogram-matched
+/// final frames are a second, labelled row.
+fn score_stage(st: &Path, req: &RenderRequest, refined: bool, progress: &dyn Progress) -> Result<serde_json::Value> {
+    progress.begin("scoring", 0);
+    let opts = mvsplat360_metrics::score::ScoreOptions { weights_dir: req.weights_dir.clone(), fid_variant: req.fid_variant, ..Default::default() };
+    let score = |frames: &str| -> Result<serde_json::Value> {
+        let report = mvsplat360_metrics::score::score_dirs(&st.join("frames").join(frames), &st.join("frames/gt"), &opts).map_err(compute("metrics"))?;
+        for w in &report.warnings {
+            progress.note(&format!("metrics ({frames}): {w}"));
         }
-        None => {
-            let fd = st.join("frames/final");
-            mkdir(&fd)?;
-            for (i, img) in stage.iter().enumerate() {
-                write_png(&fd.join(frame_name(i)), img)?;
-            }
-            stage
-        }
+        let mut v = serde_json::to_value(&report).map_err(compute("metrics"))?;
+        v["frames"] = json!(frames);
+        Ok(v)
     };
-    drop(feats);
+    let metrics = if refined {
+        let mut v = score("refined")?;
+        v["final"] = score("final")?;
+        v
+    } else {
+        score("final")?
+    };
+    progress.end();
+    Ok(metrics)
+}
 
-    if req.video {
-        let t = Instant::now();
-        progress.begin("encoding video", 2);
-        let frames: Vec<_> = final_frames.iter().map(output::video_frame).collect();
-        let fps = req.fps;
-        output::atomic_write(&st.join("video.mp4"), |tmp| crate::video::write_mp4(tmp, &frames, fps).map_err(|e| e.to_string()))?;
-        progress.advance(1);
-        let compare: Vec<_> = (0..final_frames.len())
-            .map(|i| {
-                let a = output::video_frame(&gsplat[i]);
-                let b = &frames[i];
-                match p.target_photos[i].as_ref().map(output::video_frame) {
-                    Some(gt) => crate::video::side_by_side(&[&a, b, &gt]),
-                    None => crate::video::side_by_side(&[&a, b]),
-                }
-            })
-            .collect();
-        output::atomic_write(&st.join("compare.mp4"), |tmp| crate::video::write_mp4(tmp, &compare, fps).map_err(|e| e.to_string()))?;
-        progress.advance(1);
-        progress.end();
-        times.push(("video".into(), t.elapsed().as_secs_f64()));
-    }
-    let all_gt = p.target_photos.iter().all(|x| x.is_some());
-    if req.metrics && all_gt {
-        let t = Instant::now();
-        progress.begin("scoring", 0);
-        let opts = mvsplat360_metrics::score::ScoreOptions { weights_dir: req.weights_dir.clone(), fid_variant: req.fid_variant, ..Default::default() };
-        let score = |frames: &str| -> Result<serde_json::Value> {
-            let report = mvsplat360_metrics::score::score_dirs(&st.join("frames").join(frames), &st.join("frames/gt"), &opts).map_err(compute("metrics"))?;
-            for w in &report.warnings {
-                progress.note(&format!("metrics ({frames}): {w}"));
-            }
-            let mut v = serde_json::to_value(&report).map_err(compute("metrics"))?;
-            v["frames"] = json!(frames);
-            Ok(v)
-        };
-        // The paper scores the refined frames; the histogram-matched final frames are a second, labelled row.
-        let metrics = if refine_file.is_some() {
-            let mut v = score("refined")?;
-            v["final"] = score("final")?;
-            v
-        } else {
-            score("final")?
-        };
-        progress.end();
-        write_json(&st.join("metrics.json"), &metrics)?;
-        times.push(("metrics".into(), t.elapsed().as_secs_f64()));
-    }
-    times.push(("total".into(), t_all.elapsed().as_secs_f64()));
-    let peak = crate::setup::peak_rss_mib();
-    let run = json!({
+/// What a finished render reports beside its settings.
+struct RunFacts {
+    frames: usize,
+    gaussians: usize,
+    refiner: bool,
+    fit_losses: Option<[f64; 2]>,
+    peak: Option<f64>,
+}
+
+/// `run.json`: the settings, the stage times and every file of the run with its SHA-256 (`files`).
+fn run_json(
+    req: &RenderRequest,
+    p: &Prepared,
+    f: &RunFacts,
+    times: &[(String, f64)],
+    key: &crate::txn::ResumeKey,
+    files: BTreeMap<String, String>,
+) -> serde_json::Value {
+    json!({
         "version": env!("CARGO_PKG_VERSION"),
         "scene": req.scene.display().to_string(),
         "scene_name": p.scene.name,
-        "input_fingerprint": fingerprint(&p),
+        "input_fingerprint": fingerprint(p),
         "model": p.spec.description,
         "experiment": p.spec.data.experiment,
         "settings": {
@@ -759,26 +814,23 @@ fn run_staged(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSumm
             "scene_scale": p.scene_scale.0,
             "scene_scale_source": p.scene_scale.1,
             "scene_to_model": p.transform.to_json(),
-            "near": near,
-            "far": far,
-            "refiner": refine_file.is_some(),
+            "near": p.spec.encoder.near,
+            "far": p.spec.encoder.far,
+            "refiner": f.refiner,
             "refine": req.refine,
             "fit": p.spec.fit,
-            "fit_loss": fit_losses,
+            "fit_loss": f.fit_losses,
             "blend": p.spec.blend.as_ref().map(|(b, _)| b),
             "device": req.model.compute.device.to_string(),
             "refiner_dtype": p.refiner_dtype.as_str(),
             "fps": req.fps,
         },
-        "frames": final_frames.len(),
-        "gaussians": n_gauss,
+        "frames": f.frames,
+        "gaussians": f.gaussians,
         "stage_seconds": times.iter().map(|(k, v)| (k.clone(), json!(v))).collect::<serde_json::Map<_, _>>(),
-        "peak_mib": peak,
+        "peak_mib": f.peak,
         "resume_key": key,
         // Every file of this run with its SHA-256: a folder holding files of two runs would show it.
-        "files": txn.hash_stage()?,
-    });
-    write_json(&st.join("run.json"), &run)?;
-    txn.commit()?;
-    Ok(RenderSummary { out: out.clone(), frames: final_frames.len(), gaussians: n_gauss, refined: refine_file.is_some(), stage_seconds: times, peak_mib: peak })
+        "files": files,
+    })
 }

@@ -25,7 +25,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicUsize, Ordering};
 
-use mvsplat360_dataset::atomic::DirLock;
+use mvsplat360_dataset::atomic::{sync_dir, DirLock};
 
 use crate::error::{PipelineError, Result};
 
@@ -342,12 +342,6 @@ fn sync_tree(dir: &Path) -> std::io::Result<()> {
     }
     sync_dir(dir);
     Ok(())
-}
-
-fn sync_dir(dir: &Path) {
-    if let Ok(f) = std::fs::File::open(dir) {
-        let _ = f.sync_all();
-    }
 }
 
 #[cfg(test)]

@@ -7,6 +7,7 @@ use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 use candle_core::{Device, Tensor};
+use mvsplat360_dataset::atomic::sync_dir;
 use serde::{Deserialize, Serialize};
 
 use crate::error::{Result, TrainError};
@@ -101,12 +102,6 @@ fn write_tmp(root: &Path, tmp: &Path, state: &State, model: &[(String, Tensor)],
     std::fs::write(&sp, js).and_then(|()| std::fs::File::open(&sp)?.sync_all()).map_err(|e| werr(&sp, &e))?;
     sync_dir(tmp);
     Ok(())
-}
-
-fn sync_dir(p: &Path) {
-    if let Ok(f) = std::fs::File::open(p) {
-        let _ = f.sync_all();
-    }
 }
 
 /// Complete checkpoints, oldest first.

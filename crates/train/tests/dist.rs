@@ -117,7 +117,8 @@ fn an_unreachable_rendezvous_is_named() {
     let t0 = Instant::now();
     let e = dist::connect(&rank(1, 2, port, 1), Backend::Host, 0, &Device::Cpu).map(|_| ()).unwrap_err().to_string();
     assert!(e.contains(&format!("could not reach rank 0 at 127.0.0.2:{port}")) && e.contains("MASTER_ADDR"), "{e}");
-    assert!(t0.elapsed() < Duration::from_secs(10), "{:?}", t0.elapsed());
+    // It gives up (after its connect timeout), not retrying for the launch's 30 minutes: a hang deadline.
+    assert!(t0.elapsed() < Duration::from_secs(120), "{:?}", t0.elapsed());
     // Rank 0 alone: it names the ranks that never came.
     let e = dist::connect(&rank(0, 3, port, 1), Backend::Host, 0, &Device::Cpu).map(|_| ()).unwrap_err().to_string();
     assert!(e.contains("rank(s) 1, 2 of 3 did not join"), "{e}");
@@ -136,8 +137,9 @@ fn launcher_stops_the_other_ranks_when_one_fails() {
         &spec,
         |r| {
             let mut c = Command::new("sh");
-            // Rank 0 would run for a minute; rank 1 fails after its place is checked.
-            c.args(["-c", if r == 0 { "sleep 60" } else { "test \"$MVSPLAT360_DIST_RANK\" = 1 && test -n \"$MVSPLAT360_DIST_ADDR\" && exit 3" }]);
+            // Rank 0 would run for an hour (exec: the killed rank is the sleep itself, no orphan holding the
+            // test's output open); rank 1 fails after its place is checked.
+            c.args(["-c", if r == 0 { "exec sleep 3600" } else { "test \"$MVSPLAT360_DIST_RANK\" = 1 && test -n \"$MVSPLAT360_DIST_ADDR\" && exit 3" }]);
             c
         },
         &AtomicBool::new(false),
@@ -145,7 +147,8 @@ fn launcher_stops_the_other_ranks_when_one_fails() {
     .unwrap_err()
     .to_string();
     assert!(e.contains("rank 1") && e.contains('3'), "{e}");
-    assert!(t0.elapsed() < Duration::from_secs(20), "rank 0 was not stopped ({:?})", t0.elapsed());
+    // Far below rank 0's hour, however busy the machine.
+    assert!(t0.elapsed() < Duration::from_secs(600), "rank 0 was not stopped ({:?})", t0.elapsed());
 }
 
 #[test]

@@ -314,13 +314,13 @@ fn slow_silent_and_stalled_clients_are_dropped() {
     }
     let got = String::from_utf8_lossy(&read_all(&mut slow)).to_string();
     assert!(got.starts_with("HTTP/1.1 408"), "{got}");
-    assert!(t0.elapsed() < Duration::from_secs(5), "closed after {:?}", t0.elapsed());
+    assert!(t0.elapsed() < Duration::from_secs(60), "closed after {:?}: a hang", t0.elapsed());
 
     // Silent: closed without a word.
     let mut silent = TcpStream::connect(&addr).unwrap();
     let t0 = std::time::Instant::now();
     assert!(read_all(&mut silent).is_empty());
-    assert!(t0.elapsed() < Duration::from_secs(5), "closed after {:?}", t0.elapsed());
+    assert!(t0.elapsed() < Duration::from_secs(60), "closed after {:?}: a hang", t0.elapsed());
 
     // A stalled download: after the write limit the server gives up, so the client gets less than the file.
     let mut stalled = TcpStream::connect(&addr).unwrap();

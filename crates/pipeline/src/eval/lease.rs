@@ -128,6 +128,23 @@ fn progress_of(text: &str) -> Option<u64> {
     text.lines().nth(1)?.split_whitespace().nth(1)?.parse().ok()
 }
 
+/// Creates `path` exclusively with `text` already in it (a temporary file hard-linked to the name, which fails
+/// when the name exists, NFS included), so that no one ever sees it empty; where the file system has no hard links,
+/// created exclusively and then written.
+fn create_with(path: &Path, text: &str) -> std::io::Result<()> {
+    let tmp = mvsplat360_dataset::atomic::partial_name(path);
+    std::fs::write(&tmp, text)?;
+    let linked = std::fs::hard_link(&tmp, path);
+    let _ = std::fs::remove_file(&tmp);
+    match linked {
+        Err(e) if e.kind() != std::io::ErrorKind::AlreadyExists && matches!(e.raw_os_error(), Some(libc::EPERM | libc::EOPNOTSUPP | libc::ENOSYS)) => {
+            use std::io::Write;
+            std::fs::File::options().write(true).create_new(true).open(path)?.write_all(text.as_bytes())
+        }
+        r => r,
+    }
+}
+
 /// Whether `held` is still `key`'s current lease (its file there, no later generation); marks it lost if not.
 fn check_current(dir: &Path, key: &str, held: &mut Held) -> bool {
     if !held.lost {
@@ -163,10 +180,11 @@ impl Leases {
                     if !check_current(&d, key, held) {
                         continue;
                     }
-                    // In place, never created: a lease removed meanwhile stays removed.
-                    if let Ok(mut f) = std::fs::File::options().write(true).truncate(true).open(&held.path) {
-                        use std::io::Write;
-                        let _ = f.write_all(text.as_bytes());
+                    // In place, never created (a lease removed meanwhile stays removed), never truncated: the
+                    // counters only grow, so a reader sees the owner's record whatever it catches.
+                    if let Ok(f) = std::fs::File::options().write(true).open(&held.path) {
+                        use std::os::unix::fs::FileExt;
+                        let _ = f.write_all_at(text.as_bytes(), 0);
                     }
                 }
             }
@@ -191,10 +209,8 @@ impl Leases {
             }
         };
         let path = self.dir.join(format!("{key}.lease-{next}"));
-        match std::fs::File::options().write(true).create_new(true).open(&path) {
-            Ok(mut f) => {
-                use std::io::Write;
-                f.write_all(lease_text(0, self.progress.load(Ordering::Relaxed)).as_bytes())?;
+        match create_with(&path, &lease_text(0, self.progress.load(Ordering::Relaxed))) {
+            Ok(()) => {
                 lock(&self.held).insert(key.to_string(), Held { path, generation: next, lost: false });
                 // Older generations are dead weight now; their owners see they lost the scene.
                 for (g, p) in lease_files(&self.dir, key) {

@@ -21,21 +21,12 @@ use std::time::Duration;
 
 use candle_core::{Device, Tensor};
 use mvsplat360_pipeline::compute::DeviceSpec;
-use mvsplat360_pipeline::launch::{Launcher, Place};
+use mvsplat360_pipeline::launch::{Launcher, Place, Rendezvous};
 
 use crate::error::{Result, TrainError};
 
-pub use mvsplat360_pipeline::launch::{ENV_RANK, ENV_WORLD};
+pub use mvsplat360_pipeline::launch::{DEFAULT_TIMEOUT, ENV_ADDR, ENV_PORT, ENV_RANK, ENV_TIMEOUT, ENV_WORLD};
 pub use ring::RingCollective;
-/// `host:port` of rank 0's rendezvous; set by this program's own launcher, and wins over MASTER_ADDR/MASTER_PORT.
-pub const ENV_ADDR: &str = "MVSPLAT360_DIST_ADDR";
-/// The rendezvous port under an outside launcher (default: MASTER_PORT, under torchrun MASTER_PORT + 1).
-pub const ENV_PORT: &str = "MVSPLAT360_DIST_PORT";
-/// Seconds a rank waits for the rendezvous and for each collective (default [`DEFAULT_TIMEOUT`]).
-pub const ENV_TIMEOUT: &str = "MVSPLAT360_DIST_TIMEOUT";
-/// PyTorch's default process-group timeout; it must outlast rank 0's checkpoint writes, which the others wait out.
-pub const DEFAULT_TIMEOUT: Duration = Duration::from_secs(1800);
-
 /// `--dist-backend`.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 #[repr(u8)]
@@ -123,65 +114,15 @@ impl Rank {
         Self::from_vars(&|k| std::env::var(k).ok())
     }
 
-    /// [`Rank::from_env`] over any variable lookup. The rendezvous: [`ENV_ADDR`] (this program's launcher), else
-    /// `MASTER_ADDR` and the port [`ENV_PORT`], else `MASTER_PORT` — plus one under torchrun, whose own store
-    /// holds `MASTER_PORT`.
+    /// [`Rank::from_env`] over any variable lookup: the place and the rendezvous as
+    /// `mvsplat360_pipeline::launch` reads them.
     pub fn from_vars(get: &dyn Fn(&str) -> Option<String>) -> Result<Option<Self>> {
         let Some(place) = Place::from_vars(get).map_err(|e| net("launcher", e))? else { return Ok(None) };
         if place.launcher != Launcher::Project && place.world == 1 {
             return Ok(None);
         }
-        let who = place.launcher.name();
-        // mpirun passes no rendezvous address of its own; the others are started by scripts that set one.
-        let hint = if place.launcher == Launcher::Mpi {
-            "mpirun passes none: start it as `mpirun -x MASTER_ADDR=<rank 0's host> -x MASTER_PORT=<free port> …`"
-        } else {
-            "scripts/slurm/train.sbatch sets them from `scontrol show hostnames`"
-        };
-        // The address and the variable it came from, as given.
-        let (var, given, rendezvous) = match get(ENV_ADDR) {
-            Some(a) => (ENV_ADDR, a.rsplit_once(':').map_or(a.as_str(), |(h, _)| h).to_string(), a),
-            None => {
-                let host = get("MASTER_ADDR").filter(|h| !h.trim().is_empty()).ok_or_else(|| {
-                    net(who, format!("MASTER_ADDR is not set: training ranks meet at rank 0's host; set MASTER_ADDR and MASTER_PORT ({hint})"))
-                })?;
-                let port = match get(ENV_PORT) {
-                    Some(p) => p.trim().parse::<u16>().map_err(|_| net(ENV_PORT, format!("`{p}` is not a port")))?,
-                    None => {
-                        let p = get("MASTER_PORT").ok_or_else(|| net(who, format!("MASTER_PORT is not set (rank 0's rendezvous port; {hint})")))?;
-                        let p = p.trim().parse::<u16>().map_err(|_| net("MASTER_PORT", format!("`{p}` is not a port")))?;
-                        if place.launcher == Launcher::Torchrun {
-                            p.checked_add(1).ok_or_else(|| net("MASTER_PORT", format!("{p} + 1 is not a port; set {ENV_PORT}")))?
-                        } else {
-                            p
-                        }
-                    }
-                };
-                let host = host.trim();
-                let addr = if host.contains(':') && !host.starts_with('[') { format!("[{host}]:{port}") } else { format!("{host}:{port}") };
-                ("MASTER_ADDR", host.to_string(), addr)
-            }
-        };
-        if place.multi_node() && loopback_everywhere(&given) {
-            return Err(net(
-                who,
-                format!(
-                    "{var} is {given}, a loopback address (this very machine on every node), but the {} ranks run on more than one \
-                     machine ({} here): the others could never reach rank 0; set {var} to rank 0's host name or address as the other \
-                     machines reach it ({hint})",
-                    place.world,
-                    place.local_world.unwrap_or(0)
-                ),
-            ));
-        }
-        let timeout = match get(ENV_TIMEOUT) {
-            None => DEFAULT_TIMEOUT,
-            Some(t) => match t.trim().parse::<f64>() {
-                Ok(s) if s > 0.0 && s.is_finite() => Duration::from_secs_f64(s),
-                _ => return Err(net(ENV_TIMEOUT, format!("`{t}` is not a number of seconds"))),
-            },
-        };
-        Ok(Some(Self { rank: place.rank, world: place.world, place, rendezvous, timeout }))
+        let r = Rendezvous::from_vars(&place, get).map_err(|e| TrainError::Dist(e.to_string()))?;
+        Ok(Some(Self { rank: place.rank, world: place.world, place, rendezvous: r.addr, timeout: r.timeout }))
     }
 
     /// This rank's device for `--device`: its own GPU ([`Place::gpu`]), the CPU unchanged.
@@ -194,16 +135,6 @@ impl Rank {
             d => Ok(d),
         }
     }
-}
-
-/// Whether `host` (a name or an address, IPv6 bracketed or not) is a loopback address on every machine:
-/// `localhost` (and Debian's `ip6-localhost`/`ip6-loopback`), 127.0.0.0/8, `::1`. Machine-specific names are not
-/// resolved: Debian maps a machine's own name to 127.0.1.1 there, yet the other machines reach it by that name.
-fn loopback_everywhere(host: &str) -> bool {
-    let h = host.trim().trim_start_matches('[').trim_end_matches(']').trim_end_matches('.').to_ascii_lowercase();
-    ["localhost", "ip6-localhost", "ip6-loopback"].contains(&h.as_str())
-        || h.ends_with(".localhost")
-        || h.parse::<IpAddr>().is_ok_and(|ip| ip.to_canonical().is_loopback())
 }
 
 /// Sums over the ranks.
@@ -346,6 +277,7 @@ pub fn launch(spec: &LaunchSpec, command: impl FnMut(usize) -> Command, stop: &A
         Err(LaunchError::Interrupted) => Err(TrainError::Interrupted),
         Err(e @ LaunchError::Failed(_)) => Err(TrainError::Dist(e.to_string())),
         Err(LaunchError::Io(m)) => Err(net("launcher", m)),
+        Err(LaunchError::Rendezvous(m)) => Err(TrainError::Dist(m)),
     }
 }
 
