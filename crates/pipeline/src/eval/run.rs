@@ -185,22 +185,7 @@ pub(super) fn run_scenes(req: &EvalRequest, progress: &dyn Progress) -> Result<E
     if req.shard.is_some() || !incomplete.is_empty() {
         // A rank (its scenes' records are on disk; the launcher or the last rank aggregates), or an incomplete merge.
         let images = tally.records.iter().flatten().map(|r| r.scored.len()).sum();
-        return Ok(EvalSummary {
-            out: out.clone(),
-            selected: info.selected,
-            null_entries: info.null_entries,
-            rendered: tally.rendered,
-            rescored: tally.rescored,
-            resumed: tally.resumed,
-            missing: tally.missing,
-            skipped_fov: Vec::new(),
-            images,
-            methods: Vec::new(),
-            warnings: tally.warnings,
-            seconds: t_all.elapsed().as_secs_f64(),
-            incomplete,
-            failed: tally.failed,
-        });
+        return Ok(summary(out, &info, tally, Vec::new(), images, Vec::new(), incomplete));
     }
     write_tables(&cx, &info, tally)
 }
@@ -434,8 +419,20 @@ fn write_tables(cx: &Ctx, info: &RunInfo, mut tally: Tally) -> Result<EvalSummar
         images
     );
     output::write_bytes(&out.join(METRICS_MD), markdown(&line, &table, &per_scene_primary, primary, cx.spec.blend.is_some()).as_bytes())?;
-    Ok(EvalSummary {
-        out: out.clone(),
+    Ok(summary(out, info, tally, skipped_fov, images, table, Vec::new()))
+}
+
+fn summary(
+    out: &Path,
+    info: &RunInfo,
+    tally: Tally,
+    skipped_fov: Vec<String>,
+    images: usize,
+    methods: Vec<(Method, MethodScores)>,
+    incomplete: Vec<String>,
+) -> EvalSummary {
+    EvalSummary {
+        out: out.to_path_buf(),
         selected: info.selected,
         null_entries: info.null_entries,
         rendered: tally.rendered,
@@ -444,10 +441,10 @@ fn write_tables(cx: &Ctx, info: &RunInfo, mut tally: Tally) -> Result<EvalSummar
         missing: tally.missing,
         skipped_fov,
         images,
-        methods: table,
+        methods,
         warnings: tally.warnings,
-        seconds,
-        incomplete: Vec::new(),
+        seconds: info.t_all.elapsed().as_secs_f64(),
+        incomplete,
         failed: tally.failed,
-    })
+    }
 }
