@@ -10,6 +10,14 @@ struct Cli {
     /// Silence progress bars (errors are still printed).
     #[arg(long, global = true)]
     quiet: bool,
+    /// How progress is shown: `bars` on stderr, or `json`: one JSON object per line on stdout (or
+    /// --progress-file) for the events the bars are drawn from, ending with a `result` or `error` line (the format
+    /// is in docs/app.md; `mvsplat360 app` reads it).
+    #[arg(long, global = true, value_enum, default_value_t = cmd::progress::ProgressMode::Bars)]
+    progress: cmd::progress::ProgressMode,
+    /// With `--progress json`: write the lines to this file instead of stdout.
+    #[arg(long, global = true, value_name = "FILE")]
+    progress_file: Option<std::path::PathBuf>,
     #[command(subcommand)]
     command: Command,
 }
@@ -50,6 +58,9 @@ enum Command {
     Bench(cmd::bench::Args),
     /// Look at a render's results in the browser: 3D Gaussians, the video, frames side by side, settings.
     View(cmd::view::Args),
+    /// A local page: drop photos or a video, watch them be posed and rendered, look at the result (jobs run as
+    /// child processes, one at a time; see docs/app.md).
+    App(cmd::app::Args),
 }
 
 fn main() {
@@ -60,6 +71,12 @@ fn main() {
     // Every command is one heavy job (allocator tuning; see the function's docs).
     mvsplat360_pipeline::setup::init_process();
     let cli = Cli::parse();
+    if cli.progress == cmd::progress::ProgressMode::Json {
+        if let Err(e) = cmd::progress::enable_json(cli.progress_file.as_deref()) {
+            eprintln!("error: {e}");
+            std::process::exit(2);
+        }
+    }
     // A typo in the GPU kernel selection stops the run instead of silently measuring the default path.
     if let Err(e) = mvsplat360_nn::gpu_ops::from_env() {
         eprintln!("error: {e}");
@@ -81,11 +98,15 @@ fn main() {
         Command::Weights(a) => cmd::weights::run(a, cli.quiet),
         Command::Bench(a) => cmd::bench::run(a),
         Command::View(a) => cmd::view::run(a),
+        Command::App(a) => cmd::app::run(a),
     };
     if let Err(e) = result {
-        eprintln!("error: {}", one_line(&e));
+        let msg = one_line(&e);
+        eprintln!("error: {msg}");
+        cmd::progress::emit(serde_json::json!({"event": "error", "code": 1, "msg": msg}));
         std::process::exit(1);
     }
+    cmd::progress::emit(serde_json::json!({"event": "result", "ok": true}));
 }
 
 /// The error and its causes on one line, leaving out a cause the message already quotes (most of our error

@@ -1,3 +1,4 @@
+pub mod app;
 pub mod bench;
 pub mod convert;
 pub mod demo;
