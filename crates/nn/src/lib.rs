@@ -26,6 +26,7 @@
 pub mod activation;
 pub mod attention;
 pub mod bench;
+pub mod bf16;
 pub mod conv;
 #[cfg(feature = "flash-attn")]
 pub mod flash_attn;

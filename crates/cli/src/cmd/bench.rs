@@ -222,6 +222,18 @@ enum What {
         #[command(flatten)]
         threads: Threads,
     },
+    /// bf16 on the CPU: `vdpbf16ps` against `vfmadd231ps` peak GFLOP/s (1 thread and --threads), then the
+    /// bf16 gemm (AVX512-BF16, f32 accumulation) against the f32 gemm on the model's shapes.
+    Bf16 {
+        /// Gemm shapes MxKxN, comma-separated (default: VGGT block linears and an SVD UNet 3×3 conv as a gemm).
+        #[arg(long)]
+        shapes: Option<String>,
+        /// Inner iterations of one microbenchmark run (each issues 12 instructions per thread).
+        #[arg(long, default_value_t = 40_000_000)]
+        micro_iters: u64,
+        #[command(flatten)]
+        common: Common,
+    },
     /// Image metrics at 256×448: images (pairs) per second of PSNR, SSIM, LPIPS, DISTS and FID features
     /// (the networks only when their weights are installed, see scripts/metric-weights/fetch).
     Metrics {
@@ -329,6 +341,25 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             let pool = rayon::ThreadPoolBuilder::new().num_threads(threads.count()).build()?;
             let b = mvsplat360_vggt::bench::VggtBench { frames, height, width, runs, warmup, seed: 0, trunk: dtype };
             pool.install(|| mvsplat360_vggt::bench::run(&cfg, &b, &device))?
+        }
+        What::Bf16 { shapes, micro_iters, common } => {
+            let shapes = match shapes {
+                None => mvsplat360_nn::bf16::bench::default_shapes(),
+                Some(s) => s
+                    .split(',')
+                    .filter(|t| !t.trim().is_empty())
+                    .map(|t| {
+                        let v: Vec<usize> = t.trim().split('x').filter_map(|x| x.parse().ok()).collect();
+                        match v[..] {
+                            [m, k, n] => Ok((m, k, n)),
+                            _ => Err(anyhow::anyhow!("bench bf16: shape `{t}` is not MxKxN")),
+                        }
+                    })
+                    .collect::<anyhow::Result<Vec<_>>>()?,
+            };
+            let opts = mvsplat360_nn::bf16::bench::Bf16BenchOpts { threads: common.threads.count(), runs: common.runs, shapes, micro_iters };
+            let line = mvsplat360_nn::bf16::bench::run(&opts).map_err(|e| anyhow::anyhow!("bench bf16: {e}"))?;
+            serde_json::from_str::<serde_json::Value>(&line)?
         }
         What::Metrics { width, height, runs, threads } => {
             if width < 11 || height < 11 {
