@@ -184,7 +184,7 @@ fn a_job_on_the_bundled_scene_is_held_cancelled_resumed_and_viewed() {
     let work = tmp.path().join("work");
     let hold = tmp.path().join("hold");
     std::fs::write(&hold, b"").unwrap();
-    let at = Path::new("rasterizing and blending");
+    let at = Path::new("fitting");
     let (_app, port) = app(&work, &[], &[("MVSPLAT360_HOLD_AT", at), ("MVSPLAT360_HOLD_WHILE", &hold)]);
     let tok = token(port);
     let t = ("X-Mvsplat360-Token", tok.as_str());
@@ -212,7 +212,7 @@ fn a_job_on_the_bundled_scene_is_held_cancelled_resumed_and_viewed() {
             let stages = d["stages"].as_array().unwrap();
             advanced |= stages.iter().any(|s| s["total"].as_u64() > Some(0) && s["pos"] == s["total"]);
             pid = d["pid"].as_i64().unwrap_or(pid as i64) as i32;
-            return stages.last().is_some_and(|s| s["name"] == "rasterizing and blending");
+            return stages.last().is_some_and(|s| s["name"] == "fitting");
         }
         false
     });
