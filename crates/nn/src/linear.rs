@@ -385,6 +385,53 @@ pub(crate) fn linear_to_channels_first_composed(h: &Tensor, w: &Tensor, b: &Tens
     y + residual.reshape((n, o, s))?
 }
 
+/// [`linear_fused`] with bf16 weights (issue 73, inference only, opt-in): `scale·(x @ wᵀ + bias) + Σ cᵢ·addᵢ`,
+/// the product by [`crate::bf16::matmul_bf16`] — `vdpbf16ps` where the CPU has AVX512-BF16 (activations rounded
+/// to bf16 while packed, f32 accumulation), otherwise storage only (the bf16 weights widened, f32 arithmetic).
+/// x, bias and adds are CPU f32; `w` is [`Bf16Weights::from_linear`]. The f32 [`linear_fused`] is untouched.
+pub fn linear_fused_bf16(x: &Tensor, w: &crate::bf16::Bf16Weights, bias: Option<&Tensor>, scale: f32, adds: &[(&Tensor, f32)]) -> Result<Tensor> {
+    let dims = x.dims().to_vec();
+    let k = *dims.last().unwrap_or(&1);
+    let o = w.n();
+    if w.k() != k {
+        candle_core::bail!("linear (bf16): input width {k}, weight {o}×{}", w.k());
+    }
+    if !crate::mode::cpu_f32(x) {
+        candle_core::bail!("linear (bf16): the input must be a CPU f32 tensor (got {:?} on {:?})", x.dtype(), x.device());
+    }
+    let rows = x.elem_count() / k.max(1);
+    let mut od = dims;
+    if let Some(l) = od.last_mut() {
+        *l = o;
+    }
+    for (a, _) in adds {
+        if a.elem_count() != rows * o {
+            candle_core::bail!("linear (bf16): addend {:?} does not match output {od:?}", a.dims());
+        }
+    }
+    let bias_v = match bias {
+        Some(b) => Some(b.to_vec1::<f32>()?),
+        None => None,
+    };
+    let mut dst = vec![0f32; rows * o];
+    let accumulate = bias_v.is_some() || !adds.is_empty();
+    if accumulate {
+        init_rows(&mut dst, o, bias_v.as_deref(), scale, adds)?;
+    }
+    if scale == 1.0 {
+        with_f32(x, |xd| crate::bf16::matmul_bf16(xd, rows, k, w, &mut dst, accumulate))?;
+    } else {
+        let mut prod = vec![0f32; rows * o];
+        with_f32(x, |xd| crate::bf16::matmul_bf16(xd, rows, k, w, &mut prod, false))?;
+        dst.par_chunks_mut(1 << 14).zip(prod.par_chunks(1 << 14)).for_each(|(d, p)| {
+            for (d, p) in d.iter_mut().zip(p) {
+                *d += scale * p;
+            }
+        });
+    }
+    Tensor::from_vec(dst, od, x.device())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -167,6 +167,13 @@ impl Bf16Weights {
         Bf16Weights { k, n, data }
     }
 
+    /// Packs a linear layer's `[out, in]` weight (any dtype or device; read once as f32 on the CPU).
+    pub fn from_linear(w: &candle_core::Tensor) -> candle_core::Result<Self> {
+        let (n, k) = w.dims2()?;
+        let v = w.to_dtype(candle_core::DType::F32)?.to_device(&candle_core::Device::Cpu)?.flatten_all()?.to_vec1::<f32>()?;
+        Ok(Self::from_nk(&v, n, k))
+    }
+
     /// Reduction length K.
     pub fn k(&self) -> usize {
         self.k
