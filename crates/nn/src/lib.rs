@@ -21,7 +21,7 @@
 //! attention scores — in slices of at most 2^26, by batch and then by query rows —, the warped
 //! `[N, C, D, h, w]` features). `conv2d_shift` and `conv2d_gemm` (the CPU algorithms by name, for tests and
 //! benchmarks) answer [`NotBuilt`] on other devices. On an H200 (2026-11-26) the compositions matched the CPU
-//! kernels in `tests/gpu.rs` except where that run notes otherwise (README, GPU).
+//! kernels in `tests/gpu.rs` except where that run notes otherwise (docs/gpu.md).
 
 pub mod activation;
 pub mod attention;
