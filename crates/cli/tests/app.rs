@@ -147,6 +147,28 @@ fn refused_requests_write_nothing_and_uploads_are_checked() {
     let bad = format!(r#"{{"upload": "{up}", "settings": {{"weights": "--out=/tmp/x"}}}}"#);
     assert_eq!(request(port, "POST", "/api/jobs", &[t], bad.as_bytes()).0, 400);
     assert!(!work.join("jobs").exists());
+
+    // A video is probed with ffprobe: a fake one refused and removed, a real one kept; photos and a video in one
+    // upload make no job.
+    let up2 = json(&request(port, "POST", "/api/uploads", &[t], b"").1)["id"].as_str().unwrap().to_string();
+    assert_eq!(request(port, "PUT", &format!("/api/uploads/{up2}/fake.mp4"), &[t], b"not a video at all").0, 415);
+    let clip = tmp.path().join("clip.mp4");
+    let made = std::process::Command::new("ffmpeg")
+        .args(["-loglevel", "error", "-f", "lavfi", "-i", "testsrc=size=64x48:rate=5", "-t", "1", "-pix_fmt", "yuv420p"])
+        .arg(&clip)
+        .status()
+        .expect("ffmpeg (scripts/test installs it)");
+    assert!(made.success());
+    assert_eq!(request(port, "PUT", &format!("/api/uploads/{up2}/clip.mp4"), &[t], &std::fs::read(&clip).unwrap()).0, 200);
+    assert!(files(&work).contains(&format!(".staging/{up2}/clip.mp4")) && !files(&work).iter().any(|f| f.ends_with("fake.mp4")));
+    assert_eq!(request(port, "PUT", &format!("/api/uploads/{up2}/000.jpg"), &[t], &photo).0, 200);
+    let (code, msg) = request(port, "POST", "/api/jobs", &[t], format!(r#"{{"upload": "{up2}", "settings": {{}}}}"#).as_bytes());
+    assert_eq!(code, 400, "{}", String::from_utf8_lossy(&msg));
+    assert!(String::from_utf8_lossy(&msg).contains("not both"));
+    // A scene folder that is not there: refused, no job.
+    let missing = format!(r#"{{"scene": "{}", "settings": {{}}}}"#, tmp.path().join("nope").display());
+    assert_eq!(request(port, "POST", "/api/jobs", &[t], missing.as_bytes()).0, 400);
+    assert!(files(&work.join("jobs")).is_empty(), "refused jobs left {:?}", files(&work.join("jobs")));
 }
 
 /// Events of `/api/events` as (type, JSON data), read until `until` says stop (or the deadline fails the test).
