@@ -44,8 +44,9 @@ fn check(a: &[f32], b: &[f32], c: &[f32], m: usize, k: usize, n: usize) -> std::
     Ok(worst)
 }
 
-/// The shapes: K odd, K = 1, K across the K-block (192 pairs), M and N off the 12 × 32 tile and off a task.
-const SHAPES: [(usize, usize, usize); 7] = [(1, 1, 1), (13, 7, 33), (37, 129, 65), (12, 384, 32), (50, 385, 70), (97, 1001, 129), (5, 2, 200)];
+/// The shapes: K odd, K = 1, K at and across the K-block (256 pairs: K = 512 one block, 513 a block and one
+/// pair, 1001 two), M and N off the 12 × 32 tile and off a task.
+const SHAPES: [(usize, usize, usize); 8] = [(1, 1, 1), (13, 7, 33), (37, 129, 65), (12, 512, 32), (20, 513, 40), (50, 385, 70), (97, 1001, 129), (5, 2, 200)];
 
 #[test]
 fn gemm_holds_the_error_model_on_seeds_and_edges() {
