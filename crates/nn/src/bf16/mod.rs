@@ -123,8 +123,8 @@ pub(crate) const MR: usize = 12;
 /// Columns of B in one packed micro-panel (two zmm of 16 f32 lanes).
 pub(crate) const NR: usize = 32;
 
-/// B (K × N) in bf16, packed for `vdpbf16ps`: panels of [`NR`] columns; in a panel, for each K-pair p, the 32
-/// u32 words (B[2p][n] | B[2p+1][n] << 16) of its columns (zero past N and past an odd K).
+/// B (K × N) in bf16, packed for `vdpbf16ps`: panels of 32 columns; in a panel, for each K-pair p, the 32
+/// u32 words (`B[2p][n] | B[2p+1][n] << 16`) of its columns (zero past N and past an odd K).
 pub struct Bf16Weights {
     k: usize,
     n: usize,
@@ -189,7 +189,7 @@ impl Bf16Weights {
         self.data.len() * 4
     }
 
-    /// B[kk][nn] as stored (the bf16 value widened exactly).
+    /// `B[kk][nn]` as stored (the bf16 value widened exactly).
     pub fn get(&self, kk: usize, nn: usize) -> f32 {
         let kp = self.k.div_ceil(2);
         let w = self.data[(nn / NR) * kp * NR + (kk / 2) * NR + nn % NR];
