@@ -132,7 +132,11 @@ fn progress_of(text: &str) -> Option<u64> {
 /// when the name exists, NFS included), so that no one ever sees it empty; where the file system has no hard links,
 /// created exclusively and then written.
 fn create_with(path: &Path, text: &str) -> std::io::Result<()> {
-    let tmp = mvsplat360_dataset::atomic::partial_name(path);
+    // Unique per call: threads of one process may race for the same lease.
+    static CALLS: AtomicU64 = AtomicU64::new(0);
+    let mut name = path.as_os_str().to_owned();
+    name.push(format!(".{}", CALLS.fetch_add(1, Ordering::Relaxed)));
+    let tmp = mvsplat360_dataset::atomic::partial_name(Path::new(&name));
     std::fs::write(&tmp, text)?;
     let linked = std::fs::hard_link(&tmp, path);
     let _ = std::fs::remove_file(&tmp);
