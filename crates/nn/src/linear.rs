@@ -502,4 +502,41 @@ mod tests {
         let d = (back - want).unwrap().abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap();
         assert!(d < 1e-5, "to channels-first: {d}");
     }
+
+    /// `linear_fused_bf16`: bias, scale and addends as `linear_fused`, the product within the error model (the
+    /// f32 bias/addend sum adds its own f32 rounding); masked, the storage-only path.
+    #[test]
+    fn linear_bf16_matches_linear_fused_within_the_model() {
+        let (rows, k, o) = (37usize, 129usize, 45usize);
+        let x = Tensor::from_vec(crate::bf16::bench::fill(rows * k, 21), (rows, k), &Device::Cpu).unwrap();
+        let w = Tensor::from_vec(crate::bf16::bench::fill(o * k, 22), (o, k), &Device::Cpu).unwrap();
+        let b = Tensor::from_vec(crate::bf16::bench::fill(o, 23), o, &Device::Cpu).unwrap();
+        let add = Tensor::from_vec(crate::bf16::bench::fill(rows * o, 24), (rows, o), &Device::Cpu).unwrap();
+        let wb = crate::bf16::Bf16Weights::from_linear(&w).unwrap();
+        let want = linear_fused(&x, &w, Some(&b), 0.5, &[(&add, 2.0)]).unwrap().to_vec2::<f32>().unwrap();
+        let xs = x.to_vec2::<f32>().unwrap();
+        let ws = w.to_vec2::<f32>().unwrap();
+        for masked in [false, true] {
+            let got = if masked {
+                crate::bf16::with_bf16_masked(|| linear_fused_bf16(&x, &wb, Some(&b), 0.5, &[(&add, 2.0)]))
+            } else {
+                linear_fused_bf16(&x, &wb, Some(&b), 0.5, &[(&add, 2.0)])
+            }
+            .unwrap()
+            .to_vec2::<f32>()
+            .unwrap();
+            for i in 0..rows {
+                for j in 0..o {
+                    let sa: f64 = (0..k).map(|p| (xs[i][p] as f64 * ws[j][p] as f64).abs()).sum();
+                    // 0.5·(product error) + both results' f32 roundings of the epilogue (a few ulps of 3 terms).
+                    let bound =
+                        0.5 * (crate::bf16::error_bound(k, sa) + k as f64 * 2f64.powi(-24) * sa) + 8.0 * 2f64.powi(-24) * (want[i][j].abs() as f64 + 4.0);
+                    let d = (got[i][j] - want[i][j]).abs() as f64;
+                    assert!(d <= bound, "masked {masked}: [{i},{j}] {} vs {} (|diff| {d} > {bound})", got[i][j], want[i][j]);
+                }
+            }
+        }
+        let bad = Tensor::zeros((3, 7), candle_core::DType::F32, &Device::Cpu).unwrap();
+        assert!(linear_fused_bf16(&bad, &wb, None, 1.0, &[]).is_err(), "width mismatch refused");
+    }
 }
