@@ -204,7 +204,8 @@ impl Leases {
             Some((g, path)) => {
                 let text = std::fs::read_to_string(path).unwrap_or_default();
                 let owner = Owner::parse(text.lines().next().unwrap_or(""));
-                // Just created and not yet written (no owner): its creator is alive.
+                // No record (garbled, or an older version's lease caught before it was written): held until
+                // the clocks below say otherwise.
                 let dead_here = owner.as_ref().is_some_and(|o| !o.is_me() && o.state() == State::Dead);
                 if !(dead_here || self.observe(path, text)) {
                     return Ok(Claim::Held(owner.unwrap_or_else(unknown)));
@@ -242,7 +243,7 @@ impl Leases {
             s.text = text;
             s.changed = now;
         }
-        // A torn read (the owner rewriting) has no progress: not a move.
+        // No progress line (an older version's lease, a garbled read): not a move.
         if progress.is_some() && s.progress != progress {
             s.progress = progress;
             s.moved = now;
