@@ -130,6 +130,8 @@ pub fn run(cfg: &VggtConfig, b: &VggtBench, device: &Device) -> candle_core::Res
         "bench": "vggt",
         "device": format!("{device:?}"),
         "dtype": format!("{:?}", b.trunk).to_lowercase(),
+        // What the trunk's big linears run on: the packed bf16 product (its path) or the trunk's dtype's gemm.
+        "trunk_linears": if model.aggregator.bf16_packed() { mvsplat360_nn::bf16::path().name().to_string() } else { format!("{:?} gemm", b.trunk).to_lowercase() },
         "frames": b.frames,
         "size": format!("{}x{}", b.width, b.height),
         "threads": rayon::current_num_threads(),

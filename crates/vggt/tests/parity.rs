@@ -244,17 +244,11 @@ fn pos_embed_interpolation_antialias() {
     assert!(checked >= 4, "only {checked} antialiased sizes in the fixture");
 }
 
-/// The bf16 trunk (what a GPU runs, upstream's autocast) on the CPU through candle's bf16 ops: the aggregator's
-/// weights and tokens in bf16, the heads in f32. bf16 keeps 8 significant bits (u = 2⁻⁸); each block rounds
-/// its inputs, weights and outputs, and ~10 blocks compound that, so the outputs are compared by their RMS
-/// error against 0.05 × the reference's RMS (≈ 13 u): a wrong cast, a head left in bf16 or a token taken from
-/// the wrong place gives O(1) errors.
-#[test]
-fn bf16_trunk_within_bf16_error() {
-    let (_, cfg, _tmp, tensors) = load_model(0);
-    let model = weights::from_tensors(tensors, &cfg, &Device::Cpu, DType::BF16).unwrap();
-    assert_eq!(model.aggregator.frame_blocks[0].attn.qkv.weight.dtype(), DType::BF16);
-    assert_eq!(model.depth_head.as_ref().unwrap().norm.weight.dtype(), DType::F32);
+/// The bf16 trunk's outputs on the seed-0 fixtures against the official f32 outputs (which the f32 model
+/// matches to f32 precision): the RMS error of each output within 0.05 × the reference's RMS. Returns the
+/// outputs, case by case.
+fn bf16_within_bound(model: &Vggt, label: &str) -> Vec<Vec<f64>> {
+    let mut outs = Vec::new();
     for case in cases(0) {
         let pred = model.forward(case.get("images"), &[]).unwrap();
         let d = &pred.depth.as_ref().unwrap().0;
@@ -266,8 +260,56 @@ fn bf16_trunk_within_bf16_error() {
             let r = to_f64(e);
             let err: Vec<f64> = a.iter().zip(&r).map(|(x, y)| x - y).collect();
             let (re, rr) = (rms(&err), rms(&r));
-            eprintln!("{}/{k} bf16: rms err {re:.3e}, rms ref {rr:.3e}, ratio {:.3e}", case.name, re / rr);
-            assert!(re <= 0.05 * rr, "{}/{k}: bf16 trunk rms error {re:.3e} over 0.05 × rms ref {rr:.3e}", case.name);
+            eprintln!("{label}: {}/{k}: rms err {re:.3e}, rms ref {rr:.3e}, ratio {:.3e}", case.name, re / rr);
+            assert!(re <= 0.05 * rr, "{label}: {}/{k}: bf16 trunk rms error {re:.3e} over 0.05 × rms ref {rr:.3e}", case.name);
+            outs.push(a);
         }
     }
+    outs
+}
+
+/// The bf16 trunk (upstream's autocast) on the CPU: with AVX512-BF16 the blocks' linears (attention qkv/proj,
+/// MLP fc1/fc2) run in `nn`'s packed bf16 product and everything else in f32; without it, candle's bf16 ops
+/// with the aggregator's weights and tokens in bf16. The heads are f32 either way. bf16 keeps 8 significant
+/// bits (u = 2⁻⁸); each block rounds its products' operands (and, through candle, its outputs), and ~10 blocks
+/// compound that, so the outputs are compared by their RMS error against 0.05 × the reference's RMS (≈ 13 u):
+/// a wrong cast, a head left in bf16 or a token taken from the wrong place gives O(1) errors.
+#[test]
+fn bf16_trunk_within_bf16_error() {
+    let (_, cfg, _tmp, tensors) = load_model(0);
+    let model = weights::from_tensors(tensors, &cfg, &Device::Cpu, DType::BF16).unwrap();
+    assert_eq!(model.aggregator.frame_blocks[0].attn.qkv.weight.dtype(), DType::BF16);
+    assert_eq!(model.depth_head.as_ref().unwrap().norm.weight.dtype(), DType::F32);
+    let packed = mvsplat360_nn::bf16::hardware_dpbf16();
+    assert_eq!(model.aggregator.bf16_packed(), packed, "the linears are packed exactly when the CPU has AVX512-BF16");
+    if packed {
+        assert_eq!(model.aggregator.camera_token.dtype(), DType::F32, "tokens stay f32 with packed linears");
+        assert!(model.aggregator.patch_embed.blocks[0].mlp.fc2.packed.is_some(), "DINOv2's blocks are packed too");
+    }
+    bf16_within_bound(&model, if packed { "packed bf16 linears" } else { "candle bf16" });
+}
+
+/// AVX512-BF16 masked ([`mvsplat360_nn::bf16::with_bf16_masked`], which masks the calling thread only): a
+/// model loaded under the mask falls back to candle's bf16 trunk; a packed model run under the mask takes the
+/// storage-only product (bf16 weights widened, f32 activations). The mask reaches that dispatch because the
+/// aggregator calls its linears in sequence on the calling thread (rayon's workers only split each product,
+/// after `nn::bf16::path` has been read). Both within the bound; the storage-only outputs differ from the
+/// `vdpbf16ps` ones (unrounded activations), which shows the mask took effect. On a CPU without the feature
+/// only the first half runs.
+#[test]
+fn bf16_trunk_masked_falls_back() {
+    let (_, cfg, _tmp, tensors) = load_model(0);
+    let candle = mvsplat360_nn::bf16::with_bf16_masked(|| weights::from_tensors(tensors.clone(), &cfg, &Device::Cpu, DType::BF16)).unwrap();
+    assert!(!candle.aggregator.bf16_packed(), "masked at load: candle's bf16 trunk");
+    assert_eq!(candle.aggregator.camera_token.dtype(), DType::BF16);
+    bf16_within_bound(&candle, "candle bf16 (masked at load)");
+    if !mvsplat360_nn::bf16::hardware_dpbf16() {
+        eprintln!("no AVX512-BF16 on this CPU: the packed model's masked run is not tested");
+        return;
+    }
+    let model = weights::from_tensors(tensors, &cfg, &Device::Cpu, DType::BF16).unwrap();
+    assert!(model.aggregator.bf16_packed());
+    let dp = bf16_within_bound(&model, "packed, vdpbf16ps");
+    let so = mvsplat360_nn::bf16::with_bf16_masked(|| bf16_within_bound(&model, "packed, storage-only (masked)"));
+    assert_ne!(dp, so, "the masked run took the same path as the unmasked one");
 }

@@ -201,7 +201,8 @@ enum What {
         /// Where it runs: `cpu`, `cuda` or `cuda:N` (CUDA needs a `--features cuda` build).
         #[arg(long, default_value = "cpu")]
         device: mvsplat360_pipeline::compute::DeviceSpec,
-        /// Precision of the aggregator: `f32`, or `bf16` on a GPU (the heads stay f32, as upstream).
+        /// Precision of the aggregator: `f32` or `bf16` (the heads stay f32, as upstream); `f16` on a GPU only. bf16
+        /// on a CPU with AVX512-BF16 runs the blocks' linears in the packed bf16 product, the rest in f32.
         #[arg(long, default_value = "f32", value_parser = mvsplat360_pipeline::compute::parse_dtype)]
         dtype: candle_core::DType,
         /// Frames (photos) in the forward.
@@ -326,8 +327,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             })?
         }
         What::Vggt { device, dtype, frames, size, config, runs, warmup, threads } => {
-            if device == mvsplat360_pipeline::compute::DeviceSpec::Cpu && dtype != candle_core::DType::F32 {
-                anyhow::bail!("bench vggt: --dtype {dtype:?} needs --device cuda (the CPU kernels are f32)");
+            // bf16 on the CPU: the trunk's linears in the packed bf16 product with AVX512-BF16, candle's bf16 ops without.
+            if device == mvsplat360_pipeline::compute::DeviceSpec::Cpu && !matches!(dtype, candle_core::DType::F32 | candle_core::DType::BF16) {
+                anyhow::bail!("bench vggt: --dtype {dtype:?} needs --device cuda (the CPU runs f32 or bf16)");
             }
             let (width, height) = size
                 .split_once('x')

@@ -44,6 +44,16 @@ impl Block {
         Ok(Self { norm1, attn, norm2, mlp })
     }
 
+    /// Packs the block's four big linears (attention `qkv` and `proj`, MLP `fc1` and `fc2`, LayerScale already
+    /// folded in f32) for `nn`'s bf16 product ([`super::Linear::pack_bf16`]); everything else — the tokens, the
+    /// norms, QK-norm, RoPE, attention's own products and softmax, GELU, biases and residual sums — stays f32.
+    pub fn pack_bf16(&mut self) -> Result<()> {
+        self.attn.qkv.pack_bf16()?;
+        self.attn.proj.pack_bf16()?;
+        self.mlp.fc1.pack_bf16()?;
+        self.mlp.fc2.pack_bf16()
+    }
+
     /// `x (N, L, C)`; `rope`: tables for the L tokens (None: no rotary embedding).
     pub fn forward(&self, x: &Tensor, rope: Option<&RopeTables>) -> Result<Tensor> {
         let a = self.attn.attend(&self.norm1.forward(x)?, rope)?;

@@ -8,38 +8,81 @@ pub mod patch_embed;
 pub mod rope;
 pub mod vision_transformer;
 
-use candle_core::{Result, Tensor};
+use candle_core::{DType, Result, Tensor};
 use candle_nn::VarBuilder;
 
-/// `nn.Linear` (weight `(out, in)`), run through `nn`'s fused gemm.
+/// `nn.Linear` (weight `(out, in)`), run through `nn`'s fused gemm, or through `nn`'s bf16 product when its
+/// weight was packed by [`Linear::pack_bf16`].
 #[derive(Debug, Clone)]
 pub struct Linear {
+    /// `(out, in)`; bf16 once packed (the packed copy is what runs).
     pub weight: Tensor,
     pub bias: Option<Tensor>,
+    /// The weight in bf16, packed once at load for `vdpbf16ps` ([`mvsplat360_nn::bf16`]); None: the f32 gemm
+    /// (or candle's ops on other dtypes and devices).
+    pub packed: Option<PackedBf16>,
+}
+
+/// A linear layer's weight packed for `nn`'s bf16 product (shared by clones of the layer).
+#[derive(Clone)]
+pub struct PackedBf16(pub std::sync::Arc<mvsplat360_nn::bf16::Bf16Weights>);
+
+impl std::fmt::Debug for PackedBf16 {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "PackedBf16({}×{})", self.0.n(), self.0.k())
+    }
 }
 
 impl Linear {
     pub fn new(vb: VarBuilder, d_in: usize, d_out: usize, bias: bool) -> Result<Self> {
         let weight = vb.get((d_out, d_in), "weight")?;
         let bias = if bias { Some(vb.get(d_out, "bias")?) } else { None };
-        Ok(Self { weight, bias })
+        Ok(Self { weight, bias, packed: None })
     }
 
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        mvsplat360_nn::linear::linear_fused(x, &self.weight, self.bias.as_ref(), 1.0, &[])
+        self.fused(x, &[])
     }
 
     /// `residual + self(x)` with the sum done in the gemm's destination.
     pub fn forward_add(&self, x: &Tensor, residual: &Tensor) -> Result<Tensor> {
-        mvsplat360_nn::linear::linear_fused(x, &self.weight, self.bias.as_ref(), 1.0, &[(residual, 1.0)])
+        self.fused(x, &[(residual, 1.0)])
+    }
+
+    /// `x @ Wᵀ + b + Σ cᵢ·addᵢ`: the packed bf16 product on a CPU f32 input when packed (bias and addends in
+    /// f32), the f32 gemm otherwise (a packed layer's bf16 weight widened to the input's dtype there).
+    pub(crate) fn fused(&self, x: &Tensor, adds: &[(&Tensor, f32)]) -> Result<Tensor> {
+        match &self.packed {
+            Some(p) if x.device().is_cpu() && x.dtype() == DType::F32 && !mvsplat360_nn::mode::is_differentiable() => {
+                mvsplat360_nn::linear::linear_fused_bf16(x, &p.0, self.bias.as_ref(), 1.0, adds)
+            }
+            Some(_) => {
+                let w = self.weight.to_dtype(x.dtype())?;
+                let b = self.bias.as_ref().map(|b| b.to_dtype(x.dtype())).transpose()?;
+                mvsplat360_nn::linear::linear_fused(x, &w, b.as_ref(), 1.0, adds)
+            }
+            None => mvsplat360_nn::linear::linear_fused(x, &self.weight, self.bias.as_ref(), 1.0, adds),
+        }
+    }
+
+    /// Packs the weight (any dtype; f32 here, after any folding, so it is rounded to bf16 once) for `nn`'s bf16
+    /// product and keeps the weight tensor in bf16 only (the f32 copy is dropped; the bias stays as it is).
+    pub fn pack_bf16(&mut self) -> Result<()> {
+        self.packed = Some(PackedBf16(std::sync::Arc::new(mvsplat360_nn::bf16::Bf16Weights::from_linear(&self.weight)?)));
+        self.weight = self.weight.to_dtype(DType::BF16)?;
+        Ok(())
     }
 
     /// The layer followed by a per-channel scale (`LayerScale`), folded into the weights once at load:
     /// `γ ⊙ (W x + b) = (diag(γ) W) x + γ ⊙ b`.
     pub fn scaled_by(&self, gamma: &Tensor) -> Result<Self> {
-        let weight = self.weight.broadcast_mul(&gamma.unsqueeze(1)?)?;
+        let weight = self.weight.to_dtype(gamma.dtype())?.broadcast_mul(&gamma.unsqueeze(1)?)?;
         let bias = self.bias.as_ref().map(|b| b * gamma).transpose()?;
-        Ok(Self { weight, bias })
+        let mut out = Self { weight, bias, packed: None };
+        if self.packed.is_some() {
+            out.pack_bf16()?;
+        }
+        Ok(out)
     }
 }
 

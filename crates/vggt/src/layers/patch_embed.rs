@@ -19,7 +19,7 @@ impl PatchEmbed {
         let p = patch_size;
         let w = vb.pp("proj").get((embed_dim, in_chans, p, p), "weight")?;
         let b = vb.pp("proj").get(embed_dim, "bias")?;
-        Ok(Self { proj: Linear { weight: w.reshape((embed_dim, in_chans * p * p))?, bias: Some(b) }, patch_size, in_chans })
+        Ok(Self { proj: Linear { weight: w.reshape((embed_dim, in_chans * p * p))?, bias: Some(b), packed: None }, patch_size, in_chans })
     }
 
     /// `x (N, 3, H, W)` with H and W multiples of the patch → `(N, (H/p)·(W/p), C)`.

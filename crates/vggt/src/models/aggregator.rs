@@ -57,6 +57,20 @@ impl Aggregator {
         })
     }
 
+    /// Packs the linears of every block (DINOv2's, the frame and the global blocks) for the CPU's bf16 product
+    /// ([`Block::pack_bf16`]): bf16 weights and products, f32 everywhere else.
+    pub fn pack_bf16_linears(&mut self) -> Result<()> {
+        for b in self.patch_embed.blocks.iter_mut().chain(&mut self.frame_blocks).chain(&mut self.global_blocks) {
+            b.pack_bf16()?;
+        }
+        Ok(())
+    }
+
+    /// Whether the blocks' linears run packed in bf16 ([`Aggregator::pack_bf16_linears`]).
+    pub fn bf16_packed(&self) -> bool {
+        self.frame_blocks.first().is_some_and(|b| b.attn.qkv.packed.is_some())
+    }
+
     /// The normalised images' DINOv2 patch tokens, `(S, h·w, C)`, from images `(S, 3, H, W)` in [0, 1].
     pub fn patch_tokens(&self, images: &Tensor) -> Result<Tensor> {
         let dev = images.device();

@@ -47,13 +47,29 @@ impl Vggt {
 
     /// The aggregator's weights and tokens in `trunk` (bf16 on a GPU, as upstream's autocast); the heads stay
     /// f32 whatever the trunk's dtype, as upstream runs them with autocast disabled.
+    ///
+    /// A bf16 trunk on a CPU with AVX512-BF16 ([`mvsplat360_nn::bf16::path`] on the calling thread, so
+    /// [`mvsplat360_nn::bf16::with_bf16_masked`] around the load opts out) runs only the blocks' big linears in
+    /// bf16: attention `qkv`/`proj` and MLP `fc1`/`fc2` take `nn::linear::linear_fused_bf16` (weights rounded
+    /// to bf16 and packed once here, activations rounded to bf16 as they are packed, f32 accumulation). The
+    /// tokens stay f32, and so do the patch embedding, the norms, QK-norm, RoPE, attention's own products and
+    /// softmax, GELU, biases and residual sums. Without the feature (or on a GPU) a bf16 trunk is candle's bf16
+    /// storage and ops throughout, as before; an f32 trunk is unchanged.
     pub fn with_trunk_dtype(vb: VarBuilder, cfg: &VggtConfig, trunk: DType) -> Result<Self> {
         cfg.validate().map_err(candle_core::Error::Msg)?;
         let dim = 2 * cfg.embed_dim;
         let heads = vb.clone().set_dtype(DType::F32);
         let vb = heads.clone();
+        let cpu_dpbf16 = trunk == DType::BF16 && vb.device().is_cpu() && mvsplat360_nn::bf16::path() == mvsplat360_nn::bf16::Bf16Path::Dpbf16;
+        let aggregator = if cpu_dpbf16 {
+            let mut a = Aggregator::new(vb.pp("aggregator"), cfg)?;
+            a.pack_bf16_linears()?;
+            a
+        } else {
+            Aggregator::new(vb.pp("aggregator").set_dtype(trunk), cfg)?
+        };
         Ok(Self {
-            aggregator: Aggregator::new(vb.pp("aggregator").set_dtype(trunk), cfg)?,
+            aggregator,
             camera_head: if cfg.enable_camera { Some(CameraHead::new(vb.pp("camera_head"), dim, &cfg.camera_head)?) } else { None },
             point_head: if cfg.enable_point { Some(DptHead::new(vb.pp("point_head"), dim, cfg.patch_size, 4, Activation::InvLog, &cfg.dpt)?) } else { None },
             depth_head: if cfg.enable_depth { Some(DptHead::new(vb.pp("depth_head"), dim, cfg.patch_size, 2, Activation::Exp, &cfg.dpt)?) } else { None },
