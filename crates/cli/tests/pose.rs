@@ -6,26 +6,11 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
+mod orbit;
+use orbit::orbit_video;
+
 fn bin() -> &'static str {
     env!("CARGO_BIN_EXE_mvsplat360")
-}
-
-fn orbit_video(dir: &Path) -> PathBuf {
-    let images = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../assets/pose-test/orbit24/images");
-    let mut frames: Vec<PathBuf> = std::fs::read_dir(&images).unwrap().map(|e| e.unwrap().path()).collect();
-    frames.sort();
-    let list = dir.join("frames.txt");
-    std::fs::write(&list, frames.iter().map(|f| format!("file '{}'\nduration 0.125\n", f.display())).collect::<String>()).unwrap();
-    let video = dir.join("orbit.mp4");
-    let st = Command::new("ffmpeg")
-        .args(["-v", "error", "-y", "-f", "concat", "-safe", "0", "-i"])
-        .arg(&list)
-        .args(["-c:v", "libx264", "-pix_fmt", "yuv420p", "-r", "8"])
-        .arg(&video)
-        .status()
-        .expect("ffmpeg is not installed (scripts/test installs it: apt-get install -y ffmpeg colmap)");
-    assert!(st.success());
-    video
 }
 
 /// The hidden work folder `pose` keeps beside the scene.
@@ -47,7 +32,7 @@ fn colmap_children(dir: &Path) -> usize {
 #[test]
 fn an_interrupted_pose_leaves_no_scene_and_the_rerun_continues() {
     let d = tempfile::tempdir().unwrap();
-    let video = orbit_video(d.path());
+    let video = orbit_video(d.path(), Path::new("ffmpeg"));
     let scene = d.path().join("scene");
     let mut child =
         Command::new(bin()).args(["--quiet", "pose"]).arg(&video).arg("--out").arg(&scene).args(["--frames", "24"]).stderr(Stdio::piped()).spawn().unwrap();

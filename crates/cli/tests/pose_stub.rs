@@ -10,6 +10,9 @@ use std::time::{Duration, Instant};
 
 use mvsplat360_pose::colmap_writer::{write_binary, PinholeCamera, PosedImage};
 
+mod orbit;
+use orbit::orbit_video;
+
 /// Prints the banner; records each command; in the stage `$STUB_HANG` starts a grandchild sleeper, writes its
 /// own pid (its process group: pose starts each command in a group of its own) and sleeps.
 const COLMAP: &str = r#"#!/bin/sh
@@ -177,25 +180,6 @@ fn photos(dir: &Path) -> (PathBuf, Vec<String>) {
     (dst, names)
 }
 
-/// The test scene's 24 views as an H.264 video.
-fn video(dir: &Path) -> PathBuf {
-    let images = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../assets/pose-test/orbit24/images");
-    let mut frames: Vec<PathBuf> = std::fs::read_dir(&images).unwrap().map(|e| e.unwrap().path()).collect();
-    frames.sort();
-    let list = dir.join("frames.txt");
-    std::fs::write(&list, frames.iter().map(|f| format!("file '{}'\nduration 0.125\n", f.display())).collect::<String>()).unwrap();
-    let video = dir.join("orbit.mp4");
-    let st = Command::new(on_path("ffmpeg"))
-        .args(["-v", "error", "-y", "-f", "concat", "-safe", "0", "-i"])
-        .arg(&list)
-        .args(["-c:v", "libx264", "-pix_fmt", "yuv420p", "-r", "8"])
-        .arg(&video)
-        .status()
-        .unwrap();
-    assert!(st.success());
-    video
-}
-
 /// Ctrl-C while `stage` runs: exit 130, the stage was the last command started, and within 30 s no live
 /// process is left in its group (the stub and its grandchild sleeper).
 fn interrupt_in(input: &Path, names: Option<&[String]>, stage: &str, args: &[&str]) {
@@ -240,7 +224,7 @@ fn ctrl_c_in_every_colmap_stage_of_photos_leaves_no_process() {
 #[test]
 fn ctrl_c_in_every_stage_of_a_video_leaves_no_process() {
     let d = tempfile::tempdir().unwrap();
-    let input = video(d.path());
+    let input = orbit_video(d.path(), &on_path("ffmpeg"));
     // 24 frames: the sequential matcher, then the loop closure's matches_importer.
     for stage in ["ffmpeg", "feature_extractor", "sequential_matcher", "matches_importer"] {
         interrupt_in(&input, None, stage, &["--frames", "24"]);
