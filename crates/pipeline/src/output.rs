@@ -44,6 +44,11 @@ pub fn disk_full(msg: &str) -> bool {
 }
 
 /// Write a JSON value atomically (pretty-printed).
+/// `create_dir_all`, its failure a write error naming the folder.
+pub fn create_dir(d: &Path) -> Result<()> {
+    std::fs::create_dir_all(d).map_err(|e| PipelineError::Write { path: d.to_path_buf(), msg: e.to_string() })
+}
+
 pub fn write_json(path: &Path, v: &serde_json::Value) -> Result<()> {
     let text = serde_json::to_string_pretty(v).map_err(|e| PipelineError::Write { path: path.to_path_buf(), msg: e.to_string() })?;
     write_bytes(path, text.as_bytes())

@@ -616,7 +616,7 @@ fn run_staged(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSumm
         }
         None => {
             let fd = st.join("frames/final");
-            mkdir(&fd)?;
+            output::create_dir(&fd)?;
             for (i, img) in stage.iter().enumerate() {
                 write_png(&fd.join(frame_name(i)), img)?;
             }
@@ -643,10 +643,6 @@ fn run_staged(req: &RenderRequest, progress: &dyn Progress) -> Result<RenderSumm
     write_json(&st.join("run.json"), &run)?;
     txn.commit()?;
     Ok(RenderSummary { out: out.clone(), frames: facts.frames, gaussians: n_gauss, refined: facts.refiner, stage_seconds: times, peak_mib: peak })
-}
-
-fn mkdir(d: &Path) -> Result<()> {
-    std::fs::create_dir_all(d).map_err(|e| PipelineError::Write { path: d.to_path_buf(), msg: e.to_string() })
 }
 
 /// `cameras.json`: every context and target camera as the model sees it.
@@ -682,13 +678,13 @@ fn export_gaussians(st: &Path, g: &Gaussians, splat: bool) -> Result<()> {
 /// the stage's output (the blender's frames when it ran, else the renders) and the feature maps for the refiner.
 fn write_3dgs_frames(st: &Path, p: &Prepared, renders: Vec<StageFrame>) -> Result<(Vec<ImageF32>, Vec<ImageF32>, Vec<Tensor>)> {
     let gs_dir = st.join("frames/gsplat");
-    mkdir(&gs_dir)?;
+    output::create_dir(&gs_dir)?;
     let mut gsplat = Vec::with_capacity(renders.len());
     let mut feats = Vec::with_capacity(renders.len());
     let mut stage = Vec::with_capacity(renders.len());
     let bd = st.join("frames/blended");
     if renders.iter().any(|r| r.blended.is_some()) {
-        mkdir(&bd)?;
+        output::create_dir(&bd)?;
     }
     for (i, r) in renders.into_iter().enumerate() {
         let img = output::tensor_image(&r.rgb)?;
@@ -705,7 +701,7 @@ fn write_3dgs_frames(st: &Path, p: &Prepared, renders: Vec<StageFrame>) -> Resul
     }
     if p.target_photos.iter().any(|x| x.is_some()) {
         let gt_dir = st.join("frames/gt");
-        mkdir(&gt_dir)?;
+        output::create_dir(&gt_dir)?;
         for (i, ph) in p.target_photos.iter().enumerate() {
             if let Some(img) = ph {
                 write_png(&gt_dir.join(frame_name(i)), img)?;
@@ -718,8 +714,8 @@ fn write_3dgs_frames(st: &Path, p: &Prepared, renders: Vec<StageFrame>) -> Resul
 /// `frames/refined` and `frames/final` (refined, histogram-matched to the stage's output); returns the finals.
 fn write_refined_frames(st: &Path, refined: &[Tensor], stage: &[ImageF32]) -> Result<Vec<ImageF32>> {
     let (rd, fd) = (st.join("frames/refined"), st.join("frames/final"));
-    mkdir(&rd)?;
-    mkdir(&fd)?;
+    output::create_dir(&rd)?;
+    output::create_dir(&fd)?;
     let mut finals = Vec::with_capacity(refined.len());
     for (i, r) in refined.iter().enumerate() {
         let img = output::tensor_image(r)?;

@@ -325,10 +325,6 @@ fn werr(path: &Path, e: impl std::fmt::Display) -> PipelineError {
     PipelineError::Write { path: path.to_path_buf(), msg: e.to_string() }
 }
 
-fn mkdir(d: &Path) -> Result<()> {
-    std::fs::create_dir_all(d).map_err(|e| werr(d, e))
-}
-
 /// The chunk folder and its scene → chunk file map (`index.json`; `test/index.json` below a dataset root;
 /// else every chunk is read for its keys).
 fn chunk_map(data: &Path, progress: &dyn Progress) -> Result<(PathBuf, HashMap<String, String>)> {
@@ -788,7 +784,7 @@ pub fn generate_index(data: &Path, opts: &IndexOptions, progress: &dyn Progress)
 /// Write a generated index atomically.
 pub fn write_index(path: &Path, g: &GeneratedIndex) -> Result<()> {
     if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
-        mkdir(parent)?;
+        output::create_dir(parent)?;
     }
     output::write_bytes(path, index_json(&g.entries).as_bytes())
 }

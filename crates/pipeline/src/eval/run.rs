@@ -148,7 +148,7 @@ pub(super) fn run_scenes(req: &EvalRequest, progress: &dyn Progress) -> Result<E
         progress.note(&format!("warning: {w}"));
     }
     for d in std::iter::once(GT_DIR).chain(methods.iter().map(|m| m.dir())).chain([SCENES_DIR]) {
-        mkdir(&out.join(d))?;
+        output::create_dir(&out.join(d))?;
     }
     let device = if req.merge_only { Device::Cpu } else { req.model.compute.open()? };
     // `.torch` chunks come with no pose engine to state their units.
