@@ -11,6 +11,9 @@ use rayon::prelude::*;
 use crate::mode::{cpu_f32, is_cpu_f32, is_differentiable, with_f32};
 
 pub mod cudnn;
+pub mod winograd;
+
+pub use winograd::{conv2d_winograd3x3, Winograd3x3, WinogradEpilogue};
 
 /// The cuDNN path applies: CUDA, not differentiable mode, no input records a graph (a `Var` or anything computed
 /// from one: the op has no backward), and `MVSPLAT360_GPU_OPS` selects `cudnn`.
