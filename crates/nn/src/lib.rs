@@ -26,6 +26,7 @@
 
 pub mod activation;
 pub mod attention;
+mod attention64;
 pub mod bench;
 pub mod bf16;
 pub mod conv;

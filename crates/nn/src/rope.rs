@@ -7,6 +7,7 @@ use candle_core::{Result, Tensor, D};
 use rayon::prelude::*;
 
 use crate::attention::{attention_raw, exp_sub_sum, row_max, AttnOperand, SeqLayout};
+use crate::attention64;
 use crate::math::{exp_f32, simd_dispatch};
 use crate::mode::{is_cpu_f32, with_f32};
 
@@ -91,7 +92,9 @@ pub fn qkv_attention(qkv: &Tensor, heads: usize, q_norm: Option<HeadNorm>, k_nor
         });
     }
     let mut out = vec![0f32; n * l * c];
-    if l <= K_CHUNK {
+    if d == attention64::D && attention64::attention_d64(&buf, n, l, c, heads, &mut out, attention64::Q_BLOCK, attention64::K_CHUNK) {
+        // done: the fused kernel (AVX-512)
+    } else if l <= K_CHUNK {
         let layout = SeqLayout::contiguous(n, l);
         attention_raw(
             AttnOperand { data: &buf, row_len: three_c, col_offset: 0 },
@@ -131,6 +134,11 @@ unsafe impl Sync for SendPtr {}
 /// `buf`: rows of `[q | k | v]` (width 3c), `n` sequences of `l` rows.
 fn attention_chunked(buf: &[f32], n: usize, l: usize, c: usize, heads: usize, d: usize, out: &mut [f32]) {
     attention_chunked_with(buf, n, l, c, heads, d, out, Q_BLOCK, K_CHUNK)
+}
+
+#[cfg(test)]
+pub(crate) fn chunked_for_timing(buf: &[f32], n: usize, l: usize, c: usize, heads: usize, out: &mut [f32]) {
+    attention_chunked(buf, n, l, c, heads, c / heads, out)
 }
 
 #[allow(clippy::too_many_arguments)]

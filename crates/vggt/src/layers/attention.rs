@@ -31,6 +31,7 @@ impl Attention {
     /// The attention's output before `proj`, `(N, L, C)`.
     pub fn attend(&self, x: &Tensor, rope: Option<&RopeTables>) -> Result<Tensor> {
         let qkv = self.qkv.forward(x)?;
+        let _p = mvsplat360_nn::prof::scope("vggt.attention");
         qkv_attention(&qkv, self.num_heads, head_norm(&self.q_norm), head_norm(&self.k_norm), rope.map(|r| r.as_arg()))
     }
 }
