@@ -5,7 +5,7 @@
 use candle_core::{CpuStorage, Result, Storage, Tensor};
 use rayon::prelude::*;
 
-use crate::math::{gelu_f32, simd_dispatch};
+use crate::math::{gelu_f32, simd_dispatch, LANES};
 use crate::mode::{is_cpu_f32, with_f32};
 
 /// dst (rows × o) = beta·(x (rows × k) @ wᵀ (w: o × k)) [+ dst when `accumulate`].
@@ -45,6 +45,10 @@ pub(crate) fn gemm_xwt(x: &[f32], rows: usize, k: usize, w: &[f32], o: usize, ds
 /// `scale·(x @ wᵀ + bias) + Σ cᵢ·addᵢ` over the last dim of x, in one gemm whose destination starts as
 /// the bias/addend sum (no separate bias, residual or blend passes). Adds have the output's shape.
 pub fn linear_fused(x: &Tensor, w: &Tensor, bias: Option<&Tensor>, scale: f32, adds: &[(&Tensor, f32)]) -> Result<Tensor> {
+    linear_fused_impl(x, w, bias, scale, adds, false)
+}
+
+fn linear_fused_impl(x: &Tensor, w: &Tensor, bias: Option<&Tensor>, scale: f32, adds: &[(&Tensor, f32)], few_rows: bool) -> Result<Tensor> {
     let dims = x.dims().to_vec();
     let k = *dims.last().unwrap_or(&1);
     let (o, wk) = w.dims2()?;
@@ -73,8 +77,64 @@ pub fn linear_fused(x: &Tensor, w: &Tensor, bias: Option<&Tensor>, scale: f32, a
     if accumulate {
         init_rows(&mut dst, o, bias_v.as_deref(), scale, adds)?;
     }
-    with_f32(x, |xd| with_f32(w, |wd| gemm_xwt(xd, rows, k, wd, o, &mut dst, accumulate, scale)))??;
+    let product = if few_rows { xwt_few_rows } else { gemm_xwt };
+    with_f32(x, |xd| with_f32(w, |wd| product(xd, rows, k, wd, o, &mut dst, accumulate, scale)))??;
     Tensor::from_vec(dst, od, x.device())
+}
+
+/// Inputs of at most this many rows take [`xwt_few_rows`] in [`linear_fused_few_rows`].
+pub const FEW_ROWS: usize = 8;
+
+/// [`linear_fused`] for inputs of at most [`FEW_ROWS`] rows (VGGT's camera head: 5 tokens through weights of
+/// 2048 × 8192): each weight row is streamed from memory once and dotted with every input row, where the gemm
+/// would first pack the whole weight (per call: the head's 4 × 4 blocks read 3.4 GB of weights). More rows, or
+/// another device or dtype: `linear_fused`. The sums run in another order than the gemm's (16 lanes, then
+/// across), so the results differ from `linear_fused` by rounding; callers opt in.
+pub fn linear_fused_few_rows(x: &Tensor, w: &Tensor, bias: Option<&Tensor>, scale: f32, adds: &[(&Tensor, f32)]) -> Result<Tensor> {
+    let k = *x.dims().last().unwrap_or(&1);
+    let few = x.elem_count() / k.max(1) <= FEW_ROWS;
+    linear_fused_impl(x, w, bias, scale, adds, few)
+}
+
+/// As `gemm_xwt` for few rows: output columns in parallel chunks, each weight row read once.
+fn xwt_few_rows(x: &[f32], rows: usize, k: usize, w: &[f32], o: usize, dst: &mut [f32], accumulate: bool, beta: f32) {
+    const CH: usize = 32;
+    let mut t = vec![0f32; o * rows];
+    t.par_chunks_mut(CH * rows).enumerate().for_each(|(ci, tc)| {
+        let j0 = ci * CH;
+        let jn = tc.len() / rows.max(1);
+        few_rows_dots(&x[..rows * k], rows, k, &w[j0 * k..(j0 + jn) * k], tc);
+    });
+    for r in 0..rows {
+        let d = &mut dst[r * o..(r + 1) * o];
+        for (j, v) in d.iter_mut().enumerate() {
+            let p = beta * t[j * rows + r];
+            *v = if accumulate { *v + p } else { p };
+        }
+    }
+}
+
+simd_dispatch! {
+    /// `out[j·rows + r] = x_r · w_j` for the weight rows of `w` (each `k` long).
+    fn few_rows_dots(x: &[f32], rows: usize, k: usize, w: &[f32], out: &mut [f32]) {
+        for (j, wr) in w.chunks_exact(k).enumerate() {
+            for r in 0..rows {
+                let xr = &x[r * k..(r + 1) * k];
+                let mut acc = [0f32; LANES];
+                let (mut xa, mut wa) = (xr.chunks_exact(LANES), wr.chunks_exact(LANES));
+                for (a, b) in (&mut xa).zip(&mut wa) {
+                    for i in 0..LANES {
+                        acc[i] = a[i].mul_add(b[i], acc[i]);
+                    }
+                }
+                let mut s = 0f32;
+                for (a, b) in xa.remainder().iter().zip(wa.remainder()) {
+                    s = a.mul_add(*b, s);
+                }
+                out[j * rows + r] = s + acc.iter().sum::<f32>();
+            }
+        }
+    }
 }
 
 /// `GELU(x @ wᵀ + bias)` (erf GELU, as `nn.GELU()`): on CPU f32 the activation runs in place on the gemm's output
@@ -459,6 +519,51 @@ mod tests {
         let want = (g.matmul(&w2.t().unwrap()).unwrap().broadcast_add(&b2).unwrap().reshape((2, 37, 24)).unwrap() + &x).unwrap();
         let diff = (got - want).unwrap().abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap();
         assert!(diff < 1e-5, "geglu: {diff}");
+    }
+
+    /// The few-rows product against an f64 reference: per output |err| ≤ (k + 3)·u·Σ|terms| (k products and
+    /// sums in f32, the bias, addend and scale), several seeds, row counts and widths (k not a multiple of 16);
+    /// a 1 % change fails it; more rows than FEW_ROWS take the gemm.
+    #[test]
+    fn few_rows_linear_matches_f64() {
+        let dev = Device::Cpu;
+        let u = f32::EPSILON as f64 / 2.0;
+        for (seed, (rows, k, o)) in [(1, 19, 40), (5, 64, 33), (8, 300, 70), (3, 1, 5)].into_iter().enumerate() {
+            let mut st = seed as u64 * 7919 + 1;
+            let mut rnd = |n: usize| -> Vec<f32> {
+                (0..n)
+                    .map(|_| {
+                        st = st.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+                        (st >> 40) as f32 / (1u64 << 24) as f32 * 2.0 - 1.0
+                    })
+                    .collect()
+            };
+            let (xv, wv, bv, rv) = (rnd(rows * k), rnd(o * k), rnd(o), rnd(rows * o));
+            let x = Tensor::from_vec(xv.clone(), (1, rows, k), &dev).unwrap();
+            let w = Tensor::from_vec(wv.clone(), (o, k), &dev).unwrap();
+            let b = Tensor::from_vec(bv.clone(), o, &dev).unwrap();
+            let r = Tensor::from_vec(rv.clone(), (1, rows, o), &dev).unwrap();
+            let got = linear_fused_few_rows(&x, &w, Some(&b), 0.5, &[(&r, 1.0)]).unwrap().flatten_all().unwrap().to_vec1::<f32>().unwrap();
+            let mut moved = 0;
+            for i in 0..rows {
+                for j in 0..o {
+                    let terms: Vec<f64> = (0..k).map(|t| xv[i * k + t] as f64 * wv[j * k + t] as f64).collect();
+                    let want = 0.5 * (terms.iter().sum::<f64>() + bv[j] as f64) + rv[i * o + j] as f64;
+                    let mag = 0.5 * (terms.iter().map(|t| t.abs()).sum::<f64>() + (bv[j] as f64).abs()) + (rv[i * o + j] as f64).abs();
+                    let bound = (k as f64 + 3.0) * u * mag;
+                    let g = got[i * o + j] as f64;
+                    assert!((g - want).abs() <= bound, "rows {rows} k {k}: ({i}, {j}) {g} vs {want}, bound {bound}");
+                    moved += usize::from((g * 1.01 - want).abs() > bound);
+                }
+            }
+            assert!(moved * 10 > rows * o * 9, "rows {rows} k {k}: the bound cannot see a 1 % error");
+        }
+        // Past FEW_ROWS: the gemm path, same results as linear_fused.
+        let x = Tensor::randn(0f32, 1.0, (FEW_ROWS + 1, 24), &dev).unwrap();
+        let w = Tensor::randn(0f32, 0.2, (10, 24), &dev).unwrap();
+        let a = linear_fused_few_rows(&x, &w, None, 1.0, &[]).unwrap();
+        let b = linear_fused(&x, &w, None, 1.0, &[]).unwrap();
+        assert_eq!(a.to_vec2::<f32>().unwrap(), b.to_vec2::<f32>().unwrap());
     }
 
     #[test]

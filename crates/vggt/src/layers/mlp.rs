@@ -20,9 +20,10 @@ impl Mlp {
         self.fc2.forward(&self.hidden(x)?)
     }
 
-    /// GELU(fc1(x)); a packed `fc1` (bf16 product) is followed by the same f32 GELU kernel.
+    /// GELU(fc1(x)); a packed `fc1` (bf16 product) or a few rows (see `Linear::fused`) are followed by the same
+    /// f32 GELU kernel.
     pub fn hidden(&self, x: &Tensor) -> Result<Tensor> {
-        if self.fc1.packed.is_some() {
+        if self.fc1.packed.is_some() || super::few_rows(x) {
             return mvsplat360_nn::activation::gelu_inference(&self.fc1.forward(x)?);
         }
         mvsplat360_nn::linear::linear_gelu(x, &self.fc1.weight, self.fc1.bias.as_ref())

@@ -33,6 +33,12 @@ impl std::fmt::Debug for PackedBf16 {
     }
 }
 
+/// At most `nn::linear::FEW_ROWS` rows (the camera head's tokens).
+pub(crate) fn few_rows(x: &Tensor) -> bool {
+    let k = *x.dims().last().unwrap_or(&1);
+    x.elem_count() / k.max(1) <= mvsplat360_nn::linear::FEW_ROWS
+}
+
 impl Linear {
     pub fn new(vb: VarBuilder, d_in: usize, d_out: usize, bias: bool) -> Result<Self> {
         let weight = vb.get((d_out, d_in), "weight")?;
@@ -61,6 +67,8 @@ impl Linear {
                 let b = self.bias.as_ref().map(|b| b.to_dtype(x.dtype())).transpose()?;
                 mvsplat360_nn::linear::linear_fused(x, &w, b.as_ref(), 1.0, adds)
             }
+            // The camera head's 5 tokens: the weight streamed once instead of packed by the gemm.
+            None if few_rows(x) => mvsplat360_nn::linear::linear_fused_few_rows(x, &self.weight, self.bias.as_ref(), 1.0, adds),
             None => mvsplat360_nn::linear::linear_fused(x, &self.weight, self.bias.as_ref(), 1.0, adds),
         }
     }
