@@ -2,11 +2,6 @@
 
 mod cmd;
 
-/// Large freed buffers kept for reuse (see `nn::alloc`): a model's repeated layers otherwise fault in and zero
-/// fresh pages for every activation above glibc's 32 MiB mmap threshold.
-#[global_allocator]
-static ALLOC: mvsplat360_nn::alloc::LargeBlockCache = mvsplat360_nn::alloc::LargeBlockCache::new();
-
 use clap::{Parser, Subcommand};
 
 #[derive(Parser)]

@@ -25,7 +25,6 @@
 //! kernels in `tests/gpu.rs` except where that run notes otherwise (docs/gpu.md).
 
 pub mod activation;
-pub mod alloc;
 pub mod attention;
 mod attention64;
 pub mod bench;
