@@ -12,7 +12,7 @@ use mvsplat360_nn::conv::{Winograd3x3, WinogradEpilogue};
 use mvsplat360_nn::{conv2d, Conv2dConfig};
 
 use super::head_act::{activate_head, Activation};
-use super::utils::{create_uv_grid, position_embed_channels_first};
+use super::utils::position_embed_uv;
 use crate::config::DptConfig;
 use crate::layers::{LayerNorm, TORCH_LN_EPS};
 
@@ -185,8 +185,7 @@ impl DptHead {
     /// `x (N, C, h, w) + 0.1 · embed(uv grid of (h, w) with the image's aspect W/H)`.
     fn apply_pos_embed(x: &Tensor, img_w: usize, img_h: usize) -> Result<Tensor> {
         let (_, c, h, w) = x.dims4()?;
-        let grid = create_uv_grid(w, h, img_w as f64 / img_h as f64);
-        let pe = Tensor::from_vec(position_embed_channels_first(&grid, c, 0.1), (1, c, h, w), x.device())?.to_dtype(x.dtype())?;
+        let pe = Tensor::from_vec(position_embed_uv(w, h, img_w as f64 / img_h as f64, c, 0.1), (1, c, h, w), x.device())?.to_dtype(x.dtype())?;
         x.broadcast_add(&pe)
     }
 
