@@ -74,42 +74,56 @@ pub fn qkv_attention(qkv: &Tensor, heads: usize, q_norm: Option<HeadNorm>, k_nor
     let qn = q_norm.map(|h| Ok::<_, candle_core::Error>((vec1(h.weight)?, vec1(h.bias)?, h.eps))).transpose()?;
     let kn = k_norm.map(|h| Ok::<_, candle_core::Error>((vec1(h.weight)?, vec1(h.bias)?, h.eps))).transpose()?;
     let tables = rope.map(|r| Ok::<_, candle_core::Error>((r.cos.flatten_all()?.to_vec1::<f32>()?, r.sin.flatten_all()?.to_vec1::<f32>()?))).transpose()?;
-    let mut buf = with_f32(qkv, |s| s.to_vec())?;
-    if qn.is_some() || kn.is_some() || tables.is_some() {
-        buf.par_chunks_mut(three_c).enumerate().for_each(|(row, r)| {
-            let tok = row % l;
-            for (part, norm) in [(0usize, &qn), (1, &kn)] {
-                for h in 0..heads {
-                    let x = &mut r[part * c + h * d..part * c + (h + 1) * d];
-                    if let Some((w, b, eps)) = norm {
-                        head_layer_norm(x, w, b, *eps);
-                    }
-                    if let Some((cos, sin)) = &tables {
-                        rotate(x, &cos[tok * d..(tok + 1) * d], &sin[tok * d..(tok + 1) * d]);
+    // QK-norm and RoPE: one parallel pass copies each row and transforms its q and k; without them the
+    // kernels read the tensor's own storage (no copy).
+    let prepared = if qn.is_some() || kn.is_some() || tables.is_some() {
+        let mut buf = vec![0f32; n * l * three_c];
+        with_f32(qkv, |src| {
+            buf.par_chunks_mut(three_c).zip(src.par_chunks(three_c)).enumerate().for_each(|(row, (r, s))| {
+                r.copy_from_slice(s);
+                let tok = row % l;
+                for (part, norm) in [(0usize, &qn), (1, &kn)] {
+                    for h in 0..heads {
+                        let x = &mut r[part * c + h * d..part * c + (h + 1) * d];
+                        if let Some((w, b, eps)) = norm {
+                            head_layer_norm(x, w, b, *eps);
+                        }
+                        if let Some((cos, sin)) = &tables {
+                            rotate(x, &cos[tok * d..(tok + 1) * d], &sin[tok * d..(tok + 1) * d]);
+                        }
                     }
                 }
-            }
-        });
-    }
-    let mut out = vec![0f32; n * l * c];
-    if d == attention64::D && attention64::attention_d64(&buf, n, l, c, heads, &mut out, attention64::Q_BLOCK, attention64::K_CHUNK) {
-        // done: the fused kernel (AVX-512)
-    } else if l <= K_CHUNK {
-        let layout = SeqLayout::contiguous(n, l);
-        attention_raw(
-            AttnOperand { data: &buf, row_len: three_c, col_offset: 0 },
-            layout,
-            AttnOperand { data: &buf, row_len: three_c, col_offset: c },
-            AttnOperand { data: &buf, row_len: three_c, col_offset: 2 * c },
-            layout,
-            &mut out,
-            c,
-            heads,
-            d,
-            1.0 / (d as f32).sqrt(),
-        );
+            })
+        })?;
+        Some(buf)
     } else {
-        attention_chunked(&buf, n, l, c, heads, d, &mut out);
+        None
+    };
+    let mut out = vec![0f32; n * l * c];
+    let run = |buf: &[f32], out: &mut [f32]| {
+        if d == attention64::D && attention64::attention_d64(buf, n, l, c, heads, out, attention64::Q_BLOCK, attention64::K_CHUNK) {
+            // done: the fused kernel (AVX-512)
+        } else if l <= K_CHUNK {
+            let layout = SeqLayout::contiguous(n, l);
+            attention_raw(
+                AttnOperand { data: buf, row_len: three_c, col_offset: 0 },
+                layout,
+                AttnOperand { data: buf, row_len: three_c, col_offset: c },
+                AttnOperand { data: buf, row_len: three_c, col_offset: 2 * c },
+                layout,
+                out,
+                c,
+                heads,
+                d,
+                1.0 / (d as f32).sqrt(),
+            );
+        } else {
+            attention_chunked(buf, n, l, c, heads, d, out);
+        }
+    };
+    match &prepared {
+        Some(buf) => run(buf, &mut out),
+        None => with_f32(qkv, |buf| run(buf, &mut out))?,
     }
     Tensor::from_vec(out, (n, l, c), qkv.device())
 }
@@ -134,11 +148,6 @@ unsafe impl Sync for SendPtr {}
 /// `buf`: rows of `[q | k | v]` (width 3c), `n` sequences of `l` rows.
 fn attention_chunked(buf: &[f32], n: usize, l: usize, c: usize, heads: usize, d: usize, out: &mut [f32]) {
     attention_chunked_with(buf, n, l, c, heads, d, out, Q_BLOCK, K_CHUNK)
-}
-
-#[cfg(test)]
-pub(crate) fn chunked_for_timing(buf: &[f32], n: usize, l: usize, c: usize, heads: usize, out: &mut [f32]) {
-    attention_chunked(buf, n, l, c, heads, c / heads, out)
 }
 
 #[allow(clippy::too_many_arguments)]

@@ -1,6 +1,6 @@
 //! Exploration benchmark (issue 69): `conv2d` (shifted gemms) vs `Winograd3x3` on the VGGT DPT head's 3×3
 //! stride-1 convolutions, 5 frames of 518×294. GFLOP/s count the direct convolution's 2·9·C_in·C_out·H·W·N.
-//! `cargo run --release -p mvsplat360-nn --example winograd_bench [REPS] [TARGET_TILES...]`: median of REPS
+//! `cargo run --release -p mvsplat360-lab --example winograd_bench [REPS] [TARGET_TILES...]`: median of REPS
 //! (default 3) after one warm-up run, for each block size (default `winograd::TARGET_TILES`).
 
 use std::time::Instant;
