@@ -19,6 +19,7 @@ use std::arch::x86_64::*;
 use rayon::prelude::*;
 
 use crate::math::exp_f32;
+use crate::rope::{for_each_row_block, RowBlock};
 
 /// The head size this kernel is written for.
 pub(crate) const D: usize = 64;
@@ -43,12 +44,6 @@ pub(crate) fn available() -> bool {
     }
 }
 
-#[derive(Clone, Copy)]
-struct SendPtr(*mut f32);
-// SAFETY: every task writes its own rows × head columns of the output.
-unsafe impl Send for SendPtr {}
-unsafe impl Sync for SendPtr {}
-
 /// `buf`: rows of `[q | k | v]` (width 3c, heads of [`D`]), `n` sequences of `l` rows → `out` (n·l × c).
 /// Returns false (nothing written) where the CPU lacks AVX-512; the caller then takes another path.
 /// `q_block` rows per task, `k_chunk` keys per chunk (a positive multiple of 64).
@@ -66,40 +61,21 @@ pub(crate) fn attention_d64(buf: &[f32], n: usize, l: usize, c: usize, heads: us
         let tiles = l.div_ceil(KT);
         let per_head = tiles * D * KT;
         let kt = transpose_keys(buf, n, l, c, heads, tiles);
-        let qb = q_block.min(l);
-        let qblocks = l.div_ceil(qb);
         let row = 3 * c;
-        let optr = SendPtr(out.as_mut_ptr());
-        let scratch = || (vec![0f32; qb * k_chunk], vec![0f32; qb * D], vec![0f32; qb], vec![0f32; qb], vec![0f32; qb]);
-        (0..n * heads * qblocks).into_par_iter().for_each_init(scratch, |(s, o, mx, sum, corr), task| {
-            let optr = optr;
-            let g = task / (heads * qblocks);
-            let h = (task / qblocks) % heads;
-            let q0 = (task % qblocks) * qb;
-            let m = qb.min(l - q0);
-            o[..m * D].fill(0.0);
-            mx[..m].fill(f32::NEG_INFINITY);
-            sum[..m].fill(0.0);
+        let qb = q_block.min(l);
+        let scratch = || (vec![0f32; qb * k_chunk], vec![0f32; qb]);
+        for_each_row_block(n, l, c, heads, D, q_block, out, scratch, |b, st, (s, corr)| {
+            let RowBlock { g, h, q0, m } = b;
             let base = g * l;
             let kth = &kt[(g * heads + h) * per_head..(g * heads + h + 1) * per_head];
             for j0 in (0..l).step_by(k_chunk) {
                 let kc = k_chunk.min(l - j0);
                 // SAFETY: AVX-512F was detected; rows q0..q0+m and keys j0..j0+kc of sequence g lie in `buf`,
-                // tiles j0/64.. of `kth` exist (zero-padded), `s` holds m × k_chunk, `o` m × 64 floats.
+                // tiles j0/64.. of `kth` exist (zero-padded), `s` holds m × k_chunk, `acc` m × 64 floats.
                 unsafe {
                     scores(&buf[(base + q0) * row + h * D..], row, m, &kth[(j0 / KT) * D * KT..], kc.div_ceil(KT), s, k_chunk);
-                }
-                unsafe {
-                    softmax_chunk(&mut s[..m * k_chunk], k_chunk, kc, &mut mx[..m], &mut sum[..m], &mut corr[..m]);
-                    values(s, k_chunk, m, kc, &buf[(base + j0) * row + 2 * c + h * D..], row, o, corr);
-                }
-            }
-            for r in 0..m {
-                let inv = 1.0 / sum[r];
-                // SAFETY: row q0 + r of sequence g, head h's 64 columns: this task's alone.
-                let dst = unsafe { std::slice::from_raw_parts_mut(optr.0.add((base + q0 + r) * c + h * D), D) };
-                for (d, a) in dst.iter_mut().zip(&o[r * D..(r + 1) * D]) {
-                    *d = a * inv;
+                    softmax_chunk(&mut s[..m * k_chunk], k_chunk, kc, &mut st.mx[..m], &mut st.sum[..m], &mut corr[..m]);
+                    values(s, k_chunk, m, kc, &buf[(base + j0) * row + 2 * c + h * D..], row, &mut st.acc, corr);
                 }
             }
         });

@@ -141,6 +141,61 @@ struct SendPtr(*mut f32);
 unsafe impl Send for SendPtr {}
 unsafe impl Sync for SendPtr {}
 
+/// One block of query rows of a blocked attention: sequence `g`, head `h`, rows `q0..q0 + m`.
+#[derive(Clone, Copy)]
+pub(crate) struct RowBlock {
+    pub g: usize,
+    pub h: usize,
+    pub q0: usize,
+    pub m: usize,
+}
+
+/// Online-softmax state of a [`RowBlock`]: the accumulated output (rows × d), each row's running max and sum.
+pub(crate) struct OnlineRows {
+    pub acc: Vec<f32>,
+    pub mx: Vec<f32>,
+    pub sum: Vec<f32>,
+}
+
+/// The frame of the blocked attentions (the chunked path here, `attention64`'s fused kernel): every
+/// (sequence, head, block of `q_block` query rows) runs `f` in parallel from a reset state (acc 0, max −∞, sum 0)
+/// with a per-thread `scratch`; its rows acc / sum are then written to head h's `d` columns of `out` (n·l × c).
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn for_each_row_block<S: Send>(
+    n: usize,
+    l: usize,
+    c: usize,
+    heads: usize,
+    d: usize,
+    q_block: usize,
+    out: &mut [f32],
+    scratch: impl Fn() -> S + Sync + Send,
+    f: impl Fn(RowBlock, &mut OnlineRows, &mut S) + Sync + Send,
+) {
+    assert!(out.len() >= n * l * c && heads * d <= c, "attention: output of {} for {n}×{l}×{c}", out.len());
+    let qb = q_block.min(l).max(1);
+    let qblocks = l.div_ceil(qb);
+    let optr = SendPtr(out.as_mut_ptr());
+    let init = || (OnlineRows { acc: vec![0f32; qb * d], mx: vec![0f32; qb], sum: vec![0f32; qb] }, scratch());
+    (0..n * heads * qblocks).into_par_iter().for_each_init(init, |(st, sc), task| {
+        let optr = optr;
+        let q0 = (task % qblocks) * qb;
+        let b = RowBlock { g: task / (heads * qblocks), h: (task / qblocks) % heads, q0, m: qb.min(l - q0) };
+        st.acc[..b.m * d].fill(0.0);
+        st.mx[..b.m].fill(f32::NEG_INFINITY);
+        st.sum[..b.m].fill(0.0);
+        f(b, st, sc);
+        for r in 0..b.m {
+            let inv = 1.0 / st.sum[r];
+            // SAFETY: row q0 + r of sequence g, head h's d columns: this task's alone, inside `out` (asserted).
+            let o = unsafe { std::slice::from_raw_parts_mut(optr.0.add((b.g * l + q0 + r) * c + b.h * d), d) };
+            for (o, a) in o.iter_mut().zip(&st.acc[r * d..(r + 1) * d]) {
+                *o = a * inv;
+            }
+        }
+    });
+}
+
 /// Long sequences (VGGT's frames of 782 tokens and its global attention over 5 × 782): per (sequence, head,
 /// block of query rows), keys and values in chunks with an online softmax (running row max and sum; the
 /// accumulated output is rescaled when the max grows), so the scores stay in L2 and each key chunk is packed
@@ -153,82 +208,75 @@ fn attention_chunked(buf: &[f32], n: usize, l: usize, c: usize, heads: usize, d:
 #[allow(clippy::too_many_arguments)]
 fn attention_chunked_with(buf: &[f32], n: usize, l: usize, c: usize, heads: usize, d: usize, out: &mut [f32], q_block: usize, k_chunk: usize) {
     let row = 3 * c;
-    let qb = q_block.min(l);
-    let qblocks = l.div_ceil(qb);
     let scale = 1.0 / (d as f32).sqrt();
-    let optr = SendPtr(out.as_mut_ptr());
-    let scratch = || (vec![0f32; qb * k_chunk], vec![0f32; qb * d], vec![0f32; qb], vec![0f32; qb]);
-    (0..n * heads * qblocks).into_par_iter().for_each_init(scratch, |(s, acc, mx, sum), task| {
-        let optr = optr;
-        let g = task / (heads * qblocks);
-        let h = (task / qblocks) % heads;
-        let q0 = (task % qblocks) * qb;
-        let m = qb.min(l - q0);
-        acc[..m * d].fill(0.0);
-        mx[..m].fill(f32::NEG_INFINITY);
-        sum[..m].fill(0.0);
-        let base = g * l;
-        for j0 in (0..l).step_by(k_chunk) {
-            let kc = k_chunk.min(l - j0);
-            // SAFETY: q rows q0..q0+m, k/v rows j0..j0+kc of sequence g and head h's columns lie inside `buf`;
-            // `s` holds m × kc and `acc` m × d floats.
-            unsafe {
-                gemm::gemm(
-                    m,
-                    kc,
-                    d,
-                    s.as_mut_ptr(),
-                    1,
-                    kc as isize,
-                    false,
-                    buf.as_ptr().add((base + q0) * row + h * d),
-                    1,
-                    row as isize,
-                    buf.as_ptr().add((base + j0) * row + c + h * d),
-                    row as isize,
-                    1,
-                    0.0,
-                    scale,
-                    false,
-                    false,
-                    false,
-                    gemm::Parallelism::None,
-                );
+    let qb = q_block.min(l).max(1);
+    for_each_row_block(
+        n,
+        l,
+        c,
+        heads,
+        d,
+        q_block,
+        out,
+        || vec![0f32; qb * k_chunk],
+        |b, st, s| {
+            let RowBlock { g, h, q0, m } = b;
+            let OnlineRows { acc, mx, sum } = st;
+            let base = g * l;
+            for j0 in (0..l).step_by(k_chunk) {
+                let kc = k_chunk.min(l - j0);
+                // SAFETY: q rows q0..q0+m, k/v rows j0..j0+kc of sequence g and head h's columns lie inside `buf`;
+                // `s` holds m × kc and `acc` m × d floats.
+                unsafe {
+                    gemm::gemm(
+                        m,
+                        kc,
+                        d,
+                        s.as_mut_ptr(),
+                        1,
+                        kc as isize,
+                        false,
+                        buf.as_ptr().add((base + q0) * row + h * d),
+                        1,
+                        row as isize,
+                        buf.as_ptr().add((base + j0) * row + c + h * d),
+                        row as isize,
+                        1,
+                        0.0,
+                        scale,
+                        false,
+                        false,
+                        false,
+                        gemm::Parallelism::None,
+                    );
+                }
+                online_softmax_chunk(&mut s[..m * kc], kc, &mut mx[..m], &mut sum[..m], &mut acc[..m * d], d);
+                unsafe {
+                    gemm::gemm(
+                        m,
+                        d,
+                        kc,
+                        acc.as_mut_ptr(),
+                        1,
+                        d as isize,
+                        true,
+                        s.as_ptr(),
+                        1,
+                        kc as isize,
+                        buf.as_ptr().add((base + j0) * row + 2 * c + h * d),
+                        1,
+                        row as isize,
+                        1.0,
+                        1.0,
+                        false,
+                        false,
+                        false,
+                        gemm::Parallelism::None,
+                    );
+                }
             }
-            online_softmax_chunk(&mut s[..m * kc], kc, &mut mx[..m], &mut sum[..m], &mut acc[..m * d], d);
-            unsafe {
-                gemm::gemm(
-                    m,
-                    d,
-                    kc,
-                    acc.as_mut_ptr(),
-                    1,
-                    d as isize,
-                    true,
-                    s.as_ptr(),
-                    1,
-                    kc as isize,
-                    buf.as_ptr().add((base + j0) * row + 2 * c + h * d),
-                    1,
-                    row as isize,
-                    1.0,
-                    1.0,
-                    false,
-                    false,
-                    false,
-                    gemm::Parallelism::None,
-                );
-            }
-        }
-        for r in 0..m {
-            let inv = 1.0 / sum[r];
-            // SAFETY: row q0 + r of sequence g, head h's d columns: this task's alone.
-            let o = unsafe { std::slice::from_raw_parts_mut(optr.0.add((base + q0 + r) * c + h * d), d) };
-            for (o, a) in o.iter_mut().zip(&acc[r * d..(r + 1) * d]) {
-                *o = a * inv;
-            }
-        }
-    });
+        },
+    );
 }
 
 simd_dispatch! {

@@ -50,6 +50,7 @@ impl Conv {
 pub struct ConvTransposePatch {
     /// `(C_out·k·k, C_in)`: the transposed-convolution weight `(C_in, C_out, k, k)` as a linear layer.
     pub weight: Tensor,
+    /// The bias repeated over each output channel's `k × k` block: `(C_out·k·k)`, the linear layer's bias.
     pub bias: Tensor,
     pub k: usize,
     pub c_out: usize,
@@ -58,16 +59,15 @@ pub struct ConvTransposePatch {
 impl ConvTransposePatch {
     pub fn new(vb: VarBuilder, c_in: usize, c_out: usize, k: usize) -> Result<Self> {
         let w = vb.get((c_in, c_out, k, k), "weight")?;
-        Ok(Self { weight: w.reshape((c_in, c_out * k * k))?.t()?.contiguous()?, bias: vb.get(c_out, "bias")?, k, c_out })
+        let bias = vb.get(c_out, "bias")?.reshape((c_out, 1))?.broadcast_as((c_out, k * k))?.contiguous()?.reshape(c_out * k * k)?;
+        Ok(Self { weight: w.reshape((c_in, c_out * k * k))?.t()?.contiguous()?, bias, k, c_out })
     }
 
-    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        let (n, c, h, w) = x.dims4()?;
+    /// `rows (n·h·w, C_in)`: the input pixels row-major (the tokens' layout) → `(n, C_out, h·k, w·k)`.
+    pub fn forward_rows(&self, rows: &Tensor, n: usize, h: usize, w: usize) -> Result<Tensor> {
         let k = self.k;
-        let rows = x.permute((0, 2, 3, 1))?.contiguous()?.reshape((n * h * w, c))?;
-        let y = mvsplat360_nn::linear::linear_fused(&rows, &self.weight, None, 1.0, &[])?;
-        let y = y.reshape((n, h, w, self.c_out, k, k))?.permute((0, 3, 1, 4, 2, 5))?.reshape((n, self.c_out, h * k, w * k))?;
-        y.broadcast_add(&self.bias.reshape((1, self.c_out, 1, 1))?)
+        let y = mvsplat360_nn::linear::linear_fused(rows, &self.weight, Some(&self.bias), 1.0, &[])?;
+        y.reshape((n, h, w, self.c_out, k, k))?.permute((0, 3, 1, 4, 2, 5))?.contiguous()?.reshape((n, self.c_out, h * k, w * k))
     }
 }
 
@@ -189,6 +189,23 @@ impl DptHead {
         x.broadcast_add(&pe)
     }
 
+    /// The embedding of [`Self::apply_pos_embed`] for a `(h, w)` grid of `nf` frames as rows `(nf·h·w, c)`.
+    fn pos_embed_rows(nf: usize, h: usize, w: usize, c: usize, img_w: usize, img_h: usize, dev: &candle_core::Device) -> Result<Tensor> {
+        let cf = position_embed_uv(w, h, img_w as f64 / img_h as f64, c, 0.1);
+        let n = h * w;
+        let mut rows = vec![0f32; nf * n * c];
+        for (p, row) in rows.chunks_exact_mut(c).take(n).enumerate() {
+            for (ch, v) in row.iter_mut().enumerate() {
+                *v = cf[ch * n + p];
+            }
+        }
+        let (first, rest) = rows.split_at_mut(n * c);
+        for frame in rest.chunks_exact_mut(n * c) {
+            frame.copy_from_slice(first);
+        }
+        Tensor::from_vec(rows, (nf * n, c), dev)
+    }
+
     /// Predictions `(S, H, W, out)` and confidence `(S, H, W)` for images of `H × W`, in frame chunks.
     pub fn forward(&self, tokens: &BTreeMap<usize, Tensor>, img_h: usize, img_w: usize, patch_start_idx: usize) -> Result<(Tensor, Tensor)> {
         let first = tokens.get(&self.cfg.intermediate_layer_idx[0]).ok_or_else(|| candle_core::Error::Msg("DPT head: layer not kept".into()))?;
@@ -222,13 +239,18 @@ impl DptHead {
             let x = t.narrow(0, f0, nf)?.narrow(1, patch_start_idx, n_tok - patch_start_idx)?.to_dtype(candle_core::DType::F32)?;
             let x = self.norm.forward(&x)?;
             let c = x.dim(2)?;
-            let x = x.permute((0, 2, 1))?.contiguous()?.reshape((nf, c, ph, pw))?;
-            let x = self.projects[i].forward(&x)?;
-            let x = Self::apply_pos_embed(&x, img_w, img_h)?;
+            // The 1×1 projection as a linear layer on the tokens (no transpose of the 2C-wide input), with the
+            // positional embedding added in the gemm's destination; the resize reads the rows as they are.
+            let proj = &self.projects[i];
+            let oc = proj.weight.dim(0)?;
+            let pe = Self::pos_embed_rows(nf, ph, pw, oc, img_w, img_h, x.device())?;
+            let rows =
+                mvsplat360_nn::linear::linear_fused(&x.reshape((nf * ph * pw, c))?, &proj.weight.reshape((oc, c))?, proj.bias.as_ref(), 1.0, &[(&pe, 1.0)])?;
+            let channels_first = |r: &Tensor| r.reshape((nf, ph * pw, oc))?.permute((0, 2, 1))?.contiguous()?.reshape((nf, oc, ph, pw));
             let x = match &self.resize_layers[i] {
-                Resize::Up(u) => u.forward(&x)?,
-                Resize::Identity => x,
-                Resize::Down(d) => d.forward(&x)?,
+                Resize::Up(u) => u.forward_rows(&rows, nf, ph, pw)?,
+                Resize::Identity => channels_first(&rows)?,
+                Resize::Down(d) => d.forward(&channels_first(&rows)?)?,
             };
             feats.push(x);
         }
