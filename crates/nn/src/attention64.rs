@@ -18,8 +18,8 @@ use std::arch::x86_64::*;
 
 use rayon::prelude::*;
 
+use crate::attention::{for_each_row_block, RowBlock};
 use crate::math::exp_f32;
-use crate::rope::{for_each_row_block, RowBlock};
 
 /// The head size this kernel is written for.
 pub(crate) const D: usize = 64;

@@ -6,7 +6,7 @@
 use candle_core::{Result, Tensor, D};
 use rayon::prelude::*;
 
-use crate::attention::{attention_raw, exp_sub_sum, row_max, AttnOperand, SeqLayout};
+use crate::attention::{attention_raw, exp_sub_sum, for_each_row_block, row_max, AttnOperand, OnlineRows, RowBlock, SeqLayout};
 use crate::attention64;
 use crate::math::{exp_f32, simd_dispatch};
 use crate::mode::{is_cpu_f32, with_f32};
@@ -134,67 +134,6 @@ pub fn qkv_attention(qkv: &Tensor, heads: usize, q_norm: Option<HeadNorm>, k_nor
 /// 75 for the flash-style kernel of `attention` (67-row blocks over all keys).
 const Q_BLOCK: usize = 1024;
 const K_CHUNK: usize = 256;
-
-#[derive(Clone, Copy)]
-struct SendPtr(*mut f32);
-// SAFETY: every task writes its own rows × head columns of the output.
-unsafe impl Send for SendPtr {}
-unsafe impl Sync for SendPtr {}
-
-/// One block of query rows of a blocked attention: sequence `g`, head `h`, rows `q0..q0 + m`.
-#[derive(Clone, Copy)]
-pub(crate) struct RowBlock {
-    pub g: usize,
-    pub h: usize,
-    pub q0: usize,
-    pub m: usize,
-}
-
-/// Online-softmax state of a [`RowBlock`]: the accumulated output (rows × d), each row's running max and sum.
-pub(crate) struct OnlineRows {
-    pub acc: Vec<f32>,
-    pub mx: Vec<f32>,
-    pub sum: Vec<f32>,
-}
-
-/// The frame of the blocked attentions (the chunked path here, `attention64`'s fused kernel): every
-/// (sequence, head, block of `q_block` query rows) runs `f` in parallel from a reset state (acc 0, max −∞, sum 0)
-/// with a per-thread `scratch`; its rows acc / sum are then written to head h's `d` columns of `out` (n·l × c).
-#[allow(clippy::too_many_arguments)]
-pub(crate) fn for_each_row_block<S: Send>(
-    n: usize,
-    l: usize,
-    c: usize,
-    heads: usize,
-    d: usize,
-    q_block: usize,
-    out: &mut [f32],
-    scratch: impl Fn() -> S + Sync + Send,
-    f: impl Fn(RowBlock, &mut OnlineRows, &mut S) + Sync + Send,
-) {
-    assert!(out.len() >= n * l * c && heads * d <= c, "attention: output of {} for {n}×{l}×{c}", out.len());
-    let qb = q_block.min(l).max(1);
-    let qblocks = l.div_ceil(qb);
-    let optr = SendPtr(out.as_mut_ptr());
-    let init = || (OnlineRows { acc: vec![0f32; qb * d], mx: vec![0f32; qb], sum: vec![0f32; qb] }, scratch());
-    (0..n * heads * qblocks).into_par_iter().for_each_init(init, |(st, sc), task| {
-        let optr = optr;
-        let q0 = (task % qblocks) * qb;
-        let b = RowBlock { g: task / (heads * qblocks), h: (task / qblocks) % heads, q0, m: qb.min(l - q0) };
-        st.acc[..b.m * d].fill(0.0);
-        st.mx[..b.m].fill(f32::NEG_INFINITY);
-        st.sum[..b.m].fill(0.0);
-        f(b, st, sc);
-        for r in 0..b.m {
-            let inv = 1.0 / st.sum[r];
-            // SAFETY: row q0 + r of sequence g, head h's d columns: this task's alone, inside `out` (asserted).
-            let o = unsafe { std::slice::from_raw_parts_mut(optr.0.add((b.g * l + q0 + r) * c + b.h * d), d) };
-            for (o, a) in o.iter_mut().zip(&st.acc[r * d..(r + 1) * d]) {
-                *o = a * inv;
-            }
-        }
-    });
-}
 
 /// Long sequences (VGGT's frames of 782 tokens and its global attention over 5 × 782): per (sequence, head,
 /// block of query rows), keys and values in chunks with an online softmax (running row max and sum; the
