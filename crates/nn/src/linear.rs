@@ -99,10 +99,13 @@ pub fn linear_fused_few_rows(x: &Tensor, w: &Tensor, bias: Option<&Tensor>, scal
 /// As `gemm_xwt` for few rows: output columns in parallel chunks, each weight row read once.
 fn xwt_few_rows(x: &[f32], rows: usize, k: usize, w: &[f32], o: usize, dst: &mut [f32], accumulate: bool, beta: f32) {
     const CH: usize = 32;
+    if rows == 0 || o == 0 {
+        return;
+    }
     let mut t = vec![0f32; o * rows];
     t.par_chunks_mut(CH * rows).enumerate().for_each(|(ci, tc)| {
         let j0 = ci * CH;
-        let jn = tc.len() / rows.max(1);
+        let jn = tc.len() / rows;
         few_rows_dots(&x[..rows * k], rows, k, &w[j0 * k..(j0 + jn) * k], tc);
     });
     for r in 0..rows {
@@ -558,6 +561,31 @@ mod tests {
             }
             assert!(moved * 10 > rows * o * 9, "rows {rows} k {k}: the bound cannot see a 1 % error");
         }
+        // Empty shapes: no rows, no outputs.
+        assert_eq!(
+            linear_fused_few_rows(
+                &Tensor::zeros((0, 4), candle_core::DType::F32, &dev).unwrap(),
+                &Tensor::zeros((3, 4), candle_core::DType::F32, &dev).unwrap(),
+                None,
+                1.0,
+                &[]
+            )
+            .unwrap()
+            .dims(),
+            &[0, 3]
+        );
+        assert_eq!(
+            linear_fused_few_rows(
+                &Tensor::zeros((2, 4), candle_core::DType::F32, &dev).unwrap(),
+                &Tensor::zeros((0, 4), candle_core::DType::F32, &dev).unwrap(),
+                None,
+                1.0,
+                &[]
+            )
+            .unwrap()
+            .dims(),
+            &[2, 0]
+        );
         // Past FEW_ROWS: the gemm path, same results as linear_fused.
         let x = Tensor::randn(0f32, 1.0, (FEW_ROWS + 1, 24), &dev).unwrap();
         let w = Tensor::randn(0f32, 0.2, (10, 24), &dev).unwrap();
