@@ -135,7 +135,7 @@ pub fn qkv_attention(qkv: &Tensor, heads: usize, q_norm: Option<HeadNorm>, k_nor
 const Q_BLOCK: usize = 1024;
 const K_CHUNK: usize = 256;
 
-/// Long sequences (VGGT's frames of 782 tokens and its global attention over 5 × 782): per (sequence, head,
+/// Long sequences where `attention64`'s fused kernel does not run (heads other than 64, no AVX-512): per (sequence, head,
 /// block of query rows), keys and values in chunks with an online softmax (running row max and sum; the
 /// accumulated output is rescaled when the max grows), so the scores stay in L2 and each key chunk is packed
 /// once per block of rows.
