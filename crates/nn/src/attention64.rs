@@ -263,6 +263,7 @@ unsafe fn softmax_chunk(s: &mut [f32], ss: usize, kc: usize, mx: &mut [f32], sum
 mod tests {
     use super::*;
     use crate::rope::qkv_attention;
+    use crate::rope::test_support::{assert_within_attention_bound, qkv_data};
     use candle_core::{Device, Tensor};
 
     /// The fused kernel against the composed ops (differentiable mode takes them), on several sizes: ragged
@@ -275,28 +276,7 @@ mod tests {
             return;
         }
         let dev = Device::Cpu;
-        let data = |n: usize, l: usize, c: usize, amp: f32, seed: u64| {
-            let mut x = seed;
-            let v: Vec<f32> = (0..n * l * 3 * c)
-                .map(|_| {
-                    x = x.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-                    ((x >> 40) as f32 / (1u64 << 24) as f32 * 2.0 - 1.0) * amp
-                })
-                .collect();
-            Tensor::from_vec(v, (n, l, 3 * c), &dev).unwrap()
-        };
-        let max_diff = |a: &Tensor, b: &Tensor| (a - b).unwrap().abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap();
-        let max_abs = |t: &Tensor| t.abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap();
-        // As rope.rs's chunked-path test: per side, a score's d-term dot product (≤ d·u·scale·max|q|·max|k|,
-        // moving the weights by as much relatively), the weighted sum over l keys (≤ l·u), the rescales and the
-        // division; twice (both sides round). In units of u·max|v|.
-        let check = |fast: &Tensor, slow: &Tensor, qkv: &Tensor, c: usize, l: usize, what: &str| {
-            let (q, k, v) = (max_abs(&qkv.narrow(2, 0, c).unwrap()), max_abs(&qkv.narrow(2, c, c).unwrap()), max_abs(&qkv.narrow(2, 2 * c, c).unwrap()));
-            let b = 2.0 * f32::EPSILON * v * (D as f32 * q * k / (D as f32).sqrt() + l as f32 + 8.0);
-            let diff = max_diff(fast, slow);
-            assert!(diff <= b, "{what}: max diff {diff} over {b}");
-            assert!(max_diff(&(fast * 1.01).unwrap(), slow) > b, "{what}: the bound {b} is too loose to see a 1 % error");
-        };
+        let check = |fast: &Tensor, slow: &Tensor, qkv: &Tensor, c: usize, l: usize, what: &str| assert_within_attention_bound(fast, slow, qkv, c, D, l, what);
         let composed = |qkv: &Tensor, heads: usize| {
             let _g = crate::mode::differentiable();
             qkv_attention(qkv, heads, None, None, None).unwrap()
@@ -305,7 +285,7 @@ mod tests {
             [(1, 1, 1, 96, 64), (2, 65, 2, 7, 64), (1, 200, 1, 13, 128), (3, 131, 2, 96, 256), (1, 300, 1, 6, 64)].into_iter().enumerate()
         {
             let c = heads * D;
-            let qkv = data(n, l, c, 2.5, 11 + i as u64);
+            let qkv = qkv_data(n, l, c, 2.5, 11 + i as u64);
             let buf = qkv.flatten_all().unwrap().to_vec1::<f32>().unwrap();
             let mut out = vec![f32::NAN; n * l * c];
             assert!(attention_d64(&buf, n, l, c, heads, &mut out, qb, kc));
@@ -316,7 +296,7 @@ mod tests {
         for seed in [3u64, 4] {
             let (n, l, heads) = (1, 782, 2);
             let c = heads * D;
-            let qkv = data(n, l, c, 1.5, seed);
+            let qkv = qkv_data(n, l, c, 1.5, seed);
             let w = (Tensor::randn(0f32, 0.3, D, &dev).unwrap() + 1.0).unwrap();
             let b = Tensor::randn(0f32, 0.1, D, &dev).unwrap();
             let pos: Vec<(u32, u32)> = (0..l as u32).map(|i| (i / 37, i % 37)).collect();

@@ -287,8 +287,42 @@ fn qkv_attention_composed(qkv: &Tensor, heads: usize, q_norm: Option<HeadNorm>, 
     crate::attention::multi_head_attention(&q.contiguous()?, &k.contiguous()?, &v, heads, 1 << 26)
 }
 
+/// Test data and the error check shared by the attention kernels' tests (here and in `attention64`).
+#[cfg(test)]
+pub(crate) mod test_support {
+    use candle_core::{Device, Tensor};
+
+    /// Deterministic `[q | k | v]` rows `(n, l, 3c)` from a fixed LCG, uniform in [−amp, amp).
+    pub(crate) fn qkv_data(n: usize, l: usize, c: usize, amp: f32, seed: u64) -> Tensor {
+        let mut x = seed;
+        let v: Vec<f32> = (0..n * l * 3 * c)
+            .map(|_| {
+                x = x.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+                ((x >> 40) as f32 / (1u64 << 24) as f32 * 2.0 - 1.0) * amp
+            })
+            .collect();
+        Tensor::from_vec(v, (n, l, 3 * c), &Device::Cpu).unwrap()
+    }
+
+    /// `fast` within the worst-case f32 error of either side from `slow`, and that bound tight enough that
+    /// `fast` × 1.01 fails it. In units of u·max|v|, per side: a score's dot product of d terms
+    /// (≤ d·u·scale·max|q|·max|k| absolute, which moves the weights by as much relatively), the weighted sum over
+    /// l keys (≤ l·u), the running rescale per chunk and the final division; twice (both sides round). The
+    /// magnitudes come from `qkv` (q and k as the scores see them: after any QK-norm).
+    pub(crate) fn assert_within_attention_bound(fast: &Tensor, slow: &Tensor, qkv: &Tensor, c: usize, d: usize, l: usize, what: &str) {
+        let max_abs = |t: &Tensor| t.abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap();
+        let max_diff = |a: &Tensor, b: &Tensor| max_abs(&(a - b).unwrap());
+        let (q, k, v) = (max_abs(&qkv.narrow(2, 0, c).unwrap()), max_abs(&qkv.narrow(2, c, c).unwrap()), max_abs(&qkv.narrow(2, 2 * c, c).unwrap()));
+        let b = 2.0 * f32::EPSILON * v * (d as f32 * q * k / (d as f32).sqrt() + l as f32 + 8.0);
+        let diff = max_diff(fast, slow);
+        assert!(diff <= b, "{what}: max diff {diff} over {b}");
+        assert!(max_diff(&(fast * 1.01).unwrap(), slow) > b, "{what}: the bound {b} is too loose to see a 1 % error");
+    }
+}
+
 #[cfg(test)]
 mod tests {
+    use super::test_support::{assert_within_attention_bound, qkv_data};
     use super::*;
     use candle_core::Device;
 
@@ -324,40 +358,15 @@ mod tests {
         let dev = Device::Cpu;
         let (heads, d) = (2, 8);
         let c = heads * d;
-        // Deterministic data (a fixed LCG), spread `amp`.
-        let data = |n: usize, l: usize, amp: f32, seed: u64| {
-            let mut x = seed;
-            let v: Vec<f32> = (0..n * l * 3 * c)
-                .map(|_| {
-                    x = x.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-                    ((x >> 40) as f32 / (1u64 << 24) as f32 * 2.0 - 1.0) * amp
-                })
-                .collect();
-            Tensor::from_vec(v, (n, l, 3 * c), &dev).unwrap()
-        };
         let composed = |qkv: &Tensor| {
             let _g = crate::mode::differentiable();
             qkv_attention(qkv, heads, None, None, None).unwrap()
         };
-        let max_diff = |a: &Tensor, b: &Tensor| (a - b).unwrap().abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap();
-        let max_abs = |t: &Tensor| t.abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap();
-        // Worst-case f32 error of either side, in units of u·max|v|: a score's dot product of d terms
-        // (≤ d·u·scale·max|q|·max|k| absolute, which moves the weights by as much relatively), the weighted sum over
-        // l keys (≤ l·u), the running rescale per chunk and the final division; twice (both sides round).
-        let bound = |qkv: &Tensor, l: usize| {
-            let (q, k, v) = (max_abs(&qkv.narrow(2, 0, c).unwrap()), max_abs(&qkv.narrow(2, c, c).unwrap()), max_abs(&qkv.narrow(2, 2 * c, c).unwrap()));
-            2.0 * f32::EPSILON * v * (d as f32 * q * k / (d as f32).sqrt() + l as f32 + 8.0)
-        };
-        let check = |fast: &Tensor, qkv: &Tensor, l: usize, what: &str| {
-            let slow = composed(qkv);
-            let (diff, b) = (max_diff(fast, &slow), bound(qkv, l));
-            assert!(diff <= b, "{what}: max diff {diff} over {b}");
-            assert!(max_diff(&(fast * 1.01).unwrap(), &slow) > b, "{what}: the bound {b} is too loose to see a 1 % error");
-        };
-        let qkv = data(2, K_CHUNK + 1, 2.0, 1);
+        let check = |fast: &Tensor, qkv: &Tensor, l: usize, what: &str| assert_within_attention_bound(fast, &composed(qkv), qkv, c, d, l, what);
+        let qkv = qkv_data(2, K_CHUNK + 1, c, 2.0, 1);
         check(&qkv_attention(&qkv, heads, None, None, None).unwrap(), &qkv, K_CHUNK + 1, "public path");
         for (i, (n, l, qb, kc)) in [(1, 100, 32, 16), (3, 77, 20, 30), (2, 64, 64, 64), (1, 5, 4, 2)].into_iter().enumerate() {
-            let qkv = data(n, l, 3.0, 7 + i as u64);
+            let qkv = qkv_data(n, l, c, 3.0, 7 + i as u64);
             let buf = qkv.flatten_all().unwrap().to_vec1::<f32>().unwrap();
             let mut out = vec![0f32; n * l * c];
             attention_chunked_with(&buf, n, l, c, heads, d, &mut out, qb, kc);
