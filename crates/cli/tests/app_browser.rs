@@ -10,7 +10,7 @@
 
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
@@ -20,18 +20,8 @@ use headless_chrome::protocol::cdp::Page;
 mod browser;
 use browser::{chromium, eval, launch, watch_console};
 
-fn root() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..")
-}
-
-/// Kills the app when the test ends, passed or not.
-struct Killed(Child);
-impl Drop for Killed {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
+mod served;
+use served::{root, Killed};
 
 fn serve_app(work: &Path, hold: &Path) -> (Killed, String) {
     let mut child = Command::new(env!("CARGO_BIN_EXE_mvsplat360"))

@@ -13,7 +13,7 @@
 
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
@@ -23,18 +23,8 @@ use headless_chrome::protocol::cdp::Page;
 mod browser;
 use browser::{chromium, eval, launch, watch_console};
 
-fn root() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..")
-}
-
-/// Kills the `view` server when the test ends, passed or not.
-struct Killed(Child);
-impl Drop for Killed {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
+mod served;
+use served::{root, Killed};
 
 fn render(out: &Path) {
     let t = Instant::now();
