@@ -25,9 +25,9 @@ use crate::math::exp_f32;
 /// The head size this kernel is written for.
 pub(crate) const D: usize = 64;
 /// Keys per score tile: 4 zmm.
-const KT: usize = 64;
+pub(crate) const KT: usize = 64;
 /// Rows per register tile.
-const MR: usize = 6;
+pub(crate) const MR: usize = 6;
 /// Query rows per task and keys per chunk: the score block (rows × chunk) and the chunk's keys and values stay in
 /// L2. On 2 Zen 4 cores, VGGT-1B's shapes: 48–192 rows and 128–512 keys all within 10 % of this choice.
 pub(crate) const Q_BLOCK: usize = 96;
@@ -116,6 +116,7 @@ macro_rules! by_rows {
         }
     };
 }
+pub(crate) use by_rows;
 
 /// Scores of `m` query rows (`q`, row stride `qs`) against `tiles` key tiles → `s` (row stride `ss`), scaled by
 /// 1/8 (= 1/√64, exact). Tile-outer so one 16 KiB key tile serves every row group from L1.
@@ -214,7 +215,7 @@ const EXP2_POLY: [f32; 7] = [1.0, 0.693_147_2, 0.240_226_46, 0.055_503_29, 0.009
 /// per-key u.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
-unsafe fn softmax_chunk(s: &mut [f32], ss: usize, kc: usize, mx: &mut [f32], sum: &mut [f32], corr: &mut [f32]) {
+pub(crate) unsafe fn softmax_chunk(s: &mut [f32], ss: usize, kc: usize, mx: &mut [f32], sum: &mut [f32], corr: &mut [f32]) {
     let full = kc / 16;
     let tail: __mmask16 = ((1u32 << (kc % 16)) - 1) as __mmask16;
     let ninf = _mm512_set1_ps(f32::NEG_INFINITY);

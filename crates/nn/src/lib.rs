@@ -14,7 +14,7 @@
 //! | [`grid_sample`] | `grid_sample` | custom op + backward | 4-tap `gather` (composed) |
 //! | [`warp_correlation`] | `warp_correlation` | custom op + backward | `grid_sample` · sum over channels |
 //! | [`layout`] | `channels_last` | blocked multi-threaded transpose | candle permute + copy |
-//! | [`bf16`] | `matmul_bf16`, `Bf16Weights`, `linear::linear_fused_bf16` (opt-in, inference) | AVX512-BF16 `vdpbf16ps` gemm (runtime-detected); without it storage only (bf16 weights widened, f32 gemm) | — (CPU only) |
+//! | [`bf16`] | `matmul_bf16`, `Bf16Weights`, `linear::linear_fused_bf16`, `rope::qkv_attention_bf16` (opt-in, inference) | AVX512-BF16 `vdpbf16ps` gemm and fused head-64 attention (runtime-detected); without it storage only (bf16 weights widened, f32 gemm) | — (CPU only) |
 //! | [`upsample`] | `upsample_bilinear`, `upsample_nearest` | custom op + backward / candle | `index_select` lerp / candle |
 //!
 //! The CUDA column is a composition, not a kernel of ours, unless `MVSPLAT360_GPU_OPS` selects one ([`gpu_ops`];
@@ -27,6 +27,7 @@
 pub mod activation;
 pub mod attention;
 mod attention64;
+mod attention64_bf16;
 pub mod bench;
 pub mod bf16;
 pub mod conv;

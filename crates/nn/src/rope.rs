@@ -7,9 +7,9 @@ use candle_core::{Result, Tensor, D};
 use rayon::prelude::*;
 
 use crate::attention::{attention_raw, exp_sub_sum, for_each_row_block, row_max, AttnOperand, OnlineRows, RowBlock, SeqLayout};
-use crate::attention64;
 use crate::math::{exp_f32, simd_dispatch};
 use crate::mode::{is_cpu_f32, with_f32};
+use crate::{attention64, attention64_bf16};
 
 /// LayerNorm over one head's features.
 #[derive(Clone, Copy)]
@@ -56,6 +56,26 @@ pub fn rope2d_tables(positions: &[(u32, u32)], d: usize, base: f64) -> (Vec<f32>
 /// `qkv (N, L, 3·H·d)` (PyTorch's `qkv(x).reshape(B, N, 3, H, d)` order) → scaled dot-product attention
 /// `(N, L, H·d)`, with q and k each normalised per head, then rotated, when given.
 pub fn qkv_attention(qkv: &Tensor, heads: usize, q_norm: Option<HeadNorm>, k_norm: Option<HeadNorm>, rope: Option<Rope2dTables>) -> Result<Tensor> {
+    qkv_attention_with(qkv, heads, q_norm, k_norm, rope, false)
+}
+
+/// [`qkv_attention`] with both products in bf16 where the fused kernel for heads of 64 runs (x86-64 with
+/// AVX-512F and AVX512-BF16, [`crate::bf16::path`] on the calling thread): q, k, v and the softmax's
+/// exponentials rounded to bf16, f32 accumulation and softmax (error model in `attention64_bf16`). Elsewhere —
+/// other head sizes, no AVX512-BF16, masked by [`crate::bf16::with_bf16_masked`], other devices or dtypes —
+/// exactly [`qkv_attention`] (no weights here, so bf16 storage has nothing to hold).
+pub fn qkv_attention_bf16(qkv: &Tensor, heads: usize, q_norm: Option<HeadNorm>, k_norm: Option<HeadNorm>, rope: Option<Rope2dTables>) -> Result<Tensor> {
+    qkv_attention_with(qkv, heads, q_norm, k_norm, rope, true)
+}
+
+fn qkv_attention_with(
+    qkv: &Tensor,
+    heads: usize,
+    q_norm: Option<HeadNorm>,
+    k_norm: Option<HeadNorm>,
+    rope: Option<Rope2dTables>,
+    bf16: bool,
+) -> Result<Tensor> {
     let (n, l, three_c) = qkv.dims3()?;
     if heads == 0 || three_c % (3 * heads) != 0 {
         candle_core::bail!("qkv attention: width {three_c} is not 3 × {heads} heads");
@@ -70,38 +90,12 @@ pub fn qkv_attention(qkv: &Tensor, heads: usize, q_norm: Option<HeadNorm>, k_nor
     if !is_cpu_f32(qkv) {
         return qkv_attention_composed(qkv, heads, q_norm, k_norm, rope);
     }
-    let vec1 = |t: &Tensor| t.to_dtype(candle_core::DType::F32)?.to_vec1::<f32>();
-    let qn = q_norm.map(|h| Ok::<_, candle_core::Error>((vec1(h.weight)?, vec1(h.bias)?, h.eps))).transpose()?;
-    let kn = k_norm.map(|h| Ok::<_, candle_core::Error>((vec1(h.weight)?, vec1(h.bias)?, h.eps))).transpose()?;
-    let tables = rope.map(|r| Ok::<_, candle_core::Error>((r.cos.flatten_all()?.to_vec1::<f32>()?, r.sin.flatten_all()?.to_vec1::<f32>()?))).transpose()?;
-    // QK-norm and RoPE: one parallel pass copies each row and transforms its q and k; without them the
-    // kernels read the tensor's own storage (no copy).
-    let prepared = if qn.is_some() || kn.is_some() || tables.is_some() {
-        let mut buf = vec![0f32; n * l * three_c];
-        with_f32(qkv, |src| {
-            buf.par_chunks_mut(three_c).zip(src.par_chunks(three_c)).enumerate().for_each(|(row, (r, s))| {
-                r.copy_from_slice(s);
-                let tok = row % l;
-                for (part, norm) in [(0usize, &qn), (1, &kn)] {
-                    for h in 0..heads {
-                        let x = &mut r[part * c + h * d..part * c + (h + 1) * d];
-                        if let Some((w, b, eps)) = norm {
-                            head_layer_norm(x, w, b, *eps);
-                        }
-                        if let Some((cos, sin)) = &tables {
-                            rotate(x, &cos[tok * d..(tok + 1) * d], &sin[tok * d..(tok + 1) * d]);
-                        }
-                    }
-                }
-            })
-        })?;
-        Some(buf)
-    } else {
-        None
-    };
+    let prepared = prepare(qkv, heads, q_norm, k_norm, rope)?;
     let mut out = vec![0f32; n * l * c];
     let run = |buf: &[f32], out: &mut [f32]| {
-        if d == attention64::D && attention64::attention_d64(buf, n, l, c, heads, out, attention64::Q_BLOCK, attention64::K_CHUNK) {
+        if bf16 && d == attention64::D && attention64_bf16::attention_d64_bf16(buf, n, l, c, heads, out, attention64::Q_BLOCK, attention64::K_CHUNK) {
+            // done: the fused kernel with bf16 products (AVX512-BF16)
+        } else if d == attention64::D && attention64::attention_d64(buf, n, l, c, heads, out, attention64::Q_BLOCK, attention64::K_CHUNK) {
             // done: the fused kernel (AVX-512)
         } else if l <= K_CHUNK {
             let layout = SeqLayout::contiguous(n, l);
@@ -126,6 +120,40 @@ pub fn qkv_attention(qkv: &Tensor, heads: usize, q_norm: Option<HeadNorm>, k_nor
         None => with_f32(qkv, |buf| run(buf, &mut out))?,
     }
     Tensor::from_vec(out, (n, l, c), qkv.device())
+}
+
+/// QK-norm and RoPE applied to a copy of the CPU f32 projection (one parallel pass, each row copied and its q
+/// and k transformed); None without either, and the kernels read the tensor's own storage.
+pub(crate) fn prepare(qkv: &Tensor, heads: usize, q_norm: Option<HeadNorm>, k_norm: Option<HeadNorm>, rope: Option<Rope2dTables>) -> Result<Option<Vec<f32>>> {
+    let (n, l, three_c) = qkv.dims3()?;
+    let c = three_c / 3;
+    let d = c / heads;
+    let vec1 = |t: &Tensor| t.to_dtype(candle_core::DType::F32)?.to_vec1::<f32>();
+    let qn = q_norm.map(|h| Ok::<_, candle_core::Error>((vec1(h.weight)?, vec1(h.bias)?, h.eps))).transpose()?;
+    let kn = k_norm.map(|h| Ok::<_, candle_core::Error>((vec1(h.weight)?, vec1(h.bias)?, h.eps))).transpose()?;
+    let tables = rope.map(|r| Ok::<_, candle_core::Error>((r.cos.flatten_all()?.to_vec1::<f32>()?, r.sin.flatten_all()?.to_vec1::<f32>()?))).transpose()?;
+    if qn.is_none() && kn.is_none() && tables.is_none() {
+        return Ok(None);
+    }
+    let mut buf = vec![0f32; n * l * three_c];
+    with_f32(qkv, |src| {
+        buf.par_chunks_mut(three_c).zip(src.par_chunks(three_c)).enumerate().for_each(|(row, (r, s))| {
+            r.copy_from_slice(s);
+            let tok = row % l;
+            for (part, norm) in [(0usize, &qn), (1, &kn)] {
+                for h in 0..heads {
+                    let x = &mut r[part * c + h * d..part * c + (h + 1) * d];
+                    if let Some((w, b, eps)) = norm {
+                        head_layer_norm(x, w, b, *eps);
+                    }
+                    if let Some((cos, sin)) = &tables {
+                        rotate(x, &cos[tok * d..(tok + 1) * d], &sin[tok * d..(tok + 1) * d]);
+                    }
+                }
+            }
+        })
+    })?;
+    Ok(Some(buf))
 }
 
 /// Query rows per task and keys per chunk of [`attention_chunked`]: a 1024 × 256 score block (1 MiB, a core's L2
