@@ -495,6 +495,145 @@ pub fn linear_fused_bf16(x: &Tensor, w: &crate::bf16::Bf16Weights, bias: Option<
     Tensor::from_vec(dst, od, x.device())
 }
 
+/// A bf16 weight widened to an f32 `(out, in)` tensor: the storage-only path's operand, made once per call.
+fn widened(w: &crate::bf16::Bf16Weights) -> Result<Tensor> {
+    let (k, n) = (w.k(), w.n());
+    let kn = w.to_f32_kn();
+    let mut nk = vec![0f32; n * k];
+    if k > 0 {
+        nk.par_chunks_mut(k).enumerate().for_each(|(o, row)| {
+            for (kk, v) in row.iter_mut().enumerate() {
+                *v = kn[kk * n + o];
+            }
+        });
+    }
+    Tensor::from_vec(nk, (n, k), &candle_core::Device::Cpu)
+}
+
+fn bf16_products() -> bool {
+    crate::bf16::path() == crate::bf16::Bf16Path::Dpbf16
+}
+
+/// [`geglu_ff`] with bf16 weights (`--dtype bf16` on the CPU, inference only): both products by
+/// [`crate::bf16::matmul_bf16`], the bias, GELU gate, scale and addends in f32; without AVX512-BF16 the weights
+/// are widened once and [`geglu_ff`] runs (storage only). `scale` multiplies the gated activations before they
+/// are rounded, which leaves the error model's relative bound as it is.
+#[allow(clippy::too_many_arguments)]
+pub fn geglu_ff_bf16(
+    x: &Tensor,
+    w1: &crate::bf16::Bf16Weights,
+    b1: &Tensor,
+    w2: &crate::bf16::Bf16Weights,
+    b2: &Tensor,
+    scale: f32,
+    adds: &[(&Tensor, f32)],
+) -> Result<Tensor> {
+    let dims = x.dims().to_vec();
+    let c = *dims.last().unwrap_or(&1);
+    let (hidden2, inner, o) = (w1.n(), w1.n() / 2, w2.n());
+    if w1.k() != c || w2.k() != inner || hidden2 % 2 != 0 {
+        candle_core::bail!("feed-forward (bf16): input width {c}, weights {}x{} and {}x{}", w1.n(), w1.k(), w2.n(), w2.k());
+    }
+    if !crate::mode::cpu_f32(x) {
+        candle_core::bail!("feed-forward (bf16): the input must be a CPU f32 tensor (got {:?} on {:?})", x.dtype(), x.device());
+    }
+    if !bf16_products() {
+        return geglu_ff(x, &widened(w1)?, b1, &widened(w2)?, b2, scale, adds);
+    }
+    let rows = x.elem_count() / c.max(1);
+    let mut od = dims;
+    if let Some(l) = od.last_mut() {
+        *l = o;
+    }
+    let b1v = b1.to_vec1::<f32>()?;
+    let b2v = b2.to_vec1::<f32>()?;
+    let mut dst = vec![0f32; rows * o];
+    init_rows(&mut dst, o, Some(&b2v), scale, adds)?;
+    let chunk = ((16usize << 20) / hidden2.max(1)).max(64).min(rows.max(1));
+    let mut hbuf = vec![0f32; chunk * hidden2];
+    let mut gbuf = vec![0f32; chunk * inner];
+    with_f32(x, |xd| {
+        let mut r0 = 0;
+        while r0 < rows {
+            let m = chunk.min(rows - r0);
+            crate::bf16::matmul_bf16(&xd[r0 * c..(r0 + m) * c], m, c, w1, &mut hbuf[..m * hidden2], false);
+            let per = (m / rayon::current_num_threads().max(1) / 4).max(1);
+            hbuf[..m * hidden2].par_chunks(per * hidden2).zip(gbuf[..m * inner].par_chunks_mut(per * inner)).for_each(|(h, g)| {
+                geglu_rows(h, &b1v, g, inner);
+                if scale != 1.0 {
+                    g.iter_mut().for_each(|v| *v *= scale);
+                }
+            });
+            crate::bf16::matmul_bf16(&gbuf[..m * inner], m, inner, w2, &mut dst[r0 * o..(r0 + m) * o], true);
+            r0 += m;
+        }
+    })?;
+    Tensor::from_vec(dst, od, x.device())
+}
+
+/// [`linear_from_channels_first`] with bf16 weights: each item's (C, S) block is transposed to token rows,
+/// then multiplied by [`crate::bf16::matmul_bf16`] (storage only without AVX512-BF16, weights widened once).
+pub fn linear_from_channels_first_bf16(x: &Tensor, w: &crate::bf16::Bf16Weights, b: &Tensor) -> Result<Tensor> {
+    let (n, c, s) = x.dims3()?;
+    let o = w.n();
+    if w.k() != c {
+        candle_core::bail!("linear (bf16): {c} channels, weight {o}x{}", w.k());
+    }
+    if !crate::mode::cpu_f32(x) {
+        candle_core::bail!("linear (bf16): the input must be a CPU f32 tensor (got {:?} on {:?})", x.dtype(), x.device());
+    }
+    if !bf16_products() {
+        return linear_from_channels_first(x, &widened(w)?, b);
+    }
+    let bv = b.to_vec1::<f32>()?;
+    let mut dst = vec![0f32; n * s * o];
+    dst.par_chunks_mut(1 << 14).for_each(|d| init_chunk(d, 0, o, Some(&bv), 1.0, &[]));
+    let mut tokens = vec![0f32; s * c];
+    with_f32(x, |xd| {
+        for (i, d) in dst.chunks_mut(s * o).enumerate() {
+            let item = &xd[i * c * s..(i + 1) * c * s];
+            tokens.par_chunks_mut(c).enumerate().for_each(|(j, row)| {
+                for (ch, v) in row.iter_mut().enumerate() {
+                    *v = item[ch * s + j];
+                }
+            });
+            crate::bf16::matmul_bf16(&tokens, s, c, w, d, true);
+        }
+    })?;
+    Tensor::from_vec(dst, (n, s, o), x.device())
+}
+
+/// [`linear_to_channels_first`] with bf16 weights: token rows multiplied by [`crate::bf16::matmul_bf16`], then
+/// transposed into the channels-first output with bias and residual (storage only without AVX512-BF16).
+pub fn linear_to_channels_first_bf16(h: &Tensor, w: &crate::bf16::Bf16Weights, b: &Tensor, residual: &Tensor) -> Result<Tensor> {
+    let (n, s, k) = h.dims3()?;
+    let o = w.n();
+    if w.k() != k || residual.elem_count() != n * o * s {
+        candle_core::bail!("linear (bf16): tokens {:?}, weight {o}x{}, residual {:?}", h.dims(), w.k(), residual.dims());
+    }
+    if !crate::mode::cpu_f32(h) {
+        candle_core::bail!("linear (bf16): the input must be a CPU f32 tensor (got {:?} on {:?})", h.dtype(), h.device());
+    }
+    if !bf16_products() {
+        return linear_to_channels_first(h, &widened(w)?, b, residual);
+    }
+    let bv = b.to_vec1::<f32>()?;
+    let mut dst = with_f32(residual, |r| r.to_vec())?;
+    let mut prod = vec![0f32; s * o];
+    with_f32(h, |hd| {
+        for (i, d) in dst.chunks_mut(o * s).enumerate() {
+            crate::bf16::matmul_bf16(&hd[i * s * k..(i + 1) * s * k], s, k, w, &mut prod, false);
+            d.par_chunks_mut(s).enumerate().for_each(|(oo, row)| {
+                let bb = bv[oo];
+                for (j, v) in row.iter_mut().enumerate() {
+                    *v += prod[j * o + oo] + bb;
+                }
+            });
+        }
+    })?;
+    Tensor::from_vec(dst, (n, o, s), h.device())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -638,6 +777,143 @@ mod tests {
 
     /// `linear_fused_bf16`: bias, scale and addends as `linear_fused`, the product within the error model (the
     /// f32 bias/addend sum adds its own f32 rounding); masked, the storage-only path.
+    #[test]
+    fn channels_first_bf16_projections_hold_the_error_model() {
+        let fill = crate::bf16::bench::fill;
+        let dev = Device::Cpu;
+        for (seed, n, c, s, o) in [(1u64, 2usize, 33usize, 45usize, 37usize), (2, 1, 64, 130, 20), (3, 3, 7, 1, 9)] {
+            let x = Tensor::from_vec(fill(n * c * s, seed), (n, c, s), &dev).unwrap();
+            let w = Tensor::from_vec(fill(o * c, seed + 10), (o, c), &dev).unwrap();
+            let b = Tensor::from_vec(fill(o, seed + 20), o, &dev).unwrap();
+            let wb = crate::bf16::Bf16Weights::from_linear(&w).unwrap();
+            let (xv, wv, bv) =
+                (x.flatten_all().unwrap().to_vec1::<f32>().unwrap(), w.flatten_all().unwrap().to_vec1::<f32>().unwrap(), b.to_vec1::<f32>().unwrap());
+            // from channels-first: out[i, j, oo] = Σ_ch x[i, ch, j]·w[oo, ch] + b[oo].
+            for masked in [false, true] {
+                let run = || linear_from_channels_first_bf16(&x, &wb, &b).unwrap();
+                let got = if masked { crate::bf16::with_bf16_masked(run) } else { run() }.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+                let mut worst = 0f64;
+                for i in 0..n {
+                    for j in 0..s {
+                        for oo in 0..o {
+                            let terms = (0..c).map(|ch| xv[(i * c + ch) * s + j] as f64 * wv[oo * c + ch] as f64);
+                            let (exact, sa) = terms.fold((bv[oo] as f64, 0.0), |(e, a), t| (e + t, a + t.abs()));
+                            let bound = crate::bf16::error_bound(c, sa) + 4.0 * 2f64.powi(-24) * (exact.abs() + bv[oo].abs() as f64);
+                            let d = (got[(i * s + j) * o + oo] as f64 - exact).abs();
+                            assert!(d <= bound, "from channels-first, seed {seed}, masked {masked}: |diff| {d} > {bound}");
+                            worst = worst.max(d / bound);
+                        }
+                    }
+                }
+                assert!(worst > 0.0, "bf16 result exact everywhere: the weights were not rounded");
+            }
+            // to channels-first: h (n, s, c) tokens → out[i, oo, j] = Σ_ch h[i, j, ch]·w[oo, ch] + b[oo] + r[i, oo, j].
+            let h = Tensor::from_vec(fill(n * s * c, seed + 30), (n, s, c), &dev).unwrap();
+            let r = Tensor::from_vec(fill(n * o * s, seed + 40), (n, o, s), &dev).unwrap();
+            let (hv, rv) = (h.flatten_all().unwrap().to_vec1::<f32>().unwrap(), r.flatten_all().unwrap().to_vec1::<f32>().unwrap());
+            for masked in [false, true] {
+                let run = || linear_to_channels_first_bf16(&h, &wb, &b, &r).unwrap();
+                let got = if masked { crate::bf16::with_bf16_masked(run) } else { run() }.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+                for i in 0..n {
+                    for oo in 0..o {
+                        for j in 0..s {
+                            let terms = (0..c).map(|ch| hv[(i * s + j) * c + ch] as f64 * wv[oo * c + ch] as f64);
+                            let rest = bv[oo] as f64 + rv[(i * o + oo) * s + j] as f64;
+                            let (exact, sa) = terms.fold((rest, 0.0), |(e, a), t| (e + t, a + t.abs()));
+                            let bound = crate::bf16::error_bound(c, sa) + 4.0 * 2f64.powi(-24) * (exact.abs() + rest.abs() + sa);
+                            let d = (got[(i * o + oo) * s + j] as f64 - exact).abs();
+                            assert!(d <= bound, "to channels-first, seed {seed}, masked {masked}: |diff| {d} > {bound}");
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    /// The bf16 GEGLU feed-forward against an f64 evaluation of the unrounded operands, within the first
+    /// product's bound carried through the gate and the second product's own bound (first order):
+    /// δg ≤ |gelu(v)|·B_a + |a|·G'·B_v (+ B_a·G'·B_v), G' = max|gelu'| < 1.13, then the output's error ≤
+    /// scale·(Σ|w₂|·δg + bound₂(Σ|g·w₂|)).
+    #[test]
+    fn geglu_bf16_holds_the_propagated_error_model() {
+        let fill = crate::bf16::bench::fill;
+        let dev = Device::Cpu;
+        let gelu = |v: f64| 0.5 * v * (1.0 + libm_erf(v / std::f64::consts::SQRT_2));
+        // Mixed signs, and non-negative operands: without cancellation Σ|a·b| = |Σa·b|, so the bound is within a
+        // few u of the result and a wrong scale or bias of a few per cent fails it.
+        for (seed, rows, c, inner, o, scale, positive) in
+            [(5u64, 37usize, 24usize, 40usize, 24usize, 1.0f32, false), (6, 70, 33, 17, 9, 0.75, false), (7, 20, 16, 12, 8, 0.75, true)]
+        {
+            let fill = |n: usize, sd: u64| -> Vec<f32> { fill(n, sd).into_iter().map(|v| if positive { v.abs() } else { v }).collect() };
+            let x = Tensor::from_vec(fill(rows * c, seed), (rows, c), &dev).unwrap();
+            let w1 = Tensor::from_vec(fill(2 * inner * c, seed + 1), (2 * inner, c), &dev).unwrap();
+            let b1 = Tensor::from_vec(fill(2 * inner, seed + 2), 2 * inner, &dev).unwrap();
+            let w2 = Tensor::from_vec(fill(o * inner, seed + 3), (o, inner), &dev).unwrap();
+            let b2 = Tensor::from_vec(fill(o, seed + 4), o, &dev).unwrap();
+            let add = Tensor::from_vec(fill(rows * o, seed + 5), (rows, o), &dev).unwrap();
+            let (p1, p2) = (crate::bf16::Bf16Weights::from_linear(&w1).unwrap(), crate::bf16::Bf16Weights::from_linear(&w2).unwrap());
+            let v = |t: &Tensor| t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+            let (xv, w1v, b1v, w2v, b2v, av) = (v(&x), v(&w1), v(&b1), v(&w2), v(&b2), v(&add));
+            for masked in [false, true] {
+                let run = || geglu_ff_bf16(&x, &p1, &b1, &p2, &b2, scale, &[(&add, 0.5)]).unwrap();
+                let got = v(&if masked { crate::bf16::with_bf16_masked(run) } else { run() });
+                for r in 0..rows {
+                    let mut g = vec![0f64; inner];
+                    let mut dg = vec![0f64; inner];
+                    for j in 0..inner {
+                        let dot = |row: usize| -> (f64, f64) {
+                            (0..c).fold((b1v[row] as f64, 0.0), |(e, a), p| {
+                                let t = xv[r * c + p] as f64 * w1v[row * c + p] as f64;
+                                (e + t, a + t.abs())
+                            })
+                        };
+                        let ((a, sa), (gv, sg)) = (dot(j), dot(inner + j));
+                        let (ba, bg) = (crate::bf16::error_bound(c, sa), crate::bf16::error_bound(c, sg));
+                        g[j] = a * gelu(gv);
+                        dg[j] = gelu(gv).abs() * ba + (a.abs() + ba) * 1.13 * bg + 2f64.powi(-22) * g[j].abs();
+                    }
+                    for oo in 0..o {
+                        let (mut exact, mut sa, mut prop) = (b2v[oo] as f64, 0.0, 0.0);
+                        for j in 0..inner {
+                            let wj = w2v[oo * inner + j] as f64;
+                            exact += g[j] * wj;
+                            sa += ((g[j].abs() + dg[j]) * wj).abs();
+                            prop += wj.abs() * dg[j];
+                        }
+                        let want = scale as f64 * exact + 0.5 * av[r * o + oo] as f64;
+                        let bound = scale as f64 * (prop + crate::bf16::error_bound(inner, sa)) + 8.0 * 2f64.powi(-24) * (want.abs() + sa + 1.0);
+                        let d = (got[r * o + oo] as f64 - want).abs();
+                        assert!(d <= bound, "seed {seed}, masked {masked}: [{r},{oo}] |diff| {d} > {bound}");
+                    }
+                }
+            }
+        }
+    }
+
+    /// erf to double precision (Abramowitz–Stegun 7.1.26 is too coarse here): its Taylor series for |x| < 3,
+    /// the continued fraction of erfc beyond.
+    fn libm_erf(x: f64) -> f64 {
+        if x.abs() < 3.0 {
+            let (mut term, mut sum, x2) = (x, x, x * x);
+            for n in 1..200 {
+                term *= -x2 / n as f64;
+                let t = term / (2 * n + 1) as f64;
+                sum += t;
+                if t.abs() < 1e-17 * sum.abs() {
+                    break;
+                }
+            }
+            return 2.0 / std::f64::consts::PI.sqrt() * sum;
+        }
+        let a = x.abs();
+        let mut f = 0.0;
+        for n in (1..60).rev() {
+            f = (n as f64 / 2.0) / (a + f);
+        }
+        let erfc = (-a * a).exp() / std::f64::consts::PI.sqrt() / (a + f);
+        (1.0 - erfc).copysign(x)
+    }
+
     #[test]
     fn linear_bf16_matches_linear_fused_within_the_model() {
         let (rows, k, o) = (37usize, 129usize, 45usize);
