@@ -21,6 +21,8 @@ Timed work (matching crates/refiner/src/bench.rs):
   --vae-runs.
 Prints one JSON line {"bench":"refiner","frames":F,"latent_h":h,"latent_w":w,"unet_step_ms":…,"vae_decode_ms":…,
 "peak_mib":…,"impl":"pytorch",…}.
+--autocast bf16 runs both under PyTorch's CPU bf16 autocast (f32 weights, bf16 matmuls/convolutions), the
+reference for `bench refiner --dtype bf16` on the CPU; --dtype bf16 casts the weights instead.
 """
 
 import argparse
@@ -82,10 +84,17 @@ def main():
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (inputs are drawn on the CPU, then moved)")
     ap.add_argument("--dtype", default="f32", choices=["f32", "f16", "bf16"], help="weights and inputs (GPU: bf16)")
+    ap.add_argument("--autocast", default="off", choices=["off", "bf16"],
+                    help="bf16: f32 weights and inputs, the calls under torch.autocast(device, bfloat16) (PyTorch's "
+                         "mixed precision: matmuls and convolutions in bf16 through oneDNN on the CPU)")
     args = ap.parse_args()
     dev = torch.device(args.device)
     dtype = {"f32": torch.float32, "f16": torch.float16, "bf16": torch.bfloat16}[args.dtype]
     set_threads(args.threads)
+    if args.autocast != "off" and dtype != torch.float32:
+        sys.exit("--autocast bf16 takes f32 weights: leave --dtype at f32")
+    import contextlib
+    autocast = (lambda: torch.autocast(dev.type, dtype=torch.bfloat16)) if args.autocast == "bf16" else contextlib.nullcontext
     from diffusers import AutoencoderKLTemporalDecoder, UNetSpatioTemporalConditionModel
 
     F, h, w, B = args.frames, args.latent_h, args.latent_w, args.batch
@@ -121,7 +130,7 @@ def main():
         out = {}
 
         def step():
-            with torch.no_grad():
+            with torch.no_grad(), autocast():
                 out["v"] = unet(sample, timestep, encoder_hidden_states=ctx, added_time_ids=added_time_ids,
                                 return_dict=False)[0]
             out["v"].sum().item()
@@ -141,10 +150,10 @@ def main():
         res = {}
 
         def decode():
-            with torch.no_grad():
+            with torch.no_grad(), autocast():
                 frames = [vae.decode(z[i:i + 1] / VAE_CONFIG["scaling_factor"], num_frames=1).sample
                           for i in range(z.shape[0])]
-            res["img"] = torch.cat(frames)
+            res["img"] = torch.cat(frames).float()
             res["img"].sum().item()
 
         vt = time_ms(decode, args.vae_runs, warmup=0)
@@ -153,7 +162,7 @@ def main():
                     "vae_output_finite": bool(torch.isfinite(res["img"]).all())})
 
     rec.update({"peak_mib": round(peak_rss_mib(), 1), "threads": torch.get_num_threads(),
-                "torch": torch.__version__, "device": str(dev), "dtype": args.dtype})
+                "torch": torch.__version__, "device": str(dev), "dtype": args.dtype, "autocast": args.autocast})
     if dev.type == "cuda":
         rec["gpu_peak_mib"] = round(torch.cuda.max_memory_allocated(dev) / 2**20, 1)
         rec["gpu_name"] = torch.cuda.get_device_name(dev)
