@@ -15,6 +15,7 @@
 //! ([`error_bound`]); invisible at the magnitudes of weights and activations. See docs/research/cpu-bf16.md.
 
 pub mod bench;
+pub(crate) mod conv_kernel;
 #[cfg(target_arch = "x86_64")]
 mod kernel;
 #[cfg(test)]

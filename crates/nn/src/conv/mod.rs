@@ -10,6 +10,7 @@ use rayon::prelude::*;
 
 use crate::mode::{cpu_f32, is_cpu_f32, is_differentiable, with_f32};
 
+pub mod bf16;
 pub mod cudnn;
 pub mod winograd;
 
@@ -308,25 +309,25 @@ fn shift_conv_backward(x: &Tensor, w: &Tensor, grad: &Tensor, pad: usize, dil: u
 
 /// Shapes of a stride-1 shifted-gemm convolution, optionally on the nearest-×`up` upsampled input.
 #[derive(Debug, Clone, Copy)]
-struct ShiftGeometry {
-    n: usize,
-    c: usize,
-    h: usize,
-    w: usize,
-    co: usize,
-    kh: usize,
-    kw: usize,
-    pad: usize,
-    dil: usize,
-    up: usize,
+pub(crate) struct ShiftGeometry {
+    pub(crate) n: usize,
+    pub(crate) c: usize,
+    pub(crate) h: usize,
+    pub(crate) w: usize,
+    pub(crate) co: usize,
+    pub(crate) kh: usize,
+    pub(crate) kw: usize,
+    pub(crate) pad: usize,
+    pub(crate) dil: usize,
+    pub(crate) up: usize,
     /// padded (upsampled) width, output size
-    wp: usize,
-    ho: usize,
-    wo: usize,
+    pub(crate) wp: usize,
+    pub(crate) ho: usize,
+    pub(crate) wo: usize,
 }
 
 impl ShiftGeometry {
-    fn new((n, c, h, w): (usize, usize, usize, usize), (co, kh, kw): (usize, usize, usize), pad: usize, dil: usize, up: usize) -> Result<Self> {
+    pub(crate) fn new((n, c, h, w): (usize, usize, usize, usize), (co, kh, kw): (usize, usize, usize), pad: usize, dil: usize, up: usize) -> Result<Self> {
         let (hi, wi) = (h * up, w * up);
         let (eh, ew) = (dil * (kh - 1) + 1, dil * (kw - 1) + 1);
         if hi + 2 * pad < eh || wi + 2 * pad < ew {
@@ -339,15 +340,15 @@ impl ShiftGeometry {
 
 /// `out = residual + scale·(conv + bias[o] + item_bias[b, o])` applied while copying the result out.
 #[derive(Default)]
-struct RawEpilogue<'a> {
-    bias: Option<&'a [f32]>,
-    item_bias: Option<&'a [f32]>,
-    residual: Option<&'a [f32]>,
-    scale: Option<f32>,
+pub(crate) struct RawEpilogue<'a> {
+    pub(crate) bias: Option<&'a [f32]>,
+    pub(crate) item_bias: Option<&'a [f32]>,
+    pub(crate) residual: Option<&'a [f32]>,
+    pub(crate) scale: Option<f32>,
 }
 
 #[derive(Clone, Copy)]
-struct OutPtr(*mut f32);
+pub(crate) struct OutPtr(pub(crate) *mut f32);
 // SAFETY: tasks write disjoint output rows.
 unsafe impl Send for OutPtr {}
 unsafe impl Sync for OutPtr {}
@@ -460,7 +461,7 @@ fn shift_conv_budget(x: &[f32], w: &[f32], g: &ShiftGeometry, epi: &RawEpilogue,
     out
 }
 
-fn epilogue_row(dst: &mut [f32], src: &[f32], add: f32, scale: Option<f32>, res: Option<&[f32]>) {
+pub(crate) fn epilogue_row(dst: &mut [f32], src: &[f32], add: f32, scale: Option<f32>, res: Option<&[f32]>) {
     match (scale, res) {
         (None, None) => dst.iter_mut().zip(src).for_each(|(d, &s)| *d = s + add),
         (None, Some(r)) => dst.iter_mut().zip(src).zip(r).for_each(|((d, &s), &r)| *d = s + add + r),
@@ -482,7 +483,7 @@ pub struct ConvEpilogue<'a> {
     pub upsample2x: bool,
 }
 
-fn with_f32_opt<R>(t: Option<&Tensor>, f: impl FnOnce(Option<&[f32]>) -> Result<R>) -> Result<R> {
+pub(crate) fn with_f32_opt<R>(t: Option<&Tensor>, f: impl FnOnce(Option<&[f32]>) -> Result<R>) -> Result<R> {
     match t {
         None => f(None),
         Some(t) => {
