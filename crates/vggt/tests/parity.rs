@@ -269,7 +269,8 @@ fn bf16_within_bound(model: &Vggt, label: &str) -> Vec<Vec<f64>> {
 }
 
 /// The bf16 trunk (upstream's autocast) on the CPU: with AVX512-BF16 the blocks' linears (attention qkv/proj,
-/// MLP fc1/fc2) run in `nn`'s packed bf16 product and everything else in f32; without it, candle's bf16 ops
+/// MLP fc1/fc2) run in `nn`'s packed bf16 product and everything else in f32 (attention's products would run in
+/// bf16 too for heads of 64; the fixtures' heads of 8 keep them f32: `layers::attention`'s test covers that wiring); without it, candle's bf16 ops
 /// with the aggregator's weights and tokens in bf16. The heads are f32 either way. bf16 keeps 8 significant
 /// bits (u = 2⁻⁸); each block rounds its products' operands (and, through candle, its outputs), and ~10 blocks
 /// compound that, so the outputs are compared by their RMS error against 0.05 × the reference's RMS (≈ 13 u):

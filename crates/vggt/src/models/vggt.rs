@@ -51,9 +51,9 @@ impl Vggt {
     /// A bf16 trunk on a CPU with AVX512-BF16 ([`mvsplat360_nn::bf16::path`] on the calling thread, so
     /// [`mvsplat360_nn::bf16::with_bf16_masked`] around the load opts out) runs only the blocks' big linears in
     /// bf16: attention `qkv`/`proj` and MLP `fc1`/`fc2` take `nn::linear::linear_fused_bf16` (weights rounded
-    /// to bf16 and packed once here, activations rounded to bf16 as they are packed, f32 accumulation). The
-    /// tokens stay f32, and so do the patch embedding, the norms, QK-norm, RoPE, attention's own products and
-    /// softmax, GELU, biases and residual sums. Without the feature (or on a GPU) a bf16 trunk is candle's bf16
+    /// to bf16 and packed once here, activations rounded to bf16 as they are packed, f32 accumulation), and so do
+    /// attention's two products for heads of 64 (`nn::rope::qkv_attention_bf16`). The tokens stay f32, and so do
+    /// the patch embedding, the norms, QK-norm, RoPE, the softmax, GELU, biases and residual sums. Without the feature (or on a GPU) a bf16 trunk is candle's bf16
     /// storage and ops throughout, as before; an f32 trunk is unchanged.
     pub fn with_trunk_dtype(vb: VarBuilder, cfg: &VggtConfig, trunk: DType) -> Result<Self> {
         cfg.validate().map_err(candle_core::Error::Msg)?;
