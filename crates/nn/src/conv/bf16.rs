@@ -369,22 +369,24 @@ pub fn temporal_conv_bf16(
     if bv.len() != co || ib.as_ref().is_some_and(|v| v.len() != n * co) {
         candle_core::bail!("temporal conv: bias {} / item bias {:?} for {n} items of {co} channels", bv.len(), ib.as_ref().map(Vec::len));
     }
-    let mut dst = match residual {
-        Some(r) => {
-            if r.dims() != [n, co, h, wd] {
-                candle_core::bail!("temporal conv: residual {:?}, output {:?}", r.dims(), [n, co, h, wd]);
+    if let Some(r) = residual {
+        if r.dims() != [n, co, h, wd] {
+            candle_core::bail!("temporal conv: residual {:?}, output {:?}", r.dims(), [n, co, h, wd]);
+        }
+    }
+    // dst = residual + scale·(bias + item_bias) in one pass.
+    let mut dst = vec![0f32; n * co * s];
+    with_f32_opt(f32_opt(residual)?.as_ref(), |rd| {
+        dst.par_chunks_mut(s).enumerate().for_each(|(row, d)| {
+            let (item, o) = (row / co, row % co);
+            let add = scale * (bv[o] + ib.as_ref().map_or(0.0, |v| v[item * co + o]));
+            match rd {
+                Some(rd) => d.iter_mut().zip(&rd[row * s..][..s]).for_each(|(v, &r)| *v = r + add),
+                None => d.fill(add),
             }
-            r.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>()?
-        }
-        None => vec![0f32; n * co * s],
-    };
-    dst.par_chunks_mut(s).enumerate().for_each(|(row, d)| {
-        let (item, o) = (row / co, row % co);
-        let add = scale * (bv[o] + ib.as_ref().map_or(0.0, |v| v[item * co + o]));
-        for v in d {
-            *v += add;
-        }
-    });
+        });
+        Ok(())
+    })?;
     let x32 = x.to_dtype(DType::F32)?.contiguous()?;
     let mut xp = vec![0u32; n * cpp * s];
     with_f32_opt(Some(&x32), |xd| {
