@@ -96,25 +96,6 @@ pub(crate) fn matmul_rows(a: &Bf16Rows, a0: usize, b: &[u32], rows: &[usize], n:
     };
 }
 
-/// [`matmul_rows`] with B's rows at `b0 + q·ldb` for A's pairs `a0..a0 + kp` (a plain strided matrix).
-#[allow(clippy::too_many_arguments)]
-pub(crate) fn matmul_strided(
-    a: &Bf16Rows,
-    a0: usize,
-    kp: usize,
-    b: &[u32],
-    b0: usize,
-    ldb: usize,
-    n: usize,
-    c: &mut [f32],
-    ldc: usize,
-    alpha: f32,
-    accumulate: bool,
-) {
-    let rows: Vec<usize> = (0..kp).map(|q| b0 + q * ldb).collect();
-    matmul_rows(a, a0, b, &rows, n, c, ldc, alpha, accumulate);
-}
-
 #[cfg(target_arch = "x86_64")]
 mod avx {
     use std::arch::x86_64::*;

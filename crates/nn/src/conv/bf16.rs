@@ -11,7 +11,7 @@ use candle_core::{DType, Device, Result, Tensor};
 use rayon::prelude::*;
 
 use super::{conv2d_fused, epilogue_row, temporal_conv, with_f32_opt, Conv2dConfig, ConvEpilogue, OutPtr, RawEpilogue, ShiftGeometry};
-use crate::bf16::conv_kernel::{matmul_rows, matmul_strided, pair_row, Bf16Rows};
+use crate::bf16::conv_kernel::{matmul_rows, pair_row, Bf16Rows};
 use crate::bf16::{bf16_to_f32, path, Bf16Path};
 
 /// Floats (f32 or pair words) for the padded input + the gemm's destination, as the f32 kernel's budget.
@@ -338,8 +338,8 @@ fn strided_conv_bf16(
 }
 
 /// [`temporal_conv`] with bf16 weights: Conv3d (kt, 1, 1), zero padding kt/2 over `frames`-frame clips of
-/// frame-major x (B·T, C, H, W); `residual + scale·(conv + bias + item_bias)`. The input is converted to
-/// pair rows once; each output frame is one gemm over its valid neighbours' rows (A's column sub-range at a
+/// frame-major x (B·T, C, H, W); `residual + scale·(conv + bias + item_bias)`. Each input frame is converted
+/// to pair rows once; each output frame is one gemm over its valid neighbours' rows (A's pair sub-range at a
 /// clip's edges) accumulating into `residual + scale·(bias + item_bias)` with α = scale.
 #[allow(clippy::too_many_arguments)]
 pub fn temporal_conv_bf16(
@@ -388,23 +388,31 @@ pub fn temporal_conv_bf16(
         Ok(())
     })?;
     let x32 = x.to_dtype(DType::F32)?.contiguous()?;
-    let mut xp = vec![0u32; n * cpp * s];
+    // Pair rows of the kt frames in use, frame f in slot f % kt (kt consecutive frames never share a slot):
+    // each frame converted once, just before its first use, into a buffer that stays in L3.
+    let mut ring = vec![0u32; kt * cpp * s];
+    let mut held = vec![usize::MAX; kt];
     with_f32_opt(Some(&x32), |xd| {
         let xd = xd.unwrap_or(&[]);
-        xp.par_chunks_mut(s).enumerate().for_each(|(row, d)| {
-            let (item, q) = (row / cpp, row % cpp);
-            let hi = (2 * q + 1 < c).then(|| &xd[(item * c + 2 * q + 1) * s..][..s]);
-            pair_row(&xd[(item * c + 2 * q) * s..][..s], hi, d);
-        });
+        for (item, d) in dst.chunks_mut(co * s).enumerate() {
+            let t = item % frames;
+            let (k0, k1) = (pad.saturating_sub(t), kt.min(frames + pad - t));
+            let first = item + k0 - pad;
+            for f in first..first + (k1 - k0) {
+                if held[f % kt] != f {
+                    ring[f % kt * cpp * s..][..cpp * s].par_chunks_mut(s).enumerate().for_each(|(q, row)| {
+                        let hi = (2 * q + 1 < c).then(|| &xd[(f * c + 2 * q + 1) * s..][..s]);
+                        pair_row(&xd[(f * c + 2 * q) * s..][..s], hi, row);
+                    });
+                    held[f % kt] = f;
+                }
+            }
+            // A's pairs from tap k0 on meet frames first.. in their slots.
+            let rows: Vec<usize> = (0..(k1 - k0) * cpp).map(|i| ((first + i / cpp) % kt * cpp + i % cpp) * s).collect();
+            matmul_rows(&w.a, k0 * cpp, &ring, &rows, s, d, s, scale, true);
+        }
         Ok(())
     })?;
-    for (item, d) in dst.chunks_mut(co * s).enumerate() {
-        let t = item % frames;
-        let (k0, k1) = (pad.saturating_sub(t), kt.min(frames + pad - t));
-        let first = item + k0 - pad;
-        // Frames first.. are consecutive pair rows; A's pairs from tap k0 on.
-        matmul_strided(&w.a, k0 * cpp, (k1 - k0) * cpp, &xp, first * cpp * s, s, s, d, s, scale, true);
-    }
     Tensor::from_vec(dst, (n, co, h, wd), x.device())?.to_dtype(x.dtype())
 }
 
