@@ -176,7 +176,6 @@ fn scene_refuses_bad_sizes_devices_and_dtypes() {
         (&["scene", "--tiny", "--height", "100"][..], "multiples of 64"),
         (&["scene", "--tiny", "--device", "gpu"][..], "cpu, cuda or cuda:N"),
         (&["scene", "--tiny", "--dtype", "f64"][..], "f32, f16 or bf16"),
-        (&["scene", "--tiny", "--dtype", "bf16"][..], "bf16 runs on a GPU only"),
     ];
     if !cfg!(feature = "cuda") {
         cases.push((&["scene", "--tiny", "--device", "cuda"][..], "--features cuda"));
@@ -189,7 +188,19 @@ fn scene_refuses_bad_sizes_devices_and_dtypes() {
     }
 }
 
-/// `--dtype f16` runs the refiner in half precision end to end and the JSON says so (bf16 is GPU only).
+/// `--dtype bf16` on the CPU runs the refiner with packed bf16 weights end to end, and the JSON names the path the
+/// products took on this CPU.
+#[test]
+fn scene_runs_the_refiner_in_bf16_on_the_cpu() {
+    let v =
+        bench(&["scene", "--tiny", "--dtype", "bf16", "--views", "2", "--height", "64", "--width", "64", "--frames", "2", "--steps", "1", "--threads", "1"]);
+    assert_eq!((v["device"].as_str(), v["refiner_dtype"].as_str()), (Some("cpu"), Some("bf16")), "{v}");
+    let path = if mvsplat360_nn::bf16::hardware_dpbf16() { "avx512bf16" } else { "storage-only (no bf16 dot product on this CPU)" };
+    assert_eq!(v["cpu_bf16"].as_str(), Some(path), "{v}");
+    assert!(v["stage_seconds"].as_object().unwrap().keys().any(|k| k.contains("refin")), "{v}");
+}
+
+/// `--dtype f16` runs the refiner in half precision end to end and the JSON says so.
 #[test]
 fn scene_runs_the_refiner_in_f16() {
     let v = bench(&["scene", "--tiny", "--dtype", "f16", "--views", "2", "--height", "64", "--width", "64", "--frames", "2", "--steps", "1", "--threads", "1"]);

@@ -118,6 +118,7 @@ pub fn run_scene_bench(o: &SceneBenchOpts) -> Result<serde_json::Value> {
         "bench": "scene",
         "device": o.device.to_string(),
         "refiner_dtype": o.dtype.as_str(),
+        "cpu_bf16": Compute { device: o.device, refiner_dtype: o.dtype }.cpu_bf16_path().map(|b| b.name()),
         "model": if o.tiny { "tiny" } else { "official DL3DV configs" },
         "refiner": !o.no_refiner,
         "views": o.views,

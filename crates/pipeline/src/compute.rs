@@ -74,8 +74,10 @@ impl DeviceSpec {
     }
 }
 
-/// `--dtype` of the refiner (UNet, VAE, CLIP): f32 (default), f16 or bf16 (GPU only). The encoder and the
-/// rasterizer always run in f32, as in the official code.
+/// `--dtype` of the refiner (UNet, VAE, CLIP): f32 (default), f16 or bf16. On the CPU, bf16 keeps f32
+/// activations and multiplies bf16 weights packed once at load (`vdpbf16ps` where the CPU has AVX512-BF16,
+/// storage only otherwise: see [`cpu_bf16_path`]). The encoder and the rasterizer run in f32, as in the
+/// official code.
 pub fn parse_dtype(s: &str) -> std::result::Result<DType, String> {
     match s {
         "f32" | "fp32" => Ok(DType::F32),
@@ -99,13 +101,24 @@ impl Default for Compute {
 }
 
 impl Compute {
-    /// Open the device, refusing a precision it cannot run.
+    /// Open the device. CPU bf16 on a CPU without AVX512-BF16 is said once (weights stored in bf16, f32
+    /// arithmetic: half the weights' memory, no speed-up).
     pub fn open(&self) -> Result<Device> {
-        if self.device == DeviceSpec::Cpu && self.refiner_dtype == DType::BF16 {
-            // candle has no bf16 matrix product on the CPU.
-            return Err(flag("--dtype", "bf16 runs on a GPU only (--device cuda); on the CPU use f16 or f32"));
+        if let Some(path) = self.cpu_bf16_path() {
+            if path != mvsplat360_nn::bf16::Bf16Path::Dpbf16 {
+                static SAID: std::sync::Once = std::sync::Once::new();
+                SAID.call_once(|| {
+                    tracing::warn!("--dtype bf16 on this CPU: {} — the refiner's weights take half the memory, its arithmetic stays f32", path.name())
+                });
+            }
         }
         self.device.open()
+    }
+
+    /// How the refiner's bf16 products run on this CPU (None unless `--device cpu --dtype bf16`); recorded in
+    /// what a run writes.
+    pub fn cpu_bf16_path(&self) -> Option<mvsplat360_nn::bf16::Bf16Path> {
+        (self.device == DeviceSpec::Cpu && self.refiner_dtype == DType::BF16).then(mvsplat360_nn::bf16::path)
     }
 }
 
@@ -138,9 +151,13 @@ mod tests {
     }
 
     #[test]
-    fn bf16_on_the_cpu_is_refused_by_name() {
-        let e = Compute { device: DeviceSpec::Cpu, refiner_dtype: DType::BF16 }.open().unwrap_err().to_string();
-        assert!(e.starts_with("--dtype: bf16 runs on a GPU only"), "{e}");
-        assert!(Compute { device: DeviceSpec::Cpu, refiner_dtype: DType::F16 }.open().unwrap().is_cpu());
+    fn bf16_on_the_cpu_opens_and_names_its_path() {
+        let c = Compute { device: DeviceSpec::Cpu, refiner_dtype: DType::BF16 };
+        assert!(c.open().unwrap().is_cpu());
+        assert_eq!(c.cpu_bf16_path(), Some(mvsplat360_nn::bf16::path()));
+        let masked = mvsplat360_nn::bf16::with_bf16_masked(|| c.cpu_bf16_path());
+        assert_eq!(masked, Some(mvsplat360_nn::bf16::Bf16Path::StorageOnly));
+        assert_eq!(Compute { device: DeviceSpec::Cpu, refiner_dtype: DType::F16 }.cpu_bf16_path(), None);
+        assert_eq!(Compute { device: DeviceSpec::Cuda(0), refiner_dtype: DType::BF16 }.cpu_bf16_path(), None);
     }
 }

@@ -819,6 +819,7 @@ fn run_json(
             "blend": p.spec.blend.as_ref().map(|(b, _)| b),
             "device": req.model.compute.device.to_string(),
             "refiner_dtype": p.refiner_dtype.as_str(),
+            "cpu_bf16": req.model.compute.cpu_bf16_path().map(|b| b.name()),
             "fps": req.fps,
         },
         "frames": f.frames,

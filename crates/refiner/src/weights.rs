@@ -61,6 +61,8 @@ pub struct StrictWeights {
     device: Device,
     /// dtype tensors are handed out in (f32 unless [`StrictWeights::with_dtype`]).
     dtype: DType,
+    /// CPU bf16: weights handed out in f32 for the layers to pack in bf16 (see [`Self::packs_bf16`]).
+    pack_bf16: bool,
     /// Trainable mode: every tensor is handed out as a `Var` (listed here by model name).
     trainable: bool,
     vars: RefCell<Vec<(String, Var)>>,
@@ -147,6 +149,7 @@ impl StrictWeights {
             mismatched: RefCell::new(Vec::new()),
             device: device.clone(),
             dtype: DType::F32,
+            pack_bf16: false,
             trainable: false,
             vars: RefCell::new(Vec::new()),
         }
@@ -154,8 +157,15 @@ impl StrictWeights {
 
     /// Hand tensors out in `dtype` (f16/bf16 inference); default f32.
     pub fn with_dtype(mut self, dtype: DType) -> Self {
-        self.dtype = dtype;
+        // On the CPU, bf16 means f32 activations and bf16 products on weights packed once (`nn::bf16`).
+        self.pack_bf16 = dtype == DType::BF16 && self.device.is_cpu();
+        self.dtype = if self.pack_bf16 { DType::F32 } else { dtype };
         self
+    }
+
+    /// Whether layers pack their products' weights in bf16 (CPU `--dtype bf16`; never for trainable weights).
+    pub fn packs_bf16(&self) -> bool {
+        self.pack_bf16 && !self.trainable
     }
 
     pub fn dtype(&self) -> DType {
@@ -229,7 +239,10 @@ impl StrictWeights {
             let mut c = self.counter.borrow_mut();
             *c += 1;
             let t = random_tensor(name, shape, self.seed.wrapping_mul(0x9E37_79B9_7F4A_7C15).wrapping_add(*c), &self.device)?;
-            self.recorded.borrow_mut().push((name.to_string(), t.clone()));
+            if !self.pack_bf16 {
+                // A packed model is never exported; keeping its f32 tensors would double the load's peak.
+                self.recorded.borrow_mut().push((name.to_string(), t.clone()));
+            }
             return self.hand_out(name, t);
         }
         let Some(recipe) = self.recipes.get(name) else {

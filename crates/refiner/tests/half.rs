@@ -21,8 +21,19 @@ fn rel_l2(a: &Tensor, b: &Tensor) -> f64 {
     num / den.max(1e-30)
 }
 
-/// f16 on the CPU (candle has no CPU bf16 matrix product; bf16 is checked on a GPU by crates/pipeline/tests/gpu.rs).
-const HALF: [(DType, f64); 1] = [(DType::F16, 1.0 / 2048.0)];
+/// f16 on the CPU in candle's f16 ops; bf16 on the CPU: f32 activations, the products' weights packed in bf16
+/// (`nn::bf16`: `vdpbf16ps` with AVX512-BF16, storage only without), u = 2⁻⁸. bf16 on a GPU is checked by
+/// crates/pipeline/tests/gpu.rs.
+const HALF: [(DType, f64); 2] = [(DType::F16, 1.0 / 2048.0), (DType::BF16, 1.0 / 256.0)];
+
+/// The dtype a model built "in `dtype`" on the CPU computes in: bf16 keeps f32 activations.
+fn activations(dtype: DType) -> DType {
+    if dtype == DType::BF16 {
+        DType::F32
+    } else {
+        dtype
+    }
+}
 
 fn check(what: &str, dtype: DType, u: f64, half: &Tensor, full: &Tensor) {
     assert_eq!(half.dtype(), DType::F32, "{what} {dtype:?}: output must come back as f32");
@@ -46,8 +57,17 @@ fn unet_in_half_precision_matches_f32() {
     let full = run(&VideoUNet::random(&cfg, 11, &dev).unwrap());
     for (dtype, u) in HALF {
         let m = VideoUNet::random_as(&cfg, 11, &dev, dtype).unwrap();
-        assert_eq!(m.dtype(), dtype);
-        check("UNet", dtype, u, &run(&m), &full);
+        assert_eq!(m.dtype(), activations(dtype));
+        let half = run(&m);
+        check("UNet", dtype, u, &half, &full);
+        if dtype == DType::BF16 && mvsplat360_nn::bf16::hardware_dpbf16() {
+            // Masked: the same packed weights, products in f32 (storage only) — within the bound, and not the
+            // `vdpbf16ps` result (its activations are rounded too), so the mask reached the dispatch.
+            let stored = mvsplat360_nn::bf16::with_bf16_masked(|| run(&m));
+            check("UNet (bf16 storage only)", dtype, u, &stored, &full);
+            let d = (&stored - &half).unwrap().abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap();
+            assert!(d > 0.0, "masked run equals the vdpbf16ps run: the mask did not reach the products");
+        }
     }
 }
 

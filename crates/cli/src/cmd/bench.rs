@@ -85,7 +85,8 @@ enum What {
         /// Where it runs: `cpu`, `cuda` or `cuda:N` (CUDA needs a `--features cuda` build).
         #[arg(long, default_value = "cpu")]
         device: mvsplat360_pipeline::compute::DeviceSpec,
-        /// Precision: `f32`, `f16` or `bf16` (GPU only).
+        /// Precision: `f32`, `f16` (GPU only) or `bf16` (on the CPU: bf16 weights and products, f32
+        /// activations; the JSON's `cpu_bf16` names the path).
         #[arg(long, default_value = "f32", value_parser = mvsplat360_pipeline::compute::parse_dtype)]
         dtype: candle_core::DType,
         /// Latent frames the VAE decodes (one per call).
@@ -113,7 +114,8 @@ enum What {
         /// Where the pipeline runs: `cpu`, `cuda` or `cuda:N` (CUDA needs a `--features cuda` build).
         #[arg(long, default_value = "cpu")]
         device: mvsplat360_pipeline::compute::DeviceSpec,
-        /// Precision of the refiner: `f32`, `f16` or `bf16` (GPU only).
+        /// Precision of the refiner: `f32`, `f16` or `bf16` (on the CPU: bf16 weights and products, f32
+        /// activations).
         #[arg(long, default_value = "f32", value_parser = mvsplat360_pipeline::compute::parse_dtype)]
         dtype: candle_core::DType,
         /// Context views.
@@ -275,16 +277,20 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             if frames == 0 || latent_h == 0 || latent_w == 0 || latent_h % 8 != 0 || latent_w % 8 != 0 {
                 anyhow::bail!("bench refiner: need --frames ≥ 1 and latent sizes that are positive multiples of 8 (three 2× downsamplings) (got {frames}, {latent_h}x{latent_w})");
             }
-            if device == mvsplat360_pipeline::compute::DeviceSpec::Cpu && dtype != candle_core::DType::F32 {
-                anyhow::bail!("bench refiner: --dtype {dtype:?} needs --device cuda (the CPU kernels are f32)");
+            if device == mvsplat360_pipeline::compute::DeviceSpec::Cpu && dtype == candle_core::DType::F16 {
+                anyhow::bail!("bench refiner: --dtype f16 needs --device cuda (the CPU runs f32 or bf16)");
             }
-            let device = device.open()?;
-            mvsplat360_refiner::bench::run_refiner_bench(&mvsplat360_refiner::bench::RefinerBench {
-                device,
+            let compute = mvsplat360_pipeline::compute::Compute { device, refiner_dtype: dtype };
+            let mut v = mvsplat360_refiner::bench::run_refiner_bench(&mvsplat360_refiner::bench::RefinerBench {
+                device: compute.open()?,
                 dtype,
                 vae_frames,
                 ..mvsplat360_refiner::bench::RefinerBench::new(frames, latent_h, latent_w, common.threads.count(), common.runs)
-            })?
+            })?;
+            if let Some(path) = compute.cpu_bf16_path() {
+                v["cpu_bf16"] = serde_json::json!(path.name());
+            }
+            v
         }
         What::Scene { device, dtype, views, height, width, frames, steps, runs, warmup, tiny, no_refiner, threads } => {
             mvsplat360_pipeline::bench::run_scene_bench(&mvsplat360_pipeline::bench::SceneBenchOpts {

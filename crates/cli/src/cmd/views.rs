@@ -85,8 +85,10 @@ pub struct ModelFlags {
     /// `cpu`, `cuda` (GPU 0) or `cuda:N`. CUDA needs a binary built with `--features cuda` (see docs/gpu.md).
     #[arg(long, default_value = "auto")]
     pub device: DeviceSpec,
-    /// Precision of the refiner (UNet, VAE, CLIP): `f32`, `f16` or `bf16` (GPU only). Half precision halves the
-    /// refiner's memory and on a GPU is faster. The encoder and rasterizer always run in f32.
+    /// Precision of the refiner (UNet, VAE, CLIP): `f32`, `f16` or `bf16`. Half precision halves the refiner's
+    /// weights' memory and on a GPU is faster. On the CPU, bf16 multiplies bf16 weights (packed at load) by
+    /// f32 activations rounded to bf16, with f32 sums, where the CPU has AVX512-BF16 (≈ 2× the f32 rate), and
+    /// is storage only elsewhere (said once, recorded in run.json). The encoder and rasterizer run in f32.
     #[arg(long, default_value = "f32", value_parser = parse_dtype)]
     pub dtype: candle_core::DType,
     /// Steps of test-time fitting: the Gaussians' distances along their pixel rays and opacities are adjusted

@@ -195,6 +195,7 @@ impl ClipImageEmbedder {
         }
         let w = w.with_dtype(dtype);
         let visual = VisionTransformer::load(&w, cfg)?;
+        let dtype = w.dtype();
         w.finish()?;
         Ok(Self { cfg: cfg.clone(), visual, dtype })
     }
@@ -207,8 +208,9 @@ impl ClipImageEmbedder {
     /// [`Self::random`] computing in `dtype` (the same values, rounded).
     pub fn random_as(cfg: &ClipVisionConfig, seed: u64, device: &Device, dtype: DType) -> Result<Self, ClipError> {
         cfg.validate().map_err(|msg| ClipError::Config { path: PathBuf::from("<ClipVisionConfig>"), msg })?;
-        let visual = VisionTransformer::load(&StrictWeights::random(seed, "CLIP vision", device).with_dtype(dtype), cfg)?;
-        Ok(Self { cfg: cfg.clone(), visual, dtype })
+        let w = StrictWeights::random(seed, "CLIP vision", device).with_dtype(dtype);
+        let visual = VisionTransformer::load(&w, cfg)?;
+        Ok(Self { cfg: cfg.clone(), visual, dtype: w.dtype() })
     }
 
     /// Build from any weight source (crate-internal: random state dicts).

@@ -8,7 +8,7 @@ use crate::unet::util::{attention, Linear, Norm};
 use crate::weights::StrictWeights;
 
 fn linear(w: &StrictWeights, p: &str, i: usize, o: usize) -> Result<Linear> {
-    Ok(Linear { weight: w.get(&format!("{p}.weight"), &[o, i])?, bias: Some(w.get(&format!("{p}.bias"), &[o])?) })
+    Linear::new_packed(w.get(&format!("{p}.weight"), &[o, i])?, Some(w.get(&format!("{p}.bias"), &[o])?), w.packs_bf16())
 }
 
 fn layer_norm(w: &StrictWeights, p: &str, c: usize, eps: f64) -> Result<Norm> {
@@ -31,10 +31,11 @@ impl ResidualAttentionBlock {
         let d = cfg.width;
         Ok(Self {
             ln_1: layer_norm(w, &format!("{p}.ln_1"), d, cfg.layer_norm_eps)?,
-            in_proj: Linear {
-                weight: w.get(&format!("{p}.attn.in_proj_weight"), &[3 * d, d])?,
-                bias: Some(w.get(&format!("{p}.attn.in_proj_bias"), &[3 * d])?),
-            },
+            in_proj: Linear::new_packed(
+                w.get(&format!("{p}.attn.in_proj_weight"), &[3 * d, d])?,
+                Some(w.get(&format!("{p}.attn.in_proj_bias"), &[3 * d])?),
+                w.packs_bf16(),
+            )?,
             out_proj: linear(w, &format!("{p}.attn.out_proj"), d, d)?,
             ln_2: layer_norm(w, &format!("{p}.ln_2"), d, cfg.layer_norm_eps)?,
             c_fc: linear(w, &format!("{p}.mlp.c_fc"), d, cfg.mlp_width)?,
@@ -48,14 +49,14 @@ impl ResidualAttentionBlock {
         let qkv = self.in_proj.forward(&self.ln_1.layer_norm(x)?)?;
         let (q, k, v) = (qkv.narrow(D::Minus1, 0, d)?, qkv.narrow(D::Minus1, d, d)?, qkv.narrow(D::Minus1, 2 * d, d)?);
         let a = attention(&q.contiguous()?, &k.contiguous()?, &v.contiguous()?, cfg.heads, cfg.attn_max_score_elems)?;
-        let x = mvsplat360_nn::linear::linear_fused(&a, &self.out_proj.weight, self.out_proj.bias.as_ref(), 1.0, &[(x, 1.0)])?;
+        let x = self.out_proj.forward_fused(&a, 1.0, &[(x, 1.0)])?;
         let _m = mvsplat360_nn::prof::scope("clip.mlp");
         let h = self.c_fc.forward(&self.ln_2.layer_norm(&x)?)?;
         let h = match cfg.act {
             ClipAct::Gelu => mvsplat360_nn::activation::gelu_inference(&h)?,
             ClipAct::QuickGelu => (&h * candle_nn::ops::sigmoid(&(&h * 1.702)?)?)?,
         };
-        mvsplat360_nn::linear::linear_fused(&h, &self.c_proj.weight, self.c_proj.bias.as_ref(), 1.0, &[(&x, 1.0)])
+        self.c_proj.forward_fused(&h, 1.0, &[(&x, 1.0)])
     }
 }
 

@@ -1,7 +1,13 @@
 //! Numeric building blocks shared by the VideoUNet (sgm `diffusionmodules/util.py`, `attention.py`); the
 //! kernels behind them are `mvsplat360_nn`'s (fast CPU paths, composed ops in differentiable mode).
 
+use std::sync::Arc;
+
 use candle_core::{DType, Device, Result, Tensor, D};
+use mvsplat360_nn::bf16::Bf16Weights;
+use mvsplat360_nn::conv::bf16::{Bf16ConvWeights, Bf16TemporalWeights};
+use mvsplat360_nn::conv::{self, Conv2dConfig, ConvEpilogue};
+use mvsplat360_nn::linear;
 
 /// Sinusoidal embedding `[cos(t·f_k), sin(t·f_k)]`, `f_k = exp(-ln(max_period)·k/half)`, computed in f32
 /// like sgm `timestep_embedding` / diffusers `Timesteps(flip_sin_to_cos=True, downscale_freq_shift=0)`.
@@ -31,16 +37,180 @@ pub fn linspace_f32(start: f32, end: f32, n: usize) -> Vec<f32> {
     (0..n).map(|i| if i < halfway { start + step * i as f32 } else { end - step * (n - i - 1) as f32 }).collect()
 }
 
-/// Linear layer with torch weight layout (out, in).
+/// Linear layer with torch weight layout (out, in): f32, or packed once in bf16 for `--dtype bf16` on the CPU
+/// (products in `vdpbf16ps` where the CPU has AVX512-BF16, inference only; the f32 weight is dropped).
 #[derive(Debug, Clone)]
 pub struct Linear {
-    pub weight: Tensor,
+    weight: LinearWeight,
     pub bias: Option<Tensor>,
 }
 
+#[derive(Clone)]
+enum LinearWeight {
+    F32(Tensor),
+    Bf16(Arc<Bf16Weights>),
+}
+
+impl std::fmt::Debug for LinearWeight {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            LinearWeight::F32(t) => write!(f, "F32({:?})", t.dims()),
+            LinearWeight::Bf16(w) => write!(f, "Bf16({}x{})", w.n(), w.k()),
+        }
+    }
+}
+
 impl Linear {
+    pub fn new(weight: Tensor, bias: Option<Tensor>) -> Self {
+        Self { weight: LinearWeight::F32(weight), bias }
+    }
+
+    /// Packs `weight` (out, in) in bf16 when `bf16`, else keeps it as it is.
+    pub fn new_packed(weight: Tensor, bias: Option<Tensor>, bf16: bool) -> Result<Self> {
+        if !bf16 {
+            return Ok(Self::new(weight, bias));
+        }
+        Ok(Self { weight: LinearWeight::Bf16(Arc::new(Bf16Weights::from_linear(&weight)?)), bias })
+    }
+
+    /// Output width.
+    pub fn out_dim(&self) -> Result<usize> {
+        match &self.weight {
+            LinearWeight::F32(w) => w.dim(0),
+            LinearWeight::Bf16(w) => Ok(w.n()),
+        }
+    }
+
+    /// The f32 weight (None when packed in bf16).
+    pub fn weight(&self) -> Option<&Tensor> {
+        match &self.weight {
+            LinearWeight::F32(w) => Some(w),
+            LinearWeight::Bf16(_) => None,
+        }
+    }
+
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        mvsplat360_nn::linear::linear_fused(x, &self.weight, self.bias.as_ref(), 1.0, &[])
+        self.forward_fused(x, 1.0, &[])
+    }
+
+    /// `scale·(x @ wᵀ + bias) + Σ cᵢ·addᵢ`.
+    pub fn forward_fused(&self, x: &Tensor, scale: f32, adds: &[(&Tensor, f32)]) -> Result<Tensor> {
+        match &self.weight {
+            LinearWeight::F32(w) => linear::linear_fused(x, w, self.bias.as_ref(), scale, adds),
+            LinearWeight::Bf16(w) => linear::linear_fused_bf16(x, w, self.bias.as_ref(), scale, adds),
+        }
+    }
+
+    /// Channels-first x (N, C, S) → tokens (N, S, O) (see `mvsplat360_nn::linear::linear_from_channels_first`).
+    pub fn from_channels_first(&self, x: &Tensor) -> Result<Tensor> {
+        let Some(b) = &self.bias else { candle_core::bail!("linear from channels-first without bias") };
+        match &self.weight {
+            LinearWeight::F32(w) => linear::linear_from_channels_first(x, w, b),
+            LinearWeight::Bf16(w) => linear::linear_from_channels_first_bf16(x, w, b),
+        }
+    }
+
+    /// Tokens h (N, S, K) → channels-first (N, O, S) + residual (see `linear_to_channels_first`).
+    pub fn to_channels_first(&self, h: &Tensor, residual: &Tensor) -> Result<Tensor> {
+        let Some(b) = &self.bias else { candle_core::bail!("linear to channels-first without bias") };
+        match &self.weight {
+            LinearWeight::F32(w) => linear::linear_to_channels_first(h, w, b, residual),
+            LinearWeight::Bf16(w) => linear::linear_to_channels_first_bf16(h, w, b, residual),
+        }
+    }
+}
+
+/// GEGLU feed-forward `scale·(w2·geglu(w1·x + b1) + b2) + Σ cᵢ·addᵢ` of two [`Linear`]s, both f32 or both bf16.
+pub fn geglu_ff(x: &Tensor, proj: &Linear, out: &Linear, scale: f32, adds: &[(&Tensor, f32)]) -> Result<Tensor> {
+    let (Some(b1), Some(b2)) = (&proj.bias, &out.bias) else { candle_core::bail!("feed-forward without bias") };
+    match (&proj.weight, &out.weight) {
+        (LinearWeight::F32(w1), LinearWeight::F32(w2)) => linear::geglu_ff(x, w1, b1, w2, b2, scale, adds),
+        (LinearWeight::Bf16(w1), LinearWeight::Bf16(w2)) => linear::geglu_ff_bf16(x, w1, b1, w2, b2, scale, adds),
+        _ => candle_core::bail!("feed-forward: both projections must have the same precision"),
+    }
+}
+
+/// A convolution weight (Co, C, kh, kw): f32, or packed once in bf16 (CPU `--dtype bf16`; the f32 weight is
+/// dropped). Shared by the UNet's and the VAE's convolutions.
+pub enum ConvWeight {
+    F32(Tensor),
+    Bf16(Bf16ConvWeights),
+}
+
+impl std::fmt::Debug for ConvWeight {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            ConvWeight::F32(t) => write!(f, "F32({:?})", t.dims()),
+            ConvWeight::Bf16(w) => write!(f, "Bf16({:?})", w.dims()),
+        }
+    }
+}
+
+impl ConvWeight {
+    pub fn new(w: Tensor, bf16: bool) -> Result<Self> {
+        Ok(if bf16 { ConvWeight::Bf16(Bf16ConvWeights::from_conv(&w)?) } else { ConvWeight::F32(w) })
+    }
+
+    /// `residual + scale·(conv(x) + bias + item_bias)` (see `mvsplat360_nn::conv::conv2d_epilogue`).
+    pub fn conv(&self, x: &Tensor, bias: Option<&Tensor>, cfg: Conv2dConfig, epi: ConvEpilogue) -> Result<Tensor> {
+        match self {
+            ConvWeight::F32(w) => conv::conv2d_epilogue(x, w, bias, cfg, epi),
+            ConvWeight::Bf16(w) => conv::bf16::conv2d_fused_bf16(x, w, bias, cfg, epi),
+        }
+    }
+}
+
+/// The weight of a Conv3d with kernel (kt, 1, 1) on (B·T, C, H, W) frames, as `mvsplat360_nn::conv::temporal_conv`
+/// reads it: (Co, kt·C) tap-major. A trainable weight stays the stored (Co, C, kt, 1, 1) `Var` and is
+/// rearranged at every call, so that its updates are seen; CPU `--dtype bf16` packs it once.
+pub enum TemporalWeight {
+    Var { w5: Tensor, cin: usize, cout: usize },
+    TapMajor(Tensor),
+    Bf16(Bf16TemporalWeights),
+}
+
+impl std::fmt::Debug for TemporalWeight {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            TemporalWeight::Var { w5, .. } => write!(f, "Var({:?})", w5.dims()),
+            TemporalWeight::TapMajor(t) => write!(f, "TapMajor({:?})", t.dims()),
+            TemporalWeight::Bf16(w) => write!(f, "Bf16({:?})", w.dims()),
+        }
+    }
+}
+
+/// (Co, C, kt, 1, 1) → (Co, kt·C), tap-major columns.
+fn tap_major(w5: &Tensor, o: usize, i: usize, kt: usize) -> Result<Tensor> {
+    w5.reshape((o, i, kt))?.transpose(1, 2)?.contiguous()?.reshape((o, kt * i))
+}
+
+impl TemporalWeight {
+    /// `w5` (Co, C, kt, 1, 1) as stored.
+    pub fn new(w5: Tensor, cout: usize, cin: usize, kt: usize, trainable: bool, bf16: bool) -> Result<Self> {
+        if trainable {
+            return Ok(TemporalWeight::Var { w5, cin, cout });
+        }
+        let wt = tap_major(&w5, cout, cin, kt)?;
+        Ok(if bf16 { TemporalWeight::Bf16(Bf16TemporalWeights::from_temporal(&wt, kt)?) } else { TemporalWeight::TapMajor(wt) })
+    }
+
+    /// `residual + scale·(conv(x) + bias + item_bias)` over clips of `frames` frames.
+    #[allow(clippy::too_many_arguments)]
+    pub fn conv(
+        &self,
+        x: &Tensor,
+        bias: &Tensor,
+        kt: usize,
+        frames: usize,
+        item_bias: Option<&Tensor>,
+        residual: Option<&Tensor>,
+        scale: f32,
+    ) -> Result<Tensor> {
+        match self {
+            TemporalWeight::Var { w5, cin, cout } => conv::temporal_conv(x, &tap_major(w5, *cout, *cin, kt)?, bias, kt, frames, item_bias, residual, scale),
+            TemporalWeight::TapMajor(w) => conv::temporal_conv(x, w, bias, kt, frames, item_bias, residual, scale),
+            TemporalWeight::Bf16(w) => conv::bf16::temporal_conv_bf16(x, w, bias, kt, frames, item_bias, residual, scale),
+        }
     }
 }
 

@@ -3,16 +3,16 @@
 
 use candle_core::{Result, Tensor};
 
-use super::util::{attention, blend_learned, sigmoid_scalar, timestep_embedding, Linear, Norm};
+use super::util::{attention, blend_learned, geglu_ff, sigmoid_scalar, timestep_embedding, Linear, Norm};
 use super::weights::Weights;
 use mvsplat360_nn::attention::{multi_head_attention_seqs, SeqLayout};
-use mvsplat360_nn::linear::{geglu_ff, linear_from_channels_first, linear_fused, linear_to_channels_first};
 use mvsplat360_nn::mode::is_differentiable;
+use mvsplat360_nn::rope::qkv_attention_bf16;
 
 pub(crate) fn linear(w: &Weights, name: &str, i: usize, o: usize, bias: bool) -> Result<Linear> {
     let weight = w.get(&format!("{name}.weight"), &[o, i])?;
     let bias = if bias { Some(w.get(&format!("{name}.bias"), &[o])?) } else { None };
-    Ok(Linear { weight, bias })
+    Linear::new_packed(weight, bias, w.packs_bf16())
 }
 
 pub(crate) fn norm(w: &Weights, name: &str, c: usize, eps: f64) -> Result<Norm> {
@@ -22,30 +22,49 @@ pub(crate) fn norm(w: &Weights, name: &str, c: usize, eps: f64) -> Result<Norm> 
 /// sgm `CrossAttention` / `MemoryEfficientCrossAttention` (same weights): q/k/v without bias, `to_out.0` with bias.
 #[derive(Debug)]
 pub struct CrossAttention {
-    to_q: Linear,
-    to_k: Linear,
-    to_v: Linear,
+    proj: QkvProjection,
     to_out: Linear,
     heads: usize,
 }
 
+/// q/k/v projections: three linears, or for self-attention in CPU bf16 one packed `[to_q; to_k; to_v]` whose
+/// output rows are the fused attention kernel's `(L, 3·H·d)` input.
+#[derive(Debug)]
+enum QkvProjection {
+    Separate { to_q: Linear, to_k: Linear, to_v: Linear },
+    Fused(Linear),
+}
+
 impl CrossAttention {
-    fn load(w: &Weights, p: &str, dim: usize, ctx_dim: usize, heads: usize, d_head: usize) -> Result<Self> {
+    /// `fuse`: a self-attention (`attn1`), whose projections are packed as one in CPU bf16.
+    fn load(w: &Weights, p: &str, dim: usize, ctx_dim: usize, heads: usize, d_head: usize, fuse: bool) -> Result<Self> {
         let inner = heads * d_head;
-        Ok(Self {
-            to_q: linear(w, &format!("{p}.to_q"), dim, inner, false)?,
-            to_k: linear(w, &format!("{p}.to_k"), ctx_dim, inner, false)?,
-            to_v: linear(w, &format!("{p}.to_v"), ctx_dim, inner, false)?,
-            to_out: linear(w, &format!("{p}.to_out.0"), inner, dim, true)?,
-            heads,
-        })
+        let proj = if fuse && w.packs_bf16() && dim == ctx_dim {
+            let get = |n: &str| w.get(&format!("{p}.{n}.weight"), &[inner, dim]);
+            let (q, k, v) = (get("to_q")?, get("to_k")?, get("to_v")?);
+            QkvProjection::Fused(Linear::new_packed(Tensor::cat(&[q, k, v], 0)?, None, true)?)
+        } else {
+            QkvProjection::Separate {
+                to_q: linear(w, &format!("{p}.to_q"), dim, inner, false)?,
+                to_k: linear(w, &format!("{p}.to_k"), ctx_dim, inner, false)?,
+                to_v: linear(w, &format!("{p}.to_v"), ctx_dim, inner, false)?,
+            }
+        };
+        Ok(Self { proj, to_out: linear(w, &format!("{p}.to_out.0"), inner, dim, true)?, heads })
+    }
+
+    fn separate(&self) -> Result<(&Linear, &Linear, &Linear)> {
+        match &self.proj {
+            QkvProjection::Separate { to_q, to_k, to_v } => Ok((to_q, to_k, to_v)),
+            QkvProjection::Fused(_) => candle_core::bail!("attention: the fused q/k/v projection serves self-attention only"),
+        }
     }
 
     /// x: (N, L, C); context: (N', Lc, D) with N divisible by N' — the N/N' consecutive query rows of one
     /// context item share its keys, so they are folded into the query length (one big matmul, no repeat).
     #[cfg_attr(not(test), allow(dead_code))]
     fn forward(&self, x: &Tensor, context: Option<&Tensor>, max_elems: usize) -> Result<Tensor> {
-        let zero = Tensor::zeros((x.dim(0)?, x.dim(1)?, self.to_out.weight.dim(0)?), x.dtype(), x.device())?;
+        let zero = Tensor::zeros((x.dim(0)?, x.dim(1)?, self.to_out.out_dim()?), x.dtype(), x.device())?;
         match context {
             None => {
                 let (n, l, _) = x.dims3()?;
@@ -63,23 +82,35 @@ impl CrossAttention {
         if l % splits != 0 {
             candle_core::bail!("num_splits {splits} does not divide the {l} video frames");
         }
-        let zero = Tensor::zeros((n, l, self.to_out.weight.dim(0)?), x.dtype(), x.device())?;
+        let zero = Tensor::zeros((n, l, self.to_out.out_dim()?), x.dtype(), x.device())?;
         self.self_attention(x, &zero, SeqLayout::contiguous(n * splits, l / splits), max_elems)
     }
 
     /// `residual + to_out(attention(xn))`, self-attention over the sequences `layout` picks from the rows
     /// of xn (any leading shape, last dim C).
     fn self_attention(&self, xn: &Tensor, residual: &Tensor, layout: SeqLayout, max_elems: usize) -> Result<Tensor> {
-        let q = self.to_q.forward(xn)?;
-        let k = self.to_k.forward(xn)?;
-        let v = self.to_v.forward(xn)?;
+        let (q, k, v) = match &self.proj {
+            QkvProjection::Separate { to_q, to_k, to_v } => (to_q.forward(xn)?, to_k.forward(xn)?, to_v.forward(xn)?),
+            QkvProjection::Fused(qkv) => {
+                let qkv = qkv.forward(xn)?;
+                let three = *qkv.dims().last().unwrap_or(&3);
+                let rows = qkv.elem_count() / three.max(1);
+                let od: Vec<usize> = residual.dims().iter().take(residual.rank().saturating_sub(1)).copied().chain([three / 3]).collect();
+                if layout == SeqLayout::contiguous(layout.count, layout.len) && layout.count * layout.len == rows {
+                    let o = qkv_attention_bf16(&qkv.reshape((layout.count, layout.len, three))?, self.heads, None, None, None)?;
+                    return self.to_out.forward_fused(&o.reshape(od)?, 1.0, &[(residual, 1.0)]);
+                }
+                let part = |i: usize| qkv.narrow(candle_core::D::Minus1, i * three / 3, three / 3);
+                (part(0)?, part(1)?, part(2)?)
+            }
+        };
         let inner = *q.dims().last().unwrap_or(&1);
         let o = multi_head_attention_seqs(&q, &k, &v, layout, self.heads, max_elems)?;
         let mut od = residual.dims().to_vec();
         if let Some(l) = od.last_mut() {
             *l = inner;
         }
-        linear_fused(&o.reshape(od)?, &self.to_out.weight, self.to_out.bias.as_ref(), 1.0, &[(residual, 1.0)])
+        self.to_out.forward_fused(&o.reshape(od)?, 1.0, &[(residual, 1.0)])
     }
 
     /// `residual + to_out(attention(to_q(xn), context))`; the rows of `residual` (N rows in total, any
@@ -93,23 +124,24 @@ impl CrossAttention {
         if rows % nc != 0 {
             candle_core::bail!("cross-attention: {rows} query rows not divisible by {nc} context items");
         }
+        let (to_q, to_k, to_v) = self.separate()?;
         if lc == 1 {
-            let v = self.to_v.forward(ctx)?; // (nc, 1, inner)
+            let v = to_v.forward(ctx)?; // (nc, 1, inner)
             let o = self.to_out.forward(&v)?; // (nc, 1, c)
             return residual.reshape((nc, rows / nc, c))?.broadcast_add(&o)?.reshape(residual.dims());
         }
         let Some(xn) = xn else { candle_core::bail!("cross-attention with {lc} context tokens needs the normalised input") };
-        let q = self.to_q.forward(xn)?;
+        let q = to_q.forward(xn)?;
         let inner = *q.dims().last().unwrap_or(&1);
-        let k = self.to_k.forward(ctx)?;
-        let v = self.to_v.forward(ctx)?;
+        let k = to_k.forward(ctx)?;
+        let v = to_v.forward(ctx)?;
         let q = q.reshape((nc, rows / nc, inner))?;
         let a = attention(&q, &k, &v, self.heads, max_elems)?;
         let mut od = residual.dims().to_vec();
         if let Some(l) = od.last_mut() {
             *l = inner;
         }
-        linear_fused(&a.reshape(od)?, &self.to_out.weight, self.to_out.bias.as_ref(), 1.0, &[(residual, 1.0)])
+        self.to_out.forward_fused(&a.reshape(od)?, 1.0, &[(residual, 1.0)])
     }
 }
 
@@ -129,8 +161,7 @@ impl FeedForward {
     /// `scale·ff(x) + Σ cᵢ·addᵢ` (rows processed in chunks; the residual/blend is folded into the output gemm).
     fn forward_fused(&self, x: &Tensor, scale: f32, adds: &[(&Tensor, f32)]) -> Result<Tensor> {
         let _p = mvsplat360_nn::prof::scope("ff");
-        let (Some(b1), Some(b2)) = (&self.proj.bias, &self.out.bias) else { candle_core::bail!("feed-forward without bias") };
-        geglu_ff(x, &self.proj.weight, b1, &self.out.weight, b2, scale, adds)
+        geglu_ff(x, &self.proj, &self.out, scale, adds)
     }
 }
 
@@ -148,8 +179,8 @@ pub struct BasicTransformerBlock {
 impl BasicTransformerBlock {
     fn load(w: &Weights, p: &str, dim: usize, heads: usize, d_head: usize, ctx: usize) -> Result<Self> {
         Ok(Self {
-            attn1: CrossAttention::load(w, &format!("{p}.attn1"), dim, dim, heads, d_head)?,
-            attn2: CrossAttention::load(w, &format!("{p}.attn2"), dim, ctx, heads, d_head)?,
+            attn1: CrossAttention::load(w, &format!("{p}.attn1"), dim, dim, heads, d_head, true)?,
+            attn2: CrossAttention::load(w, &format!("{p}.attn2"), dim, ctx, heads, d_head, false)?,
             ff: FeedForward::load(w, &format!("{p}.ff"), dim, dim)?,
             norm1: norm(w, &format!("{p}.norm1"), dim, 1e-5)?,
             norm2: norm(w, &format!("{p}.norm2"), dim, 1e-5)?,
@@ -198,8 +229,8 @@ impl VideoTransformerBlock {
         Ok(Self {
             norm_in: norm(w, &format!("{p}.norm_in"), dim, 1e-5)?,
             ff_in: FeedForward::load(w, &format!("{p}.ff_in"), dim, dim)?,
-            attn1: CrossAttention::load(w, &format!("{p}.attn1"), dim, dim, heads, d_head)?,
-            attn2: CrossAttention::load(w, &format!("{p}.attn2"), dim, ctx, heads, d_head)?,
+            attn1: CrossAttention::load(w, &format!("{p}.attn1"), dim, dim, heads, d_head, true)?,
+            attn2: CrossAttention::load(w, &format!("{p}.attn2"), dim, ctx, heads, d_head, false)?,
             ff: FeedForward::load(w, &format!("{p}.ff"), dim, dim)?,
             norm1: norm(w, &format!("{p}.norm1"), dim, 1e-5)?,
             norm2: norm(w, &format!("{p}.norm2"), dim, 1e-5)?,
@@ -289,8 +320,7 @@ impl SpatialVideoTransformer {
         let (_, lc, dc) = context.dims3()?;
         let time_context = context.reshape((b, frames, lc, dc))?.narrow(1, 0, 1)?.reshape((b, lc, dc))?;
         let h = self.norm.group_norm(x, 32, 1, false)?;
-        let (Some(bin), Some(bout)) = (&self.proj_in.bias, &self.proj_out.bias) else { candle_core::bail!("proj_in/proj_out without bias") };
-        let mut h = linear_from_channels_first(&h.reshape((n, c, hh * ww))?, &self.proj_in.weight, bin)?;
+        let mut h = self.proj_in.from_channels_first(&h.reshape((n, c, hh * ww))?)?;
         let idx: Vec<f32> = (0..n).map(|i| (i % frames) as f32).collect();
         let t_emb = timestep_embedding(&idx, self.channels, self.max_period, x.device())?.to_dtype(x.dtype())?;
         let emb = self.time_pos_embed.1.forward(&self.time_pos_embed.0.forward(&t_emb)?.silu()?)?.unsqueeze(1)?;
@@ -306,7 +336,7 @@ impl SpatialVideoTransformer {
             // AlphaBlender: alpha·spatial + (1 − alpha)·temporal, folded into the temporal block's last gemm.
             h = mix.forward(&hm, &time_context, frames, splits, max_elems, (&h, alpha as f32))?;
         }
-        let out = linear_to_channels_first(&h, &self.proj_out.weight, bout, &x.reshape((n, c, hh * ww))?)?;
+        let out = self.proj_out.to_channels_first(&h, &x.reshape((n, c, hh * ww))?)?;
         out.reshape((n, c, hh, ww))
     }
 }
@@ -320,7 +350,7 @@ mod tests {
     fn windowed_self_attention_equals_attention_per_window() {
         let dev = Device::Cpu;
         let w = Weights::random(3, &dev);
-        let a = CrossAttention::load(&w, "a", 32, 32, 2, 16).unwrap();
+        let a = CrossAttention::load(&w, "a", 32, 32, 2, 16, true).unwrap();
         // 3 sequences of 8 frames, 4 windows of 2 (as 56 frames = 4 windows of 14).
         let x = Tensor::randn(0f32, 1.0, (3, 8, 32), &dev).unwrap();
         let win = a.forward_windows(&x, 4, usize::MAX).unwrap();

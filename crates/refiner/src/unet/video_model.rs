@@ -3,17 +3,16 @@
 use candle_core::{DType, Result, Tensor};
 use mvsplat360_nn::conv::{Conv2dConfig, ConvEpilogue};
 
-use mvsplat360_nn::conv::{conv2d_epilogue, temporal_conv};
 use mvsplat360_nn::mode::is_differentiable;
 
-use super::util::{blend_learned, sigmoid_scalar, timestep_embedding, Linear, Norm};
+use super::util::{blend_learned, sigmoid_scalar, timestep_embedding, ConvWeight, Linear, Norm, TemporalWeight};
 use super::video_attention::{linear, norm, SpatialVideoTransformer};
 use super::weights::Weights;
 use super::VideoUNetConfig;
 
 #[derive(Debug)]
 struct Conv {
-    w: Tensor,
+    w: ConvWeight,
     b: Tensor,
     cfg: Conv2dConfig,
 }
@@ -21,7 +20,7 @@ struct Conv {
 impl Conv {
     fn load(w: &Weights, p: &str, i: usize, o: usize, k: usize, stride: usize) -> Result<Self> {
         Ok(Self {
-            w: w.get(&format!("{p}.weight"), &[o, i, k, k])?,
+            w: ConvWeight::new(w.get(&format!("{p}.weight"), &[o, i, k, k])?, w.packs_bf16())?,
             b: w.get(&format!("{p}.bias"), &[o])?,
             cfg: Conv2dConfig { padding: k / 2, stride, dilation: 1 },
         })
@@ -33,42 +32,27 @@ impl Conv {
 
     fn forward_fused(&self, x: &Tensor, epi: ConvEpilogue) -> Result<Tensor> {
         let _p = mvsplat360_nn::prof::scope(if self.cfg.stride == 1 { "unet.conv" } else { "unet.conv_stride2" });
-        conv2d_epilogue(x, &self.w, Some(&self.b), self.cfg, epi)
+        self.w.conv(x, Some(&self.b), self.cfg, epi)
     }
 }
 
 /// Conv3d with kernel (kt, 1, 1), padding (kt/2, 0, 0) on (B·T, C, H, W), see `mvsplat360_nn::conv::temporal_conv`.
 #[derive(Debug)]
 struct TemporalConv {
-    /// (Cout, kt·Cin), tap-major columns; for trainable weights the stored (Cout, Cin, kt, 1, 1) `Var`
-    /// instead, rearranged at every call so updates of the `Var` are seen.
-    w: Tensor,
-    trainable: bool,
+    w: TemporalWeight,
     b: Tensor,
     kt: usize,
-}
-
-fn tap_major(w5: &Tensor, o: usize, i: usize, kt: usize) -> Result<Tensor> {
-    w5.reshape((o, i, kt))?.transpose(1, 2)?.contiguous()?.reshape((o, kt * i))
 }
 
 impl TemporalConv {
     fn load(w: &Weights, p: &str, i: usize, o: usize, kt: usize) -> Result<Self> {
         let w5 = w.get(&format!("{p}.weight"), &[o, i, kt, 1, 1])?;
-        let trainable = w.is_trainable();
-        let wt = if trainable { w5 } else { tap_major(&w5, o, i, kt)? };
-        Ok(Self { w: wt, trainable, b: w.get(&format!("{p}.bias"), &[o])?, kt })
+        Ok(Self { w: TemporalWeight::new(w5, o, i, kt, w.is_trainable(), w.packs_bf16())?, b: w.get(&format!("{p}.bias"), &[o])?, kt })
     }
 
     fn forward(&self, x: &Tensor, frames: usize, epi: ConvEpilogue) -> Result<Tensor> {
         let _p = mvsplat360_nn::prof::scope("unet.temporal_conv");
-        let w = if self.trainable {
-            let (o, i) = (self.w.dim(0)?, self.w.dim(1)?);
-            tap_major(&self.w, o, i, self.kt)?
-        } else {
-            self.w.clone()
-        };
-        temporal_conv(x, &w, &self.b, self.kt, frames, epi.item_bias, epi.residual, epi.scale.unwrap_or(1.0))
+        self.w.conv(x, &self.b, self.kt, frames, epi.item_bias, epi.residual, epi.scale.unwrap_or(1.0))
     }
 }
 

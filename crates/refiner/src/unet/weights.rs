@@ -51,6 +51,8 @@ pub struct Weights {
     device: Device,
     /// dtype tensors are handed out in (f32 unless [`Weights::with_dtype`]).
     dtype: DType,
+    /// CPU bf16: weights handed out in f32 for the layers to pack in bf16 (see [`Self::packs_bf16`]).
+    pack_bf16: bool,
     used: RefCell<BTreeSet<String>>,
     missing: RefCell<Vec<String>>,
     mismatched: RefCell<Vec<String>>,
@@ -111,6 +113,7 @@ impl Weights {
             src,
             device: device.clone(),
             dtype: DType::F32,
+            pack_bf16: false,
             used: RefCell::new(BTreeSet::new()),
             missing: RefCell::new(Vec::new()),
             mismatched: RefCell::new(Vec::new()),
@@ -132,8 +135,15 @@ impl Weights {
 
     /// Hand tensors out in `dtype` (f16/bf16 inference); default f32.
     pub fn with_dtype(mut self, dtype: DType) -> Self {
-        self.dtype = dtype;
+        // On the CPU, bf16 means f32 activations and bf16 products on weights packed once (`nn::bf16`).
+        self.pack_bf16 = dtype == DType::BF16 && self.device.is_cpu();
+        self.dtype = if self.pack_bf16 { DType::F32 } else { dtype };
         self
+    }
+
+    /// Whether layers pack their products' weights in bf16 (CPU `--dtype bf16`; never for trainable weights).
+    pub fn packs_bf16(&self) -> bool {
+        self.pack_bf16 && !self.trainable
     }
 
     pub fn dtype(&self) -> DType {
@@ -168,7 +178,10 @@ impl Weights {
                 let mut c = self.counter.borrow_mut();
                 *c += 1;
                 let t = random_tensor(name, shape, seed.wrapping_mul(0x9E37_79B9_7F4A_7C15).wrapping_add(*c), &self.device)?;
-                self.recorded.borrow_mut().push((name.to_string(), t.clone()));
+                if !self.pack_bf16 {
+                    // A packed model is never exported; keeping its f32 tensors would double the load's peak.
+                    self.recorded.borrow_mut().push((name.to_string(), t.clone()));
+                }
                 self.hand_out(name, t)
             }
             Source::File { st, map, .. } => {

@@ -5,7 +5,7 @@ use candle_core::{Result, Tensor};
 use mvsplat360_nn::conv::{Conv2dConfig, ConvEpilogue};
 
 use super::AutoencoderConfig;
-use crate::unet::util::{attention, group_norm};
+use crate::unet::util::{attention, group_norm, ConvWeight};
 use crate::weights::StrictWeights;
 
 /// sgm `Normalize`: GroupNorm(32, eps 1e-6).
@@ -13,14 +13,18 @@ pub(crate) const NORM_EPS: f64 = 1e-6;
 
 #[derive(Debug)]
 pub(crate) struct Conv {
-    pub w: Tensor,
+    pub w: ConvWeight,
     pub b: Tensor,
     pub cfg: Conv2dConfig,
 }
 
 impl Conv {
     pub fn load(w: &StrictWeights, p: &str, i: usize, o: usize, k: usize, stride: usize, padding: usize) -> Result<Self> {
-        Ok(Self { w: w.get(&format!("{p}.weight"), &[o, i, k, k])?, b: w.get(&format!("{p}.bias"), &[o])?, cfg: Conv2dConfig { padding, stride, dilation: 1 } })
+        Ok(Self {
+            w: ConvWeight::new(w.get(&format!("{p}.weight"), &[o, i, k, k])?, w.packs_bf16())?,
+            b: w.get(&format!("{p}.bias"), &[o])?,
+            cfg: Conv2dConfig { padding, stride, dilation: 1 },
+        })
     }
 
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
@@ -29,7 +33,7 @@ impl Conv {
 
     pub fn forward_fused(&self, x: &Tensor, epi: ConvEpilogue) -> Result<Tensor> {
         let _p = mvsplat360_nn::prof::scope(if self.cfg.stride == 1 { "vae.conv" } else { "vae.conv_stride2" });
-        mvsplat360_nn::conv::conv2d_epilogue(x, &self.w, Some(&self.b), self.cfg, epi)
+        self.w.conv(x, Some(&self.b), self.cfg, epi)
     }
 }
 

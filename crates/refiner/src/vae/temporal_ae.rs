@@ -5,7 +5,7 @@ use candle_core::{Result, Tensor};
 
 use super::model::{AttnBlock, Conv, GroupNorm, ResnetBlock, Upsample, NORM_EPS};
 use super::AutoencoderConfig;
-use crate::unet::util::{blend_learned, sigmoid_scalar};
+use crate::unet::util::{blend_learned, sigmoid_scalar, TemporalWeight};
 use crate::weights::StrictWeights;
 
 /// GroupNorm eps of the temporal `time_stack` (openaimodel `normalization` = GroupNorm32 default 1e-5).
@@ -16,28 +16,16 @@ const TIME_NORM_EPS: f64 = 1e-5;
 /// beyond the output, which matters at 14 frames × 128 channels × 512×896.
 #[derive(Debug)]
 pub(crate) struct TemporalConv {
-    /// (Cout, kt·Cin) tap-major; trainable weights: the stored (Cout, Cin, kt, 1, 1) `Var`, rearranged per call.
-    w: Tensor,
-    trainable: bool,
+    w: TemporalWeight,
     b: Tensor,
     kt: usize,
     cin: usize,
-    cout: usize,
-}
-
-/// (Cout, Cin, kt, 1, 1) → (Cout, kt·Cin), tap-major columns (what `temporal_conv` reads).
-fn tap_major(w5: &Tensor, o: usize, i: usize, kt: usize) -> Result<Tensor> {
-    w5.reshape((o, i, kt))?.transpose(1, 2)?.contiguous()?.reshape((o, kt * i))
 }
 
 impl TemporalConv {
     pub fn load(w: &StrictWeights, p: &str, i: usize, o: usize, kt: usize) -> Result<Self> {
         let w5 = w.get(&format!("{p}.weight"), &[o, i, kt, 1, 1])?;
-        let trainable = w.is_trainable();
-        // A trainable weight stays the stored `Var` and is rearranged at every call, so that its updates are
-        // seen (a copy made here would keep the initial values).
-        let wt = if trainable { w5 } else { tap_major(&w5, o, i, kt)? };
-        Ok(Self { w: wt, trainable, b: w.get(&format!("{p}.bias"), &[o])?, kt, cin: i, cout: o })
+        Ok(Self { w: TemporalWeight::new(w5, o, i, kt, w.is_trainable(), w.packs_bf16())?, b: w.get(&format!("{p}.bias"), &[o])?, kt, cin: i })
     }
 
     pub fn forward(&self, x: &Tensor, frames: usize) -> Result<Tensor> {
@@ -51,8 +39,7 @@ impl TemporalConv {
         if c != self.cin {
             candle_core::bail!("temporal conv: input {:?}, expected {} channels", x.dims(), self.cin);
         }
-        let w = if self.trainable { tap_major(&self.w, self.cout, self.cin, self.kt)? } else { self.w.clone() };
-        mvsplat360_nn::conv::temporal_conv(x, &w, &self.b, self.kt, frames, None, residual, scale)
+        self.w.conv(x, &self.b, self.kt, frames, None, residual, scale)
     }
 }
 
