@@ -3,7 +3,7 @@
 //! (`bf16(X[2p][j]) | bf16(X[2p+1][j]) << 16`) that start at arbitrary offsets of one buffer, so a conv tap's
 //! shifted view or a clip's frames are just offsets. C (f32) = α·A·B, or C += α·A·B.
 //!
-//! Per task (a range of 32-column B panels × a range of A panels), per block of [`KCP`] pairs: the task's B
+//! Per task (a range of 32-column B panels × a range of A panels, chosen by `split`), per block of [`KCP`] pairs: the task's B
 //! panels are copied into a contiguous block (the rows are strided and the shifts unaligned; a packed panel
 //! of 32 KiB stays in L1 while the A panels of a [`MBP`]-panel block stream from L2), then the 12 × 32
 //! register tile of the linear gemm (`vdpbf16ps`, A broadcast from memory) sweeps them.
@@ -148,12 +148,8 @@ mod avx {
     pub(super) unsafe fn matmul_rows(a: &Bf16Rows, a0: usize, b: &[u32], rows: &[usize], n: usize, c: &mut [f32], ldc: usize, alpha: f32, accumulate: bool) {
         let (m, kp) = (a.m, rows.len());
         let (mpanels, npanels) = (m.div_ceil(MR), n.div_ceil(NR));
-        let want = 4 * rayon::current_num_threads();
-        let chunk = NCH.min((npanels / want).max(1));
-        let nchunks = npanels.div_ceil(chunk);
-        let msplit = if nchunks >= want { 1 } else { want.div_ceil(nchunks).min(mpanels) };
-        let mchunk = mpanels.div_ceil(msplit);
-        let msplit = mpanels.div_ceil(mchunk);
+        let (chunk, mchunk) = split(mpanels, npanels, rayon::current_num_threads());
+        let (nchunks, msplit) = (npanels.div_ceil(chunk), mpanels.div_ceil(mchunk));
         let cp = SendPtr(c.as_mut_ptr());
         (0..nchunks * msplit).into_par_iter().for_each(|t| {
             #[allow(clippy::redundant_locals)] // the whole Send wrapper, not its raw-pointer field (edition 2021 captures)
@@ -195,6 +191,27 @@ mod avx {
                 p0 += pl;
             }
         });
+    }
+
+    /// (B panels, A panels) per task: at least 4 tasks a thread (an even share where there are few), and of
+    /// those splits the least traffic: each column chunk streams its A range over all K, each A range packs
+    /// its B columns — nchunks·M + msplit·N words per pair.
+    fn split(mpanels: usize, npanels: usize, threads: usize) -> (usize, usize) {
+        let want = 4 * threads;
+        let mut best = (usize::MAX, 1, mpanels);
+        for chunk in 1..=NCH.min(npanels) {
+            let nchunks = npanels.div_ceil(chunk);
+            let mut msplit = want.div_ceil(nchunks).clamp(1, mpanels);
+            while nchunks * msplit < 2 * want && (nchunks * msplit) % threads != 0 && msplit < mpanels {
+                msplit += 1;
+            }
+            let mchunk = mpanels.div_ceil(msplit);
+            let cost = nchunks * mpanels * MR + mpanels.div_ceil(mchunk) * npanels * NR;
+            if cost < best.0 || (cost == best.0 && chunk > best.1) {
+                best = (cost, chunk, mchunk);
+            }
+        }
+        (best.1, best.2)
     }
 
     /// One MR × NR tile over `pl` pairs (A: [pair][MR] words, B: [pair][NR] words): acc = Σ_p A[·][p] ⊙ B[p][·],
