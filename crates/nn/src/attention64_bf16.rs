@@ -50,7 +50,7 @@ pub(crate) fn attention_d64_bf16(buf: &[f32], n: usize, l: usize, c: usize, head
 #[allow(clippy::too_many_arguments)]
 fn attention_rounded<const TRUNC: bool>(buf: &[f32], n: usize, l: usize, c: usize, heads: usize, out: &mut [f32], q_block: usize, k_chunk: usize) -> bool {
     assert!(c == heads * D && buf.len() == n * l * 3 * c && out.len() == n * l * c, "attention_d64_bf16: shapes");
-    assert!(k_chunk >= 64 && k_chunk % 64 == 0 && q_block > 0, "attention_d64_bf16: blocks {q_block}×{k_chunk}");
+    assert!(k_chunk >= 64 && k_chunk.is_multiple_of(64) && q_block > 0, "attention_d64_bf16: blocks {q_block}×{k_chunk}");
     if path() != Bf16Path::Dpbf16 {
         return false;
     }
@@ -124,7 +124,7 @@ unsafe fn to_pairs<const TRUNC: bool>(src: &[f32], ss: usize, rows: usize, len: 
             let lo = _mm512_maskz_loadu_ps(m0, s.add(i));
             let hi = _mm512_maskz_loadu_ps(m1, s.add(i + 16));
             // cvtne2ps_pbh(a, b): b → the low 16 bf16, a → the high 16, so word w holds values 2w, 2w + 1.
-            let w: __m512i = std::mem::transmute(_mm512_cvtne2ps_pbh(hi, lo));
+            let w = std::mem::transmute::<__m512bh, __m512i>(_mm512_cvtne2ps_pbh(hi, lo));
             let words = rem.min(32).div_ceil(2);
             let mw: __mmask16 = if words >= 16 { 0xffff } else { ((1u32 << words) - 1) as __mmask16 };
             _mm512_mask_storeu_epi32(d.add(i / 2) as *mut _, mw, w);
@@ -208,6 +208,14 @@ unsafe fn scores(qw: &[u32], m: usize, kw: &[u32], tiles: usize, s: &mut [f32], 
     }
 }
 
+/// 16 pair words as `vdpbf16ps` reads them.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512bf16")]
+#[inline]
+unsafe fn words(p: *const __m512i) -> __m512bh {
+    std::mem::transmute::<__m512i, __m512bh>(_mm512_loadu_si512(p as *const _))
+}
+
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512bf16")]
 #[inline]
@@ -215,14 +223,9 @@ unsafe fn score_tile<const R: usize>(q: *const u32, k: *const u32, s: *mut f32, 
     let mut acc = [[_mm512_setzero_ps(); 4]; R];
     for tp in 0..PAIRS {
         let kp = k.add(tp * KT) as *const __m512i;
-        let b: [__m512bh; 4] = [
-            std::mem::transmute(_mm512_loadu_si512(kp as *const _)),
-            std::mem::transmute(_mm512_loadu_si512(kp.add(1) as *const _)),
-            std::mem::transmute(_mm512_loadu_si512(kp.add(2) as *const _)),
-            std::mem::transmute(_mm512_loadu_si512(kp.add(3) as *const _)),
-        ];
+        let b = [words(kp), words(kp.add(1)), words(kp.add(2)), words(kp.add(3))];
         for (r, acc) in acc.iter_mut().enumerate() {
-            let a: __m512bh = std::mem::transmute(_mm512_set1_epi32(*q.add(r * PAIRS + tp) as i32));
+            let a = std::mem::transmute::<__m512i, __m512bh>(_mm512_set1_epi32(*q.add(r * PAIRS + tp) as i32));
             for i in 0..4 {
                 acc[i] = _mm512_dpbf16_ps(acc[i], a, b[i]);
             }
@@ -264,14 +267,9 @@ unsafe fn value_tile<const R: usize>(p: *const u32, ps: usize, pairs: usize, v: 
     }
     for jp in 0..pairs {
         let vp = v.add(jp * D) as *const __m512i;
-        let b: [__m512bh; 4] = [
-            std::mem::transmute(_mm512_loadu_si512(vp as *const _)),
-            std::mem::transmute(_mm512_loadu_si512(vp.add(1) as *const _)),
-            std::mem::transmute(_mm512_loadu_si512(vp.add(2) as *const _)),
-            std::mem::transmute(_mm512_loadu_si512(vp.add(3) as *const _)),
-        ];
+        let b = [words(vp), words(vp.add(1)), words(vp.add(2)), words(vp.add(3))];
         for (r, acc) in acc.iter_mut().enumerate() {
-            let a: __m512bh = std::mem::transmute(_mm512_set1_epi32(*p.add(r * ps + jp) as i32));
+            let a = std::mem::transmute::<__m512i, __m512bh>(_mm512_set1_epi32(*p.add(r * ps + jp) as i32));
             for i in 0..4 {
                 acc[i] = _mm512_dpbf16_ps(acc[i], a, b[i]);
             }
@@ -313,6 +311,9 @@ mod tests {
         delta: Vec<f64>,
     }
 
+    /// One row's o, A, M (64 each) and Δ.
+    type RowRef = (Vec<f64>, Vec<f64>, Vec<f64>, f64);
+
     fn reference(buf: &[f32], n: usize, l: usize, c: usize, heads: usize, against: Against) -> Reference {
         let x = |v: f32| if against == Against::Rounded { bf16_to_f32_daz(f32_to_bf16(v)) as f64 } else { v as f64 };
         let row = 3 * c;
@@ -322,7 +323,7 @@ mod tests {
                 // Head h of sequence g as l × 64 f64 (part 0: q, 1: k, 2: v).
                 let part = |p: usize| -> Vec<f64> { (0..l).flat_map(|j| buf[(g * l + j) * row + p * c + h * D..][..D].iter().map(|v| x(*v))).collect() };
                 let (q, k, v) = (part(0), part(1), part(2));
-                let rows: Vec<(Vec<f64>, Vec<f64>, Vec<f64>, f64)> = (0..l)
+                let rows: Vec<RowRef> = (0..l)
                     .into_par_iter()
                     .map(|i| {
                         let qi = &q[i * D..(i + 1) * D];

@@ -83,7 +83,7 @@ fn qkv_attention_with(
     let c = three_c / 3;
     let d = c / heads;
     if let Some(r) = rope {
-        if r.cos.dims() != [l, d] || r.sin.dims() != [l, d] || d % 4 != 0 {
+        if r.cos.dims() != [l, d] || r.sin.dims() != [l, d] || !d.is_multiple_of(4) {
             candle_core::bail!("qkv attention: rope tables {:?} for {l} tokens of head size {d}", r.cos.dims());
         }
     }
