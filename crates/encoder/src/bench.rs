@@ -78,17 +78,34 @@ pub fn synthetic_context(b: usize, v: usize, h: usize, w: usize, device: &Device
     Ok([images, intrinsics, extrinsics, near, far])
 }
 
-/// Backbone only (CNN + transformer), for a breakdown of the encoder time.
-pub fn run_backbone_bench(views: usize, height: usize, width: usize, threads: usize, runs: usize) -> Result<serde_json::Value, BenchError> {
-    on_threads(threads, || backbone_bench(views, height, width, runs))
+/// The weights' precision: f32, or bf16 (packed products on the CPU, see [`crate::bf16`]).
+fn check_dtype(dtype: DType) -> Result<(), BenchError> {
+    match dtype {
+        DType::F32 | DType::BF16 => Ok(()),
+        d => Err(BenchError::Setup(format!("the encoder runs in f32 or bf16 on the CPU, not {d:?}"))),
+    }
 }
 
-fn backbone_bench(views: usize, height: usize, width: usize, runs: usize) -> Result<serde_json::Value, BenchError> {
+/// `dtype` and, for bf16, the path its products take on this CPU (as run.json records it).
+fn dtype_json(dtype: DType) -> (String, Option<&'static str>) {
+    (dtype.as_str().to_string(), (dtype == DType::BF16).then(|| mvsplat360_nn::bf16::path().name()))
+}
+
+/// Backbone only (CNN + transformer), for a breakdown of the encoder time.
+pub fn run_backbone_bench(views: usize, height: usize, width: usize, threads: usize, runs: usize, dtype: DType) -> Result<serde_json::Value, BenchError> {
+    check_dtype(dtype)?;
+    on_threads(threads, || backbone_bench(views, height, width, runs, dtype))
+}
+
+fn backbone_bench(views: usize, height: usize, width: usize, runs: usize, dtype: DType) -> Result<serde_json::Value, BenchError> {
     let cfg = EncoderCostVolumeCfg { num_views: views, ..Default::default() };
     let dev = Device::Cpu;
     let build = |vb: VarBuilder| BackboneMultiview::new(vb.pp("encoder").pp("backbone"), cfg.d_feature, cfg.num_transformer_layers, cfg.ffn_dim_expansion);
     let weights = random_tensors(0, &dev, build)?;
-    let model = build(VarBuilder::from_tensors(weights, DType::F32, &dev))?;
+    let mut model = build(VarBuilder::from_tensors(weights, DType::F32, &dev))?;
+    if dtype == DType::BF16 {
+        model.pack_bf16()?;
+    }
     let [images, _, extrinsics, _, _] = synthetic_context(1, views, height, width, &dev)?;
     let mut times = Vec::new();
     for i in 0..runs.max(1) + 1 {
@@ -102,22 +119,28 @@ fn backbone_bench(views: usize, height: usize, width: usize, runs: usize) -> Res
             times.push(t0.elapsed().as_secs_f64() * 1e3);
         }
     }
-    Ok(json!({"bench": "encoder_backbone", "views": views, "height": height, "width": width,
+    let (dt, path) = dtype_json(dtype);
+    Ok(json!({"bench": "encoder_backbone", "views": views, "height": height, "width": width, "dtype": dt, "cpu_bf16": path,
         "threads": rayon::current_num_threads(), "forward_ms": median(times), "peak_mib": peak_rss_mib()}))
 }
 
-/// The full encoder (DL3DV configuration, `views` context views, random weights): median forward time over `runs`
-/// runs after one warm-up, and the process's peak RSS, on `threads` worker threads (0 = all cores).
-pub fn run_encoder_bench(views: usize, height: usize, width: usize, threads: usize, runs: usize) -> Result<serde_json::Value, BenchError> {
-    on_threads(threads, || encoder_bench(views, height, width, runs))
+/// The full encoder (DL3DV configuration, `views` context views, random weights) in `dtype` (f32, or bf16: see
+/// [`crate::bf16`]): median forward time over `runs` runs after one warm-up, and the process's peak RSS, on
+/// `threads` worker threads (0 = all cores).
+pub fn run_encoder_bench(views: usize, height: usize, width: usize, threads: usize, runs: usize, dtype: DType) -> Result<serde_json::Value, BenchError> {
+    check_dtype(dtype)?;
+    on_threads(threads, || encoder_bench(views, height, width, runs, dtype))
 }
 
-fn encoder_bench(views: usize, height: usize, width: usize, runs: usize) -> Result<serde_json::Value, BenchError> {
+fn encoder_bench(views: usize, height: usize, width: usize, runs: usize, dtype: DType) -> Result<serde_json::Value, BenchError> {
     let cfg = EncoderCostVolumeCfg { num_views: views, ..Default::default() };
     let dev = Device::Cpu;
     let build = |vb: VarBuilder| crate::EncoderCostVolume::new(vb.pp("encoder"), &cfg);
     let weights = random_tensors(0, &dev, build)?;
-    let model = build(VarBuilder::from_tensors(weights, DType::F32, &dev))?;
+    let mut model = build(VarBuilder::from_tensors(weights, DType::F32, &dev))?;
+    if dtype == DType::BF16 {
+        model.pack_bf16()?;
+    }
     let [images, intrinsics, extrinsics, near, far] = synthetic_context(1, views, height, width, &dev)?;
     let mut times = Vec::new();
     for i in 0..runs.max(1) + 1 {
@@ -128,6 +151,7 @@ fn encoder_bench(views: usize, height: usize, width: usize, runs: usize) -> Resu
             times.push(t0.elapsed().as_secs_f64() * 1e3);
         }
     }
-    Ok(json!({"bench": "encoder", "views": views, "height": height, "width": width,
+    let (dt, path) = dtype_json(dtype);
+    Ok(json!({"bench": "encoder", "views": views, "height": height, "width": width, "dtype": dt, "cpu_bf16": path,
         "threads": rayon::current_num_threads(), "forward_ms": median(times), "peak_mib": peak_rss_mib()}))
 }

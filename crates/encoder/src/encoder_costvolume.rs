@@ -18,6 +18,8 @@ pub struct EncoderCostVolume {
     pub cfg: EncoderCostVolumeCfg,
     pub backbone: BackboneMultiview,
     pub depth_predictor: DepthPredictorMultiView,
+    /// F32, or BF16 once [`Self::pack_bf16`] packed the products' weights.
+    dtype: DType,
 }
 
 /// Camera-distance products computed before the backbone (kept for inspection and tests).
@@ -51,13 +53,44 @@ impl EncoderCostVolume {
         let backbone =
             BackboneMultiview::with_cnn_dims(vb.pp("backbone"), cfg.cnn_feature_dims, cfg.d_feature, cfg.num_transformer_layers, cfg.ffn_dim_expansion)?;
         let depth_predictor = DepthPredictorMultiView::new(vb.pp("depth_predictor"), cfg)?;
-        Ok(Self { cfg: cfg.clone(), backbone, depth_predictor })
+        Ok(Self { cfg: cfg.clone(), backbone, depth_predictor, dtype: DType::F32 })
     }
 
     /// Load from a safetensors file or a Lightning `.ckpt`/`.pth` (keys `encoder.*`), strictly: zero missing and
     /// zero unexpected encoder keys.
     pub fn load(path: impl AsRef<Path>, cfg: &EncoderCostVolumeCfg, device: &Device) -> std::result::Result<Self, WeightsError> {
         load_strict(path, ENCODER_PREFIX, device, |vb| Self::new(vb, cfg))
+    }
+
+    /// [`Self::load`] for inference in `dtype`: F32, or BF16 on the CPU (weights packed as they are built, see
+    /// [`Self::pack_bf16`]). bf16 on another device is refused: the GPU encoder runs f32.
+    pub fn load_as(path: impl AsRef<Path>, cfg: &EncoderCostVolumeCfg, device: &Device, dtype: DType) -> std::result::Result<Self, WeightsError> {
+        match dtype {
+            DType::F32 => Self::load(path, cfg, device),
+            DType::BF16 if device.is_cpu() => load_strict(path, ENCODER_PREFIX, device, |vb| {
+                let mut e = Self::new(vb, cfg)?;
+                e.pack_bf16()?;
+                Ok(e)
+            }),
+            _ => Err(WeightsError::Build {
+                path: path.as_ref().to_path_buf(),
+                source: candle_core::Error::Msg(format!("the encoder runs in f32, or in bf16 on the CPU; not {dtype:?} on {device:?}")),
+            }),
+        }
+    }
+
+    /// Packs every linear and convolution weight in bf16 for CPU inference, dropping the f32 copies
+    /// (what runs in bf16 and what stays f32: [`crate::bf16`]). Refused for trainable weights.
+    pub fn pack_bf16(&mut self) -> Result<()> {
+        self.backbone.pack_bf16()?;
+        self.depth_predictor.pack_bf16()?;
+        self.dtype = DType::BF16;
+        Ok(())
+    }
+
+    /// The precision of the products' weights: F32, or BF16 after [`Self::pack_bf16`].
+    pub fn dtype(&self) -> DType {
+        self.dtype
     }
 
     /// Check the context batch against the configuration; the error says what to change.

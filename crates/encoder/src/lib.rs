@@ -3,6 +3,7 @@
 
 pub mod backbone;
 pub mod bench;
+pub mod bf16;
 pub mod common;
 pub mod config;
 pub mod costvolume;

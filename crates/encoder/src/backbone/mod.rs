@@ -61,6 +61,12 @@ impl BackboneMultiview {
         })
     }
 
+    /// The CNN's and the transformer's weights packed in bf16 (CPU inference; see [`crate::bf16`]).
+    pub fn pack_bf16(&mut self) -> Result<()> {
+        self.backbone.pack_bf16()?;
+        self.transformer.pack_bf16()
+    }
+
     /// `images [B, V, 3, H, W]` in [0, 1]; `nn` = nearest-view index rows (column 0 = self), already cut to
     /// `multiview_trans_nearest_n_views` columns.
     pub fn forward(&self, images: &Tensor, splits: usize, nn: Option<&[Vec<Vec<u32>>]>, intermediates: bool) -> Result<BackboneOutput> {

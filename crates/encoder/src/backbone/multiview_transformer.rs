@@ -83,6 +83,18 @@ impl TransformerLayer {
         })
     }
 
+    /// The projections and the MLP packed in bf16 (CPU inference; the norms and attention stay f32).
+    pub fn pack_bf16(&mut self) -> Result<()> {
+        for l in [&mut self.q_proj, &mut self.k_proj, &mut self.v_proj, &mut self.merge] {
+            l.pack_bf16()?;
+        }
+        if let Some((fc1, fc2, _)) = &mut self.ffn {
+            fc1.pack_bf16()?;
+            fc2.pack_bf16()?;
+        }
+        Ok(())
+    }
+
     /// `source [N, L, C]` queries; keys/values come from `kv_source [N', L, C]`: for self-attention `kv_source` is
     /// `source` and `rows` is `None`; for cross-attention `rows = (indices, m)` picks m key rows per query row
     /// (the projections are computed once per view and then gathered, which equals projecting the gathered
@@ -273,6 +285,15 @@ impl MultiViewFeatureTransformer {
             });
         }
         Ok(Self { layers, d_model })
+    }
+
+    /// Every block's projections and MLP packed in bf16 (CPU inference; see [`crate::bf16`]).
+    pub fn pack_bf16(&mut self) -> Result<()> {
+        for b in &mut self.layers {
+            b.self_attn.pack_bf16()?;
+            b.cross_attn_ffn.pack_bf16()?;
+        }
+        Ok(())
     }
 
     /// `features [B, V, C, h, w]` → `[B, V, C, h, w]`; also returns each block's output `[(v b), h·w, C]`.

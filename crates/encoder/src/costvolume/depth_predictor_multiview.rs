@@ -150,6 +150,29 @@ impl DepthPredictorMultiView {
         self.forward_impl(inp, false)
     }
 
+    /// Every convolution (UNets, heads, upsampler, projections) packed in bf16 (CPU inference; the cost
+    /// volume, norms, softmax and depth stay f32: see [`crate::bf16`]).
+    pub fn pack_bf16(&mut self) -> Result<()> {
+        for c in [
+            &mut self.corr_conv,
+            &mut self.corr_out,
+            &mut self.regressor_residual,
+            &mut self.depth_head.0,
+            &mut self.depth_head.1,
+            &mut self.upsampler,
+            &mut self.proj_feature,
+            &mut self.refine_conv,
+            &mut self.to_gaussians.0,
+            &mut self.to_gaussians.1,
+            &mut self.to_disparity.0,
+            &mut self.to_disparity.1,
+        ] {
+            c.pack_bf16()?;
+        }
+        self.corr_unet.pack_bf16()?;
+        self.refine_unet.pack_bf16()
+    }
+
     /// As [`Self::forward`], also returning the `depth.*` intermediates.
     pub fn forward_with_intermediates(&self, inp: &DepthPredictorInput) -> Result<DepthPredictorOutput> {
         self.forward_impl(inp, true)

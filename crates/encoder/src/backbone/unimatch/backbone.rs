@@ -22,6 +22,13 @@ impl ResidualBlock {
         let downsample = if stride != 1 || c_in != c_out { Some(Conv2d::new(vb.pp("downsample").pp("0"), c_in, c_out, 1, stride, 0, true)?) } else { None };
         Ok(Self { conv1, conv2, downsample })
     }
+
+    pub fn pack_bf16(&mut self) -> Result<()> {
+        self.conv1.pack_bf16()?;
+        self.conv2.pack_bf16()?;
+        self.downsample.as_mut().map(Conv2d::pack_bf16).transpose()?;
+        Ok(())
+    }
 }
 
 impl Module for ResidualBlock {
@@ -61,6 +68,13 @@ impl CnnEncoder {
         }
         let conv2 = Conv2d::new(vb.pp("conv2"), dims[2], output_dim, 1, 1, 0, true)?;
         Ok(Self { conv1, layers, conv2 })
+    }
+
+    /// Every convolution's weight packed in bf16 (CPU inference; see [`crate::bf16`]).
+    pub fn pack_bf16(&mut self) -> Result<()> {
+        self.conv1.pack_bf16()?;
+        self.layers.iter_mut().try_for_each(ResidualBlock::pack_bf16)?;
+        self.conv2.pack_bf16()
     }
 }
 

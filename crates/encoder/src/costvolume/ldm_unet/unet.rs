@@ -10,7 +10,6 @@ use candle_nn::VarBuilder;
 use super::util::{Act, Conv1x1, Conv2d, GroupNorm};
 use mvsplat360_nn::attention::fused_attention;
 use mvsplat360_nn::softmax::softmax_last;
-use mvsplat360_nn::upsample::upsample_nearest;
 
 /// Post-norm residual block: `skip(x) + SiLU(GN(conv(SiLU(GN(conv(x))))))`.
 #[derive(Debug, Clone)]
@@ -31,6 +30,13 @@ impl ResBlock {
             out_norm: GroupNorm::unet(vb.pp("out_layers").pp("1"), c_out)?,
             skip: if c_in != c_out { Some(Conv2d::new(vb.pp("skip_connection"), c_in, c_out, 1, 1, 0)?) } else { None },
         })
+    }
+
+    pub fn pack_bf16(&mut self) -> Result<()> {
+        self.in_conv.pack_bf16()?;
+        self.out_conv.pack_bf16()?;
+        self.skip.as_mut().map(Conv2d::pack_bf16).transpose()?;
+        Ok(())
     }
 }
 
@@ -68,6 +74,12 @@ impl AttentionBlock {
             num_heads: channels / num_head_channels,
             num_frames: num_frames.max(1),
         })
+    }
+
+    /// qkv and proj_out packed in bf16 (the attention itself stays f32: see [`crate::bf16`]).
+    pub fn pack_bf16(&mut self) -> Result<()> {
+        self.qkv.pack_bf16()?;
+        self.proj_out.pack_bf16()
     }
 
     /// `qkv [(v b), 3C, T]` → attention output `[(v b), C, T]`.
@@ -138,10 +150,15 @@ impl Layer {
             Layer::Conv(c) | Layer::Down(c) => c.forward(x),
             Layer::Res(r) => r.forward(x),
             Layer::Attn(a) => a.forward_frames(x, num_frames),
-            Layer::Up(c) => {
-                let (_, _, h, w) = x.dims4()?;
-                c.forward(&upsample_nearest(x, (2 * h, 2 * w))?)
-            }
+            Layer::Up(c) => c.forward_up2(x),
+        }
+    }
+
+    fn pack_bf16(&mut self) -> Result<()> {
+        match self {
+            Layer::Conv(c) | Layer::Down(c) | Layer::Up(c) => c.pack_bf16(),
+            Layer::Res(r) => r.pack_bf16(),
+            Layer::Attn(a) => a.pack_bf16(),
         }
     }
 }
@@ -240,6 +257,16 @@ impl Module for UNetModel {
 }
 
 impl UNetModel {
+    /// Every convolution (and the attention blocks' 1×1 projections) packed in bf16 (CPU inference).
+    pub fn pack_bf16(&mut self) -> Result<()> {
+        for l in self.input_blocks.iter_mut().chain(self.output_blocks.iter_mut()).flatten() {
+            l.pack_bf16()?;
+        }
+        self.middle_block.0.pack_bf16()?;
+        self.middle_block.1.pack_bf16()?;
+        self.out_conv.pack_bf16()
+    }
+
     /// `x [(v b), C, H, W]`; attention layers attend across the `num_frames` views of each batch element.
     pub fn forward_frames(&self, x: &Tensor, num_frames: usize) -> Result<Tensor> {
         let (_, _, h, w) = x.dims4()?;

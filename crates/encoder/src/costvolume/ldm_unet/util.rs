@@ -3,11 +3,15 @@
 
 use candle_core::{Module, Result, Tensor};
 use candle_nn::VarBuilder;
+use mvsplat360_nn::ConvEpilogue;
 
-/// `nn.Conv2d(c_in, c_out, k, stride, padding)` with bias, PyTorch weight layout `[out, in, k, k]`.
+use crate::bf16::{conv_bf16, ConvWeight};
+
+/// `nn.Conv2d(c_in, c_out, k, stride, padding)` with bias, PyTorch weight layout `[out, in, k, k]`; the weight
+/// f32, or packed in bf16 for CPU inference ([`crate::bf16`]).
 #[derive(Debug, Clone)]
 pub struct Conv2d {
-    pub weight: Tensor,
+    pub weight: ConvWeight,
     pub bias: Tensor,
     pub stride: usize,
     pub padding: usize,
@@ -15,7 +19,23 @@ pub struct Conv2d {
 
 impl Conv2d {
     pub fn new(vb: VarBuilder, c_in: usize, c_out: usize, k: usize, stride: usize, padding: usize) -> Result<Self> {
-        Ok(Self { weight: vb.get((c_out, c_in, k, k), "weight")?, bias: vb.get(c_out, "bias")?, stride, padding })
+        Ok(Self { weight: ConvWeight::F32(vb.get((c_out, c_in, k, k), "weight")?), bias: vb.get(c_out, "bias")?, stride, padding })
+    }
+
+    pub fn pack_bf16(&mut self) -> Result<()> {
+        self.weight.pack()
+    }
+
+    /// `conv(nearest×2(x))`: packed weights fuse the upsampling into the convolution's input copy; f32 as
+    /// the official code composes it.
+    pub fn forward_up2(&self, x: &Tensor) -> Result<Tensor> {
+        match &self.weight {
+            ConvWeight::Bf16(w) => conv_bf16(x, w, Some(&self.bias), self.stride, self.padding, ConvEpilogue { upsample2x: true, ..Default::default() }),
+            ConvWeight::F32(_) => {
+                let (_, _, h, w) = x.dims4()?;
+                self.forward(&mvsplat360_nn::upsample::upsample_nearest(x, (2 * h, 2 * w))?)
+            }
+        }
     }
 
     /// "Same" 3×3 convolution (stride 1, padding 1).
@@ -36,8 +56,13 @@ impl Module for Conv2d {
 
 impl Conv2d {
     fn forward_budget(&self, x: &Tensor, budget: usize) -> Result<Tensor> {
+        let weight = match &self.weight {
+            ConvWeight::F32(w) => w,
+            // The bf16 kernel bands its own buffers.
+            ConvWeight::Bf16(w) => return conv_bf16(x, w, Some(&self.bias), self.stride, self.padding, Default::default()),
+        };
         let (n, cin, h, w) = x.dims4()?;
-        let (_, _, k, _) = self.weight.dims4()?;
+        let (_, _, k, _) = weight.dims4()?;
         let (s, pd) = (self.stride, self.padding);
         if h + 2 * pd < k || w + 2 * pd < k {
             candle_core::bail!("conv2d: kernel {k} larger than padded input {h}x{w}");
@@ -48,18 +73,18 @@ impl Conv2d {
             // The shifted-gemm kernel bands large inputs itself (no im2col buffer): no splitting here, and
             // for inference the bias is fused into its output copy.
             let cfg = mvsplat360_nn::Conv2dConfig { padding: pd, stride: 1, dilation: 1 };
-            return if x.track_op() || self.weight.track_op() || self.bias.track_op() {
-                mvsplat360_nn::conv2d(x, &self.weight, Some(&self.bias), cfg)
+            return if x.track_op() || weight.track_op() || self.bias.track_op() {
+                mvsplat360_nn::conv2d(x, weight, Some(&self.bias), cfg)
             } else {
-                mvsplat360_nn::conv2d_fused(x, &self.weight, Some(&self.bias), cfg, Default::default())
+                mvsplat360_nn::conv2d_fused(x, weight, Some(&self.bias), cfg, Default::default())
             };
         }
         let per_row = wo * cin * k * k;
         let y = if n * ho * per_row <= budget || k == 1 {
-            conv2d(x, &self.weight, s, pd)?
+            conv2d(x, weight, s, pd)?
         } else if ho * per_row <= budget {
             let per = (budget / (ho * per_row)).max(1);
-            let parts = (0..n).step_by(per).map(|i| conv2d(&x.narrow(0, i, per.min(n - i))?, &self.weight, s, pd)).collect::<Result<Vec<_>>>()?;
+            let parts = (0..n).step_by(per).map(|i| conv2d(&x.narrow(0, i, per.min(n - i))?, weight, s, pd)).collect::<Result<Vec<_>>>()?;
             Tensor::cat(&parts, 0)?
         } else {
             // Bands of output rows over the zero-padded input (differentiable: pad/narrow/cat).
@@ -73,7 +98,7 @@ impl Conv2d {
                 while r0 < ho {
                     let r1 = (r0 + rows).min(ho);
                     let band = xi.narrow(2, r0 * s, (r1 - 1) * s + k - r0 * s)?;
-                    bands.push(conv2d(&band, &self.weight, s, 0)?);
+                    bands.push(conv2d(&band, weight, s, 0)?);
                     r0 = r1;
                 }
                 per_image.push(Tensor::cat(&bands, 2)?);
@@ -84,24 +109,43 @@ impl Conv2d {
     }
 }
 
-/// `nn.Conv1d(c_in, c_out, 1)` on `[N, C, T]` (weight `[out, in, 1]`), as one matrix product.
+/// `nn.Conv1d(c_in, c_out, 1)` on `[N, C, T]` (weight `[out, in, 1]`), as one matrix product; packed in bf16
+/// it runs as a 1×1 convolution of `[N, C, 1, T]`.
 #[derive(Debug, Clone)]
 pub struct Conv1x1 {
-    pub weight: Tensor,
+    pub weight: ConvWeight,
     pub bias: Tensor,
 }
 
 impl Conv1x1 {
     pub fn new(vb: VarBuilder, c_in: usize, c_out: usize) -> Result<Self> {
-        Ok(Self { weight: vb.get((c_out, c_in, 1), "weight")?, bias: vb.get(c_out, "bias")? })
+        Ok(Self { weight: ConvWeight::F32(vb.get((c_out, c_in, 1), "weight")?), bias: vb.get(c_out, "bias")? })
+    }
+
+    pub fn pack_bf16(&mut self) -> Result<()> {
+        if let ConvWeight::F32(w) = &self.weight {
+            crate::bf16::refuse_var(w)?;
+            let mut c = ConvWeight::F32(w.unsqueeze(3)?);
+            c.pack()?;
+            self.weight = c;
+        }
+        Ok(())
     }
 }
 
 impl Module for Conv1x1 {
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        let (n, _, _) = x.dims3()?;
-        let w = self.weight.squeeze(2)?;
-        w.broadcast_left(n)?.matmul(&x.contiguous()?)?.broadcast_add(&self.bias.reshape((1, (), 1))?)
+        let (n, c, t) = x.dims3()?;
+        match &self.weight {
+            ConvWeight::F32(w) => {
+                let w = w.squeeze(2)?;
+                w.broadcast_left(n)?.matmul(&x.contiguous()?)?.broadcast_add(&self.bias.reshape((1, (), 1))?)
+            }
+            ConvWeight::Bf16(w) => {
+                let y = conv_bf16(&x.reshape((n, c, 1, t))?, w, Some(&self.bias), 1, 0, Default::default())?;
+                y.reshape((n, (), t))
+            }
+        }
     }
 }
 
@@ -149,12 +193,12 @@ mod tests {
     fn banded_convolution_equals_direct() {
         let dev = Device::Cpu;
         for &(stride, padding) in &[(1usize, 1usize), (2, 1)] {
-            let conv =
-                Conv2d { weight: Tensor::randn(0f32, 0.3, (5, 3, 3, 3), &dev).unwrap(), bias: Tensor::randn(0f32, 0.3, 5, &dev).unwrap(), stride, padding };
+            let weight = Tensor::randn(0f32, 0.3, (5, 3, 3, 3), &dev).unwrap();
+            let conv = Conv2d { weight: ConvWeight::F32(weight.clone()), bias: Tensor::randn(0f32, 0.3, 5, &dev).unwrap(), stride, padding };
             let x = Tensor::randn(0f32, 1.0, (2, 3, 11, 9), &dev).unwrap();
             // Independent reference: candle's own convolution plus bias (stride 1 takes the shifted-gemm path,
             // stride 2 the banded im2col path).
-            let direct = x.conv2d(&conv.weight, padding, stride, 1, 1).unwrap().broadcast_add(&conv.bias.reshape((1, (), 1, 1)).unwrap()).unwrap();
+            let direct = x.conv2d(&weight, padding, stride, 1, 1).unwrap().broadcast_add(&conv.bias.reshape((1, (), 1, 1)).unwrap()).unwrap();
             for budget in [1usize, 100, 400] {
                 let banded = conv.forward_budget(&x, budget).unwrap();
                 let e = (&banded - &direct).unwrap().abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap();
