@@ -12,6 +12,8 @@ use std::path::{Path, PathBuf};
 use candle_core::safetensors::MmapedSafetensors;
 use candle_core::{DType, Device, Tensor, Var};
 
+use crate::unet::util::WeightStore;
+
 #[derive(Debug, thiserror::Error)]
 pub enum WeightsError {
     #[error("cannot open weights {path}: {msg}")]
@@ -61,8 +63,8 @@ pub struct StrictWeights {
     device: Device,
     /// dtype tensors are handed out in (f32 unless [`StrictWeights::with_dtype`]).
     dtype: DType,
-    /// CPU bf16: weights handed out in f32 for the layers to pack in bf16 (see [`Self::packs_bf16`]).
-    pack_bf16: bool,
+    /// How the layers keep their products' weights (CPU bf16/f16: handed out in f32, see [`Self::store`]).
+    store: WeightStore,
     /// Trainable mode: every tensor is handed out as a `Var` (listed here by model name).
     trainable: bool,
     vars: RefCell<Vec<(String, Var)>>,
@@ -149,7 +151,7 @@ impl StrictWeights {
             mismatched: RefCell::new(Vec::new()),
             device: device.clone(),
             dtype: DType::F32,
-            pack_bf16: false,
+            store: WeightStore::F32,
             trainable: false,
             vars: RefCell::new(Vec::new()),
         }
@@ -157,15 +159,20 @@ impl StrictWeights {
 
     /// Hand tensors out in `dtype` (f16/bf16 inference); default f32.
     pub fn with_dtype(mut self, dtype: DType) -> Self {
-        // On the CPU, bf16 means f32 activations and bf16 products on weights packed once (`nn::bf16`).
-        self.pack_bf16 = dtype == DType::BF16 && self.device.is_cpu();
-        self.dtype = if self.pack_bf16 { DType::F32 } else { dtype };
+        // On the CPU the activations stay f32: bf16 multiplies weights packed once in bf16 (`nn::bf16`), f16
+        // stores the weights in f16 and widens them for the f32 kernels.
+        self.store = WeightStore::for_dtype(dtype, &self.device);
+        self.dtype = if self.store == WeightStore::F32 { dtype } else { DType::F32 };
         self
     }
 
-    /// Whether layers pack their products' weights in bf16 (CPU `--dtype bf16`; never for trainable weights).
-    pub fn packs_bf16(&self) -> bool {
-        self.pack_bf16 && !self.trainable
+    /// How layers keep their products' weights (f32 for trainable weights).
+    pub fn store(&self) -> WeightStore {
+        if self.trainable {
+            WeightStore::F32
+        } else {
+            self.store
+        }
     }
 
     pub fn dtype(&self) -> DType {
@@ -239,7 +246,7 @@ impl StrictWeights {
             let mut c = self.counter.borrow_mut();
             *c += 1;
             let t = random_tensor(name, shape, self.seed.wrapping_mul(0x9E37_79B9_7F4A_7C15).wrapping_add(*c), &self.device)?;
-            if !self.pack_bf16 {
+            if self.store == WeightStore::F32 {
                 // A packed model is never exported; keeping its f32 tensors would double the load's peak.
                 self.recorded.borrow_mut().push((name.to_string(), t.clone()));
             }

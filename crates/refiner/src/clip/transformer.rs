@@ -8,7 +8,7 @@ use crate::unet::util::{attention, Linear, Norm};
 use crate::weights::StrictWeights;
 
 fn linear(w: &StrictWeights, p: &str, i: usize, o: usize) -> Result<Linear> {
-    Linear::new_packed(w.get(&format!("{p}.weight"), &[o, i])?, Some(w.get(&format!("{p}.bias"), &[o])?), w.packs_bf16())
+    Linear::stored(w.get(&format!("{p}.weight"), &[o, i])?, Some(w.get(&format!("{p}.bias"), &[o])?), w.store())
 }
 
 fn layer_norm(w: &StrictWeights, p: &str, c: usize, eps: f64) -> Result<Norm> {
@@ -31,10 +31,10 @@ impl ResidualAttentionBlock {
         let d = cfg.width;
         Ok(Self {
             ln_1: layer_norm(w, &format!("{p}.ln_1"), d, cfg.layer_norm_eps)?,
-            in_proj: Linear::new_packed(
+            in_proj: Linear::stored(
                 w.get(&format!("{p}.attn.in_proj_weight"), &[3 * d, d])?,
                 Some(w.get(&format!("{p}.attn.in_proj_bias"), &[3 * d])?),
-                w.packs_bf16(),
+                w.store(),
             )?,
             out_proj: linear(w, &format!("{p}.attn.out_proj"), d, d)?,
             ln_2: layer_norm(w, &format!("{p}.ln_2"), d, cfg.layer_norm_eps)?,

@@ -37,8 +37,29 @@ pub fn linspace_f32(start: f32, end: f32, n: usize) -> Vec<f32> {
     (0..n).map(|i| if i < halfway { start + step * i as f32 } else { end - step * (n - i - 1) as f32 }).collect()
 }
 
-/// Linear layer with torch weight layout (out, in): f32, or packed once in bf16 for `--dtype bf16` on the CPU
-/// (products in `vdpbf16ps` where the CPU has AVX512-BF16, inference only; the f32 weight is dropped).
+/// How a model keeps its products' weights on the CPU (`--dtype`): as loaded (f32, or a GPU's f16/bf16
+/// tensors), packed once in bf16 for `vdpbf16ps` (bf16: f32 activations rounded while packed, f32 sums; storage
+/// only without AVX512-BF16), or stored in f16 and widened per call for the f32 kernels (f16: half the
+/// weights' memory, f32 arithmetic: the CPU has no f16 dot product). Inference only.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum WeightStore {
+    F32,
+    Bf16,
+    F16,
+}
+
+impl WeightStore {
+    /// The store `--dtype` picks on `device` (F32 = the tensors as loaded, in `dtype`, on a GPU).
+    pub fn for_dtype(dtype: DType, device: &Device) -> Self {
+        match (dtype, device.is_cpu()) {
+            (DType::BF16, true) => WeightStore::Bf16,
+            (DType::F16, true) => WeightStore::F16,
+            _ => WeightStore::F32,
+        }
+    }
+}
+
+/// Linear layer with torch weight layout (out, in), its weight kept as [`WeightStore`] says.
 #[derive(Debug, Clone)]
 pub struct Linear {
     weight: LinearWeight,
@@ -49,6 +70,7 @@ pub struct Linear {
 enum LinearWeight {
     F32(Tensor),
     Bf16(Arc<Bf16Weights>),
+    F16(Tensor),
 }
 
 impl std::fmt::Debug for LinearWeight {
@@ -56,6 +78,18 @@ impl std::fmt::Debug for LinearWeight {
         match self {
             LinearWeight::F32(t) => write!(f, "F32({:?})", t.dims()),
             LinearWeight::Bf16(w) => write!(f, "Bf16({}x{})", w.n(), w.k()),
+            LinearWeight::F16(t) => write!(f, "F16({:?})", t.dims()),
+        }
+    }
+}
+
+impl LinearWeight {
+    /// The weight as the f32 kernels read it (an f16 store widened for this call).
+    fn dense(&self) -> Result<Tensor> {
+        match self {
+            LinearWeight::F32(w) => Ok(w.clone()),
+            LinearWeight::F16(w) => w.to_dtype(DType::F32),
+            LinearWeight::Bf16(_) => candle_core::bail!("linear: a bf16-packed weight has no dense form"),
         }
     }
 }
@@ -65,27 +99,21 @@ impl Linear {
         Self { weight: LinearWeight::F32(weight), bias }
     }
 
-    /// Packs `weight` (out, in) in bf16 when `bf16`, else keeps it as it is.
-    pub fn new_packed(weight: Tensor, bias: Option<Tensor>, bf16: bool) -> Result<Self> {
-        if !bf16 {
-            return Ok(Self::new(weight, bias));
-        }
-        Ok(Self { weight: LinearWeight::Bf16(Arc::new(Bf16Weights::from_linear(&weight)?)), bias })
+    /// `weight` (out, in) kept as `store` says.
+    pub fn stored(weight: Tensor, bias: Option<Tensor>, store: WeightStore) -> Result<Self> {
+        let weight = match store {
+            WeightStore::F32 => LinearWeight::F32(weight),
+            WeightStore::Bf16 => LinearWeight::Bf16(Arc::new(Bf16Weights::from_linear(&weight)?)),
+            WeightStore::F16 => LinearWeight::F16(weight.to_dtype(DType::F16)?),
+        };
+        Ok(Self { weight, bias })
     }
 
     /// Output width.
     pub fn out_dim(&self) -> Result<usize> {
         match &self.weight {
-            LinearWeight::F32(w) => w.dim(0),
+            LinearWeight::F32(w) | LinearWeight::F16(w) => w.dim(0),
             LinearWeight::Bf16(w) => Ok(w.n()),
-        }
-    }
-
-    /// The f32 weight (None when packed in bf16).
-    pub fn weight(&self) -> Option<&Tensor> {
-        match &self.weight {
-            LinearWeight::F32(w) => Some(w),
-            LinearWeight::Bf16(_) => None,
         }
     }
 
@@ -96,8 +124,8 @@ impl Linear {
     /// `scale·(x @ wᵀ + bias) + Σ cᵢ·addᵢ`.
     pub fn forward_fused(&self, x: &Tensor, scale: f32, adds: &[(&Tensor, f32)]) -> Result<Tensor> {
         match &self.weight {
-            LinearWeight::F32(w) => linear::linear_fused(x, w, self.bias.as_ref(), scale, adds),
             LinearWeight::Bf16(w) => linear::linear_fused_bf16(x, w, self.bias.as_ref(), scale, adds),
+            dense => linear::linear_fused(x, &dense.dense()?, self.bias.as_ref(), scale, adds),
         }
     }
 
@@ -105,8 +133,8 @@ impl Linear {
     pub fn from_channels_first(&self, x: &Tensor) -> Result<Tensor> {
         let Some(b) = &self.bias else { candle_core::bail!("linear from channels-first without bias") };
         match &self.weight {
-            LinearWeight::F32(w) => linear::linear_from_channels_first(x, w, b),
             LinearWeight::Bf16(w) => linear::linear_from_channels_first_bf16(x, w, b),
+            dense => linear::linear_from_channels_first(x, &dense.dense()?, b),
         }
     }
 
@@ -114,8 +142,8 @@ impl Linear {
     pub fn to_channels_first(&self, h: &Tensor, residual: &Tensor) -> Result<Tensor> {
         let Some(b) = &self.bias else { candle_core::bail!("linear to channels-first without bias") };
         match &self.weight {
-            LinearWeight::F32(w) => linear::linear_to_channels_first(h, w, b, residual),
             LinearWeight::Bf16(w) => linear::linear_to_channels_first_bf16(h, w, b, residual),
+            dense => linear::linear_to_channels_first(h, &dense.dense()?, b, residual),
         }
     }
 }
@@ -124,17 +152,18 @@ impl Linear {
 pub fn geglu_ff(x: &Tensor, proj: &Linear, out: &Linear, scale: f32, adds: &[(&Tensor, f32)]) -> Result<Tensor> {
     let (Some(b1), Some(b2)) = (&proj.bias, &out.bias) else { candle_core::bail!("feed-forward without bias") };
     match (&proj.weight, &out.weight) {
-        (LinearWeight::F32(w1), LinearWeight::F32(w2)) => linear::geglu_ff(x, w1, b1, w2, b2, scale, adds),
         (LinearWeight::Bf16(w1), LinearWeight::Bf16(w2)) => linear::geglu_ff_bf16(x, w1, b1, w2, b2, scale, adds),
-        _ => candle_core::bail!("feed-forward: both projections must have the same precision"),
+        (LinearWeight::Bf16(_), _) | (_, LinearWeight::Bf16(_)) => candle_core::bail!("feed-forward: both projections must be packed in bf16 or neither"),
+        (w1, w2) => linear::geglu_ff(x, &w1.dense()?, b1, &w2.dense()?, b2, scale, adds),
     }
 }
 
-/// A convolution weight (Co, C, kh, kw): f32, or packed once in bf16 (CPU `--dtype bf16`; the f32 weight is
-/// dropped). Shared by the UNet's and the VAE's convolutions.
+/// A convolution weight (Co, C, kh, kw) kept as [`WeightStore`] says. Shared by the UNet's and the VAE's
+/// convolutions.
 pub enum ConvWeight {
     F32(Tensor),
     Bf16(Bf16ConvWeights),
+    F16(Tensor),
 }
 
 impl std::fmt::Debug for ConvWeight {
@@ -142,13 +171,18 @@ impl std::fmt::Debug for ConvWeight {
         match self {
             ConvWeight::F32(t) => write!(f, "F32({:?})", t.dims()),
             ConvWeight::Bf16(w) => write!(f, "Bf16({:?})", w.dims()),
+            ConvWeight::F16(t) => write!(f, "F16({:?})", t.dims()),
         }
     }
 }
 
 impl ConvWeight {
-    pub fn new(w: Tensor, bf16: bool) -> Result<Self> {
-        Ok(if bf16 { ConvWeight::Bf16(Bf16ConvWeights::from_conv(&w)?) } else { ConvWeight::F32(w) })
+    pub fn new(w: Tensor, store: WeightStore) -> Result<Self> {
+        Ok(match store {
+            WeightStore::F32 => ConvWeight::F32(w),
+            WeightStore::Bf16 => ConvWeight::Bf16(Bf16ConvWeights::from_conv(&w)?),
+            WeightStore::F16 => ConvWeight::F16(w.to_dtype(DType::F16)?),
+        })
     }
 
     /// `residual + scale·(conv(x) + bias + item_bias)` (see `mvsplat360_nn::conv::conv2d_epilogue`).
@@ -156,13 +190,15 @@ impl ConvWeight {
         match self {
             ConvWeight::F32(w) => conv::conv2d_epilogue(x, w, bias, cfg, epi),
             ConvWeight::Bf16(w) => conv::bf16::conv2d_fused_bf16(x, w, bias, cfg, epi),
+            ConvWeight::F16(w) => conv::conv2d_epilogue(x, &w.to_dtype(DType::F32)?, bias, cfg, epi),
         }
     }
 }
 
 /// The weight of a Conv3d with kernel (kt, 1, 1) on (B·T, C, H, W) frames, as `mvsplat360_nn::conv::temporal_conv`
-/// reads it: (Co, kt·C) tap-major. A trainable weight stays the stored (Co, C, kt, 1, 1) `Var` and is
-/// rearranged at every call, so that its updates are seen; CPU `--dtype bf16` packs it once.
+/// reads it: (Co, kt·C) tap-major (in f16 for [`WeightStore::F16`], widened per call). A trainable weight stays
+/// the stored (Co, C, kt, 1, 1) `Var` and is rearranged at every call, so that its updates are seen; CPU
+/// `--dtype bf16` packs it once.
 pub enum TemporalWeight {
     Var { w5: Tensor, cin: usize, cout: usize },
     TapMajor(Tensor),
@@ -186,12 +222,16 @@ fn tap_major(w5: &Tensor, o: usize, i: usize, kt: usize) -> Result<Tensor> {
 
 impl TemporalWeight {
     /// `w5` (Co, C, kt, 1, 1) as stored.
-    pub fn new(w5: Tensor, cout: usize, cin: usize, kt: usize, trainable: bool, bf16: bool) -> Result<Self> {
+    pub fn new(w5: Tensor, cout: usize, cin: usize, kt: usize, trainable: bool, store: WeightStore) -> Result<Self> {
         if trainable {
             return Ok(TemporalWeight::Var { w5, cin, cout });
         }
         let wt = tap_major(&w5, cout, cin, kt)?;
-        Ok(if bf16 { TemporalWeight::Bf16(Bf16TemporalWeights::from_temporal(&wt, kt)?) } else { TemporalWeight::TapMajor(wt) })
+        Ok(match store {
+            WeightStore::F32 => TemporalWeight::TapMajor(wt),
+            WeightStore::Bf16 => TemporalWeight::Bf16(Bf16TemporalWeights::from_temporal(&wt, kt)?),
+            WeightStore::F16 => TemporalWeight::TapMajor(wt.to_dtype(DType::F16)?),
+        })
     }
 
     /// `residual + scale·(conv(x) + bias + item_bias)` over clips of `frames` frames.
@@ -208,6 +248,9 @@ impl TemporalWeight {
     ) -> Result<Tensor> {
         match self {
             TemporalWeight::Var { w5, cin, cout } => conv::temporal_conv(x, &tap_major(w5, *cout, *cin, kt)?, bias, kt, frames, item_bias, residual, scale),
+            TemporalWeight::TapMajor(w) if w.dtype() != x.dtype() => {
+                conv::temporal_conv(x, &w.to_dtype(x.dtype())?, bias, kt, frames, item_bias, residual, scale)
+            }
             TemporalWeight::TapMajor(w) => conv::temporal_conv(x, w, bias, kt, frames, item_bias, residual, scale),
             TemporalWeight::Bf16(w) => conv::bf16::temporal_conv_bf16(x, w, bias, kt, frames, item_bias, residual, scale),
         }

@@ -3,7 +3,7 @@
 
 use candle_core::{Result, Tensor};
 
-use super::util::{attention, blend_learned, geglu_ff, sigmoid_scalar, timestep_embedding, Linear, Norm};
+use super::util::{attention, blend_learned, geglu_ff, sigmoid_scalar, timestep_embedding, Linear, Norm, WeightStore};
 use super::weights::Weights;
 use mvsplat360_nn::attention::{multi_head_attention_seqs, SeqLayout};
 use mvsplat360_nn::mode::is_differentiable;
@@ -12,7 +12,7 @@ use mvsplat360_nn::rope::qkv_attention_bf16;
 pub(crate) fn linear(w: &Weights, name: &str, i: usize, o: usize, bias: bool) -> Result<Linear> {
     let weight = w.get(&format!("{name}.weight"), &[o, i])?;
     let bias = if bias { Some(w.get(&format!("{name}.bias"), &[o])?) } else { None };
-    Linear::new_packed(weight, bias, w.packs_bf16())
+    Linear::stored(weight, bias, w.store())
 }
 
 pub(crate) fn norm(w: &Weights, name: &str, c: usize, eps: f64) -> Result<Norm> {
@@ -39,10 +39,10 @@ impl CrossAttention {
     /// `fuse`: a self-attention (`attn1`), whose projections are packed as one in CPU bf16.
     fn load(w: &Weights, p: &str, dim: usize, ctx_dim: usize, heads: usize, d_head: usize, fuse: bool) -> Result<Self> {
         let inner = heads * d_head;
-        let proj = if fuse && w.packs_bf16() && dim == ctx_dim {
+        let proj = if fuse && w.store() == WeightStore::Bf16 && dim == ctx_dim {
             let get = |n: &str| w.get(&format!("{p}.{n}.weight"), &[inner, dim]);
             let (q, k, v) = (get("to_q")?, get("to_k")?, get("to_v")?);
-            QkvProjection::Fused(Linear::new_packed(Tensor::cat(&[q, k, v], 0)?, None, true)?)
+            QkvProjection::Fused(Linear::stored(Tensor::cat(&[q, k, v], 0)?, None, WeightStore::Bf16)?)
         } else {
             QkvProjection::Separate {
                 to_q: linear(w, &format!("{p}.to_q"), dim, inner, false)?,

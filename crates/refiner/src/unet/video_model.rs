@@ -20,7 +20,7 @@ struct Conv {
 impl Conv {
     fn load(w: &Weights, p: &str, i: usize, o: usize, k: usize, stride: usize) -> Result<Self> {
         Ok(Self {
-            w: ConvWeight::new(w.get(&format!("{p}.weight"), &[o, i, k, k])?, w.packs_bf16())?,
+            w: ConvWeight::new(w.get(&format!("{p}.weight"), &[o, i, k, k])?, w.store())?,
             b: w.get(&format!("{p}.bias"), &[o])?,
             cfg: Conv2dConfig { padding: k / 2, stride, dilation: 1 },
         })
@@ -47,7 +47,7 @@ struct TemporalConv {
 impl TemporalConv {
     fn load(w: &Weights, p: &str, i: usize, o: usize, kt: usize) -> Result<Self> {
         let w5 = w.get(&format!("{p}.weight"), &[o, i, kt, 1, 1])?;
-        Ok(Self { w: TemporalWeight::new(w5, o, i, kt, w.is_trainable(), w.packs_bf16())?, b: w.get(&format!("{p}.bias"), &[o])?, kt })
+        Ok(Self { w: TemporalWeight::new(w5, o, i, kt, w.is_trainable(), w.store())?, b: w.get(&format!("{p}.bias"), &[o])?, kt })
     }
 
     fn forward(&self, x: &Tensor, frames: usize, epi: ConvEpilogue) -> Result<Tensor> {

@@ -9,6 +9,7 @@ use candle_core::safetensors::MmapedSafetensors;
 use candle_core::{DType, Device, Result, Tensor, Var};
 use rayon::prelude::*;
 
+use super::util::WeightStore;
 use super::{UNetError, VideoUNetConfig};
 use crate::unet::keymap::diffusers_to_sgm;
 
@@ -51,8 +52,8 @@ pub struct Weights {
     device: Device,
     /// dtype tensors are handed out in (f32 unless [`Weights::with_dtype`]).
     dtype: DType,
-    /// CPU bf16: weights handed out in f32 for the layers to pack in bf16 (see [`Self::packs_bf16`]).
-    pack_bf16: bool,
+    /// How the layers keep their products' weights (CPU bf16/f16: handed out in f32, see [`Self::store`]).
+    store: WeightStore,
     used: RefCell<BTreeSet<String>>,
     missing: RefCell<Vec<String>>,
     mismatched: RefCell<Vec<String>>,
@@ -113,7 +114,7 @@ impl Weights {
             src,
             device: device.clone(),
             dtype: DType::F32,
-            pack_bf16: false,
+            store: WeightStore::F32,
             used: RefCell::new(BTreeSet::new()),
             missing: RefCell::new(Vec::new()),
             mismatched: RefCell::new(Vec::new()),
@@ -135,15 +136,20 @@ impl Weights {
 
     /// Hand tensors out in `dtype` (f16/bf16 inference); default f32.
     pub fn with_dtype(mut self, dtype: DType) -> Self {
-        // On the CPU, bf16 means f32 activations and bf16 products on weights packed once (`nn::bf16`).
-        self.pack_bf16 = dtype == DType::BF16 && self.device.is_cpu();
-        self.dtype = if self.pack_bf16 { DType::F32 } else { dtype };
+        // On the CPU the activations stay f32: bf16 multiplies weights packed once in bf16 (`nn::bf16`), f16
+        // stores the weights in f16 and widens them for the f32 kernels.
+        self.store = WeightStore::for_dtype(dtype, &self.device);
+        self.dtype = if self.store == WeightStore::F32 { dtype } else { DType::F32 };
         self
     }
 
-    /// Whether layers pack their products' weights in bf16 (CPU `--dtype bf16`; never for trainable weights).
-    pub fn packs_bf16(&self) -> bool {
-        self.pack_bf16 && !self.trainable
+    /// How layers keep their products' weights (f32 for trainable weights).
+    pub fn store(&self) -> WeightStore {
+        if self.trainable {
+            WeightStore::F32
+        } else {
+            self.store
+        }
     }
 
     pub fn dtype(&self) -> DType {
@@ -178,7 +184,7 @@ impl Weights {
                 let mut c = self.counter.borrow_mut();
                 *c += 1;
                 let t = random_tensor(name, shape, seed.wrapping_mul(0x9E37_79B9_7F4A_7C15).wrapping_add(*c), &self.device)?;
-                if !self.pack_bf16 {
+                if self.store == WeightStore::F32 {
                     // A packed model is never exported; keeping its f32 tensors would double the load's peak.
                     self.recorded.borrow_mut().push((name.to_string(), t.clone()));
                 }

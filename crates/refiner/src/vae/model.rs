@@ -21,7 +21,7 @@ pub(crate) struct Conv {
 impl Conv {
     pub fn load(w: &StrictWeights, p: &str, i: usize, o: usize, k: usize, stride: usize, padding: usize) -> Result<Self> {
         Ok(Self {
-            w: ConvWeight::new(w.get(&format!("{p}.weight"), &[o, i, k, k])?, w.packs_bf16())?,
+            w: ConvWeight::new(w.get(&format!("{p}.weight"), &[o, i, k, k])?, w.store())?,
             b: w.get(&format!("{p}.bias"), &[o])?,
             cfg: Conv2dConfig { padding, stride, dilation: 1 },
         })

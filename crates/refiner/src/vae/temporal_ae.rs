@@ -25,7 +25,7 @@ pub(crate) struct TemporalConv {
 impl TemporalConv {
     pub fn load(w: &StrictWeights, p: &str, i: usize, o: usize, kt: usize) -> Result<Self> {
         let w5 = w.get(&format!("{p}.weight"), &[o, i, kt, 1, 1])?;
-        Ok(Self { w: TemporalWeight::new(w5, o, i, kt, w.is_trainable(), w.packs_bf16())?, b: w.get(&format!("{p}.bias"), &[o])?, kt, cin: i })
+        Ok(Self { w: TemporalWeight::new(w5, o, i, kt, w.is_trainable(), w.store())?, b: w.get(&format!("{p}.bias"), &[o])?, kt, cin: i })
     }
 
     pub fn forward(&self, x: &Tensor, frames: usize) -> Result<Tensor> {
