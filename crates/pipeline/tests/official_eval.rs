@@ -215,4 +215,43 @@ fn eval_reproduces_the_official_evaluation() {
     let notes = notes.into_inner().unwrap();
     assert_eq!(notes.iter().filter(|n| n.starts_with("converting")).count(), 1, "{notes:?}");
     assert!(paths.iter().all(|p| p == &paths[0] && p.is_file()), "{paths:?}");
+
+    // The refiner in bf16 on the CPU (`--dtype bf16`; here in one test, as the cache is process-wide), on the
+    // first scene (the test's time): the encoder's renders as in f32, the refined frames near the official f32
+    // ones (PSNR against them; bf16's 8 bits through the tiny refiner move them by ≈ u·|x|, a few 8-bit levels
+    // at most), per-image scores beside the official f32 ones.
+    std::env::set_var("MVSPLAT360_CACHE", tmp.path().join("cache"));
+    let out16 = tmp.path().join("eval-bf16");
+    let compute = mvsplat360_pipeline::compute::Compute { refiner_dtype: candle_core::DType::BF16, ..Default::default() };
+    let req16 = EvalRequest { out: out16.clone(), model: ModelArgs { compute, ..req.model.clone() }, limit: Some(1), ..req.clone() };
+    let s16 = eval::run(&req16, &Silent).unwrap();
+    assert!(s16.missing.is_empty() && s16.rendered.len() == 1, "{s16:?}");
+    assert_eq!(json(&out16.join("eval.json"))["refiner_dtype"].as_str(), Some("bf16"), "eval.json must say bf16");
+    let done = names(&out16.join("ImagesRefined0"));
+    assert!(!done.is_empty());
+    for n in names(&out16.join("ImagesGSplat")) {
+        assert!(png(&out16.join("ImagesGSplat").join(&n)) == png(&out.join("ImagesGSplat").join(&n)), "{n}: the bf16 refiner changed the 3DGS render");
+    }
+    let psnrs: Vec<f64> = done
+        .iter()
+        .map(|n| {
+            let (a, b) = (png(&out16.join("ImagesRefined0").join(n)), png(&fx.join("ImagesRefined0").join(n)));
+            let to = |im: &image::RgbImage| im.as_raw().iter().map(|&v| v as f32 / 255.0).collect::<Vec<f32>>();
+            mvsplat360_metrics::psnr::psnr(&to(&a), &to(&b))
+        })
+        .collect();
+    let mean = psnrs.iter().sum::<f64>() / psnrs.len() as f64;
+    let low = psnrs.iter().cloned().fold(f64::INFINITY, f64::min);
+    println!("bf16 refiner: {} refined frames against the official f32 ones: PSNR mean {mean:.2} dB, worst {low:.2} dB", psnrs.len());
+    assert!(mean >= 35.0 && low >= 30.0, "bf16 refined frames: PSNR against f32 mean {mean:.2} dB, worst {low:.2} dB");
+    let scene = done[0].rsplit_once('_').unwrap().0.to_string();
+    let rec = json(&out16.join("scenes").join(format!("{scene}.json")));
+    for (dir, key) in methods {
+        for m in ["psnr", "ssim", "lpips", "dists"] {
+            let imgs = rec["methods"][key].as_array().unwrap();
+            let b16 = imgs.iter().map(|i| i[m].as_f64().unwrap()).sum::<f64>() / imgs.len() as f64;
+            let f32v = imgs.iter().map(|i| official["per_image"][dir][i["name"].as_str().unwrap()][m].as_f64().unwrap()).sum::<f64>() / imgs.len() as f64;
+            println!("{scene} {dir} {m}: bf16 {b16:.6}, official f32 {f32v:.6}, relative {:.2e}", rel(b16, f32v));
+        }
+    }
 }
