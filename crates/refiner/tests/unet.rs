@@ -61,6 +61,29 @@ fn unet_matches_diffusers_fixture_every_step() {
     }
 }
 
+/// The fixture's UNet with `--dtype bf16` on the CPU (weights packed in bf16; `vdpbf16ps` with AVX512-BF16,
+/// storage only without) against the official outputs at every step: relative L2 error ≤ 16u, u = 2⁻⁸, the
+/// bound tests/half.rs derives (√P·ρ over the products on the longest path, with a 1.6× margin for gain). The
+/// error must be non-zero: the bf16 path ran.
+#[test]
+fn unet_in_bf16_on_the_cpu_is_within_the_error_model_of_the_fixture() {
+    let c = case();
+    let unet = VideoUNet::load_as(&fixture("svd/svd_unet.safetensors"), None, &c.cfg, &Device::Cpu, candle_core::DType::BF16).expect("strict load");
+    let rel = |a: &Tensor, b: &Tensor| {
+        let d = (a - b).unwrap().sqr().unwrap().sum_all().unwrap().to_scalar::<f32>().unwrap() as f64;
+        (d / b.sqr().unwrap().sum_all().unwrap().to_scalar::<f32>().unwrap() as f64).sqrt()
+    };
+    let u = 1.0 / 256.0;
+    for i in 0..get(&c.pipe, "timesteps").dim(0).unwrap() {
+        let (vu, vc) = run_step(&unet, &c, i);
+        for (name, got, want) in [("uncond", vu, expected(&c, "step_v_uncond", i)), ("cond", vc, expected(&c, "step_v_cond", i))] {
+            let e = rel(&got, &want);
+            eprintln!("step {i} {name}: bf16 relative L2 error {e:.2e} ({:.2} u)", e / u);
+            assert!(e > 0.0 && e <= 16.0 * u, "step {i} {name}: relative L2 error {e:.2e} (16u = {:.2e})", 16.0 * u);
+        }
+    }
+}
+
 /// Re-save the fixture under sgm names (`model.diffusion_model.` prefix, as in svd.safetensors), optionally
 /// as f16 and with a widened label_emb input (768-style), and check the same outputs come back.
 #[test]
