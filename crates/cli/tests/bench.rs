@@ -70,8 +70,14 @@ fn encoder_fields_and_threads() {
             time_field(&v, "forward_ms");
             time_field(&v, "peak_mib");
             assert_eq!(v["threads"].as_u64(), Some(want as u64), "--threads {threads}: {v}");
+            assert_eq!((v["dtype"].as_str(), v["cpu_bf16"].as_str()), (Some("f32"), None), "{v}");
         }
     }
+    // --dtype bf16: packed weights, and the JSON names the path the products took on this CPU.
+    let v = bench(&["encoder", "--views", "3", "--height", "64", "--width", "64", "--runs", "1", "--threads", "1", "--dtype", "bf16"]);
+    let path = if mvsplat360_nn::bf16::hardware_dpbf16() { "avx512bf16" } else { "storage-only (no bf16 dot product on this CPU)" };
+    assert_eq!((v["dtype"].as_str(), v["cpu_bf16"].as_str()), (Some("bf16"), Some(path)), "{v}");
+    time_field(&v, "forward_ms");
 }
 
 #[test]
@@ -99,6 +105,8 @@ fn bad_sizes_are_clear_errors() {
     for (args, needle) in [
         (&["raster", "--width", "0"][..], "must be positive"),
         (&["encoder", "--height", "100"][..], "multiples of 64"),
+        (&["encoder", "--dtype", "f16"][..], "f32 or bf16"),
+        (&["scene", "--tiny", "--encoder-dtype", "f16"][..], "f32 or bf16"),
         (&["refiner", "--latent-h", "12"][..], "multiples of 8"),
         (&["metrics", "--width", "5"][..], "at least 11"),
         (&["fit", "--steps", "0"][..], "--steps ≥ 1"),

@@ -1,6 +1,7 @@
 //! `mvsplat360 demo` (the README's first command) as a user runs it: the bundled scene with the shipped model,
 //! a short orbit. What it must write (video, frames, Gaussians, cameras, run.json), the shipped model's fit
-//! lowering its loss, and a clear refusal of a device this build cannot use.
+//! lowering its loss, `--encoder-dtype bf16` recorded in run.json, and a clear refusal of a device or precision
+//! this build cannot use.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
@@ -24,6 +25,7 @@ fn demo_renders_the_bundled_scene_with_the_shipped_model() {
     }
     let run: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("run.json")).unwrap()).unwrap();
     assert_eq!(run["frames"], 3);
+    assert_eq!((run["settings"]["encoder_dtype"].as_str(), run["settings"]["cpu_bf16"].as_str()), (Some("f32"), None));
     // 5 views of 128×64 pixel-aligned Gaussians (the shipped model's input size).
     assert_eq!(run["gaussians"], 5 * 128 * 64);
     let l = &run["settings"]["fit_loss"];
@@ -35,6 +37,27 @@ fn demo_renders_the_bundled_scene_with_the_shipped_model() {
     let mean = px.iter().sum::<f64>() / px.len() as f64;
     let sd = (px.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / px.len() as f64).sqrt();
     assert!(sd > 10.0, "frame 0 is nearly flat (sd {sd:.1} levels)");
+}
+
+/// `--encoder-dtype bf16` runs the encoder on packed bf16 weights and run.json says so, with the path its
+/// products took on this CPU; a precision the encoder has no path for is refused by the flag's name.
+#[test]
+fn demo_runs_the_encoder_in_bf16_and_records_it() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (o, out) = demo(tmp.path(), &["--frames", "2", "--encoder-dtype", "bf16"]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "demo failed: {err}");
+    let run: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("run.json")).unwrap()).unwrap();
+    let path = if mvsplat360_nn::bf16::hardware_dpbf16() { "avx512bf16" } else { "storage-only (no bf16 dot product on this CPU)" };
+    assert_eq!((run["settings"]["encoder_dtype"].as_str(), run["settings"]["cpu_bf16"].as_str()), (Some("bf16"), Some(path)), "{run}");
+    assert_eq!(run["settings"]["refiner_dtype"].as_str(), Some("f32"));
+    assert!(out.join("frames/final/0001.png").is_file(), "{err}");
+
+    let (o, out) = demo(&tmp.path().join("f16"), &["--encoder-dtype", "f16"]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("--encoder-dtype") && err.contains("f32 or bf16"), "{err}");
+    assert!(!out.exists(), "a refused demo wrote its results");
 }
 
 #[cfg(not(feature = "cuda"))]

@@ -18,6 +18,8 @@ pub struct SceneBenchOpts {
     pub device: DeviceSpec,
     /// The refiner's precision.
     pub dtype: candle_core::DType,
+    /// The encoder's precision (`--encoder-dtype`).
+    pub encoder_dtype: candle_core::DType,
     pub views: usize,
     pub height: u32,
     pub width: u32,
@@ -44,7 +46,8 @@ impl Drop for Scratch {
 pub fn run_scene_bench(o: &SceneBenchOpts) -> Result<serde_json::Value> {
     let bad = |msg: String| PipelineError::Flag { flag: "bench scene", msg };
     // Refuse an unusable device before writing the synthetic model; the handle also reads the GPU's peak.
-    let device = Compute { device: o.device, refiner_dtype: o.dtype }.open()?;
+    let compute = Compute { device: o.device, refiner_dtype: o.dtype, encoder_dtype: o.encoder_dtype };
+    let device = compute.open()?;
     if o.views < 2 || o.frames == 0 || o.runs == 0 || o.height % 64 != 0 || o.width % 64 != 0 || o.height == 0 || o.width == 0 {
         return Err(bad(format!(
             "need --views ≥ 2, --frames ≥ 1, --runs ≥ 1 and --height/--width positive multiples of 64 (got {}, {}, {}, {}x{})",
@@ -84,7 +87,7 @@ pub fn run_scene_bench(o: &SceneBenchOpts) -> Result<serde_json::Value> {
             scene_key: None,
             context: ContextSpec::Count(o.views),
             targets: TargetSpec::Orbit(o.frames),
-            model: ModelArgs { ckpt: Some(model_dir.clone()), compute: Compute { device: o.device, refiner_dtype: o.dtype }, ..Default::default() },
+            model: ModelArgs { ckpt: Some(model_dir.clone()), compute: compute.clone(), ..Default::default() },
             size: None,
             scene_scale: Some(crate::scale::SceneScale::Auto),
             refine: RefineSettings { steps: o.steps, ..RefineSettings::default() },
@@ -118,7 +121,8 @@ pub fn run_scene_bench(o: &SceneBenchOpts) -> Result<serde_json::Value> {
         "bench": "scene",
         "device": o.device.to_string(),
         "refiner_dtype": o.dtype.as_str(),
-        "cpu_bf16": Compute { device: o.device, refiner_dtype: o.dtype }.cpu_bf16_path().map(|b| b.name()),
+        "encoder_dtype": o.encoder_dtype.as_str(),
+        "cpu_bf16": compute.cpu_bf16_path().map(|b| b.name()),
         "model": if o.tiny { "tiny" } else { "official DL3DV configs" },
         "refiner": !o.no_refiner,
         "views": o.views,

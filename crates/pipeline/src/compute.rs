@@ -1,4 +1,5 @@
-//! Where the pipeline runs (`--device`) and the refiner's precision (`--dtype`).
+//! Where the pipeline runs (`--device`), the refiner's precision (`--dtype`) and the encoder's
+//! (`--encoder-dtype`).
 
 use candle_core::{DType, Device};
 
@@ -87,38 +88,55 @@ pub fn parse_dtype(s: &str) -> std::result::Result<DType, String> {
     }
 }
 
-/// Device and refiner precision of a run.
+/// `--encoder-dtype` of the models before the rasterizer (the encoder; VGGT in `pose`): f32 (default, as the
+/// official code) or bf16 (CPU: weights packed once in bf16, f32 activations rounded to bf16 inside the
+/// products). A separate flag from `--dtype` because the encoder's depth places the Gaussians.
+pub fn parse_encoder_dtype(s: &str) -> std::result::Result<DType, String> {
+    match s {
+        "f32" | "fp32" => Ok(DType::F32),
+        "bf16" => Ok(DType::BF16),
+        _ => Err(format!("`{s}` is not an --encoder-dtype: use f32 or bf16")),
+    }
+}
+
+/// Device and precisions of a run.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Compute {
     pub device: DeviceSpec,
     pub refiner_dtype: DType,
+    /// The encoder's precision (`--encoder-dtype`; bf16 on the CPU only).
+    pub encoder_dtype: DType,
 }
 
 impl Default for Compute {
     fn default() -> Self {
-        Self { device: DeviceSpec::Cpu, refiner_dtype: DType::F32 }
+        Self { device: DeviceSpec::Cpu, refiner_dtype: DType::F32, encoder_dtype: DType::F32 }
     }
 }
 
 impl Compute {
-    /// Open the device. CPU bf16 on a CPU without AVX512-BF16 is said once (weights stored in bf16, f32
+    /// Open the device, refusing a bf16 encoder on a GPU (its packed bf16 products are CPU kernels; the GPU
+    /// encoder runs f32). CPU bf16 on a CPU without AVX512-BF16 is said once (weights stored in bf16, f32
     /// arithmetic: half the weights' memory, no speed-up).
     pub fn open(&self) -> Result<Device> {
+        if self.encoder_dtype == DType::BF16 && self.device != DeviceSpec::Cpu {
+            return Err(flag("--encoder-dtype", format!("bf16 runs on the CPU only (--device cpu); on {} the encoder runs in f32", self.device)));
+        }
         if let Some(path) = self.cpu_bf16_path() {
             if path != mvsplat360_nn::bf16::Bf16Path::Dpbf16 {
                 static SAID: std::sync::Once = std::sync::Once::new();
                 SAID.call_once(|| {
-                    tracing::warn!("--dtype bf16 on this CPU: {} — the refiner's weights take half the memory, its arithmetic stays f32", path.name())
+                    tracing::warn!("bf16 on this CPU: {} — the bf16 models' weights take half the memory, their arithmetic stays f32", path.name())
                 });
             }
         }
         self.device.open()
     }
 
-    /// How the refiner's bf16 products run on this CPU (None unless `--device cpu --dtype bf16`); recorded in
-    /// what a run writes.
+    /// How the bf16 products run on this CPU (None unless `--device cpu` with `--dtype bf16` or
+    /// `--encoder-dtype bf16`); recorded in what a run writes.
     pub fn cpu_bf16_path(&self) -> Option<mvsplat360_nn::bf16::Bf16Path> {
-        (self.device == DeviceSpec::Cpu && self.refiner_dtype == DType::BF16).then(mvsplat360_nn::bf16::path)
+        (self.device == DeviceSpec::Cpu && (self.refiner_dtype == DType::BF16 || self.encoder_dtype == DType::BF16)).then(mvsplat360_nn::bf16::path)
     }
 }
 
@@ -152,12 +170,28 @@ mod tests {
 
     #[test]
     fn bf16_on_the_cpu_opens_and_names_its_path() {
-        let c = Compute { device: DeviceSpec::Cpu, refiner_dtype: DType::BF16 };
+        let c = Compute { device: DeviceSpec::Cpu, refiner_dtype: DType::BF16, ..Default::default() };
         assert!(c.open().unwrap().is_cpu());
         assert_eq!(c.cpu_bf16_path(), Some(mvsplat360_nn::bf16::path()));
         let masked = mvsplat360_nn::bf16::with_bf16_masked(|| c.cpu_bf16_path());
         assert_eq!(masked, Some(mvsplat360_nn::bf16::Bf16Path::StorageOnly));
-        assert_eq!(Compute { device: DeviceSpec::Cpu, refiner_dtype: DType::F16 }.cpu_bf16_path(), None);
-        assert_eq!(Compute { device: DeviceSpec::Cuda(0), refiner_dtype: DType::BF16 }.cpu_bf16_path(), None);
+        assert_eq!(Compute { device: DeviceSpec::Cpu, refiner_dtype: DType::F16, ..Default::default() }.cpu_bf16_path(), None);
+        assert_eq!(Compute { device: DeviceSpec::Cuda(0), refiner_dtype: DType::BF16, ..Default::default() }.cpu_bf16_path(), None);
+        let enc = Compute { encoder_dtype: DType::BF16, ..Default::default() };
+        assert_eq!(enc.cpu_bf16_path(), Some(mvsplat360_nn::bf16::path()));
+        assert!(enc.open().unwrap().is_cpu());
+    }
+
+    #[test]
+    fn encoder_dtype_spellings_and_gpu_refusal() {
+        assert_eq!(parse_encoder_dtype("f32"), Ok(DType::F32));
+        assert_eq!(parse_encoder_dtype("fp32"), Ok(DType::F32));
+        assert_eq!(parse_encoder_dtype("bf16"), Ok(DType::BF16));
+        for bad in ["f16", "fp16", "BF16", "f64", ""] {
+            let e = parse_encoder_dtype(bad).unwrap_err();
+            assert!(e.contains("--encoder-dtype") && e.contains("f32 or bf16"), "{bad}: {e}");
+        }
+        let e = Compute { device: DeviceSpec::Cuda(0), encoder_dtype: DType::BF16, ..Default::default() }.open().unwrap_err().to_string();
+        assert!(e.starts_with("--encoder-dtype: bf16 runs on the CPU only"), "{e}");
     }
 }

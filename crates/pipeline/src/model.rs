@@ -95,7 +95,7 @@ pub struct ModelArgs {
     pub refiner: Option<RefinerArg>,
     /// `--experiment`: overrides the data conventions (`dl3dv`, `re10k`) of a checkpoint without a config.
     pub experiment: Option<String>,
-    /// `--device` and `--dtype`: where the model runs and the refiner's precision.
+    /// `--device`, `--dtype` and `--encoder-dtype`: where the model runs, the refiner's and the encoder's precision.
     pub compute: crate::compute::Compute,
     /// `--fit-steps`: overrides the model's default test-time fitting step count (0 = off).
     pub fit_steps: Option<usize>,
@@ -131,6 +131,8 @@ pub struct ModelSpec {
     pub blend: Option<(crate::blend::BlendSettings, PathBuf)>,
     /// The model's scene scaling (only model folders set it; None = scene units, the official protocol).
     pub scene_scale: Option<crate::scale::SceneScale>,
+    /// The encoder's precision for this run (`--encoder-dtype`, set by [`resolve`]; F32 as read).
+    pub encoder_dtype: candle_core::DType,
 }
 
 /// Where the refiner's weights are.
@@ -179,6 +181,7 @@ pub fn resolve(args: &ModelArgs) -> Result<ModelSpec> {
     if args.no_blend {
         spec.blend = None;
     }
+    spec.encoder_dtype = args.compute.encoder_dtype;
     Ok(spec)
 }
 
@@ -235,6 +238,7 @@ fn resolve_weights(args: &ModelArgs) -> Result<ModelSpec> {
             fit: Default::default(),
             blend: None,
             scene_scale: None,
+            encoder_dtype: candle_core::DType::F32,
         });
     }
     if let Some(RefinerArg::File(_)) = &args.refiner {
@@ -272,6 +276,7 @@ fn official_ckpt(path: &Path, experiment: Option<&str>) -> Result<ModelSpec> {
         fit: Default::default(),
         blend: None,
         scene_scale: None,
+        encoder_dtype: candle_core::DType::F32,
     })
 }
 
@@ -340,6 +345,7 @@ pub fn read_model_dir(dir: &Path) -> Result<ModelSpec> {
         fit,
         blend: cfg.blend.map(|b| (b, weights.clone())),
         scene_scale,
+        encoder_dtype: candle_core::DType::F32,
     })
 }
 

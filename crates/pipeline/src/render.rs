@@ -213,7 +213,7 @@ pub fn encode(p: &Prepared, progress: &dyn Progress) -> Result<Gaussians> {
     let near = Tensor::full(cfg.near, (1, v), &dev).map_err(compute("encoder input"))?;
     let far = Tensor::full(cfg.far, (1, v), &dev).map_err(compute("encoder input"))?;
     progress.note(&format!("loading encoder weights from {}", p.spec.encoder_file.display()));
-    let encoder = EncoderCostVolume::load(&p.spec.encoder_file, &cfg, &dev)
+    let encoder = EncoderCostVolume::load_as(&p.spec.encoder_file, &cfg, &dev, p.spec.encoder_dtype)
         .map_err(|e| PipelineError::Model { path: p.spec.encoder_file.clone(), msg: e.to_string() })?;
     progress.begin("encoder", 1);
     let g = encoder.forward(&images, &intr, &extr, &near, &far).map_err(compute("encoder"))?;
@@ -539,6 +539,8 @@ fn resume_key(req: &RenderRequest, p: &Prepared, refiner: Option<&Path>) -> crat
         ("dtype", p.refiner_dtype.as_str().to_string()),
     ]
     .into_iter()
+    // Only when not f32, so that renders interrupted before the flag existed still resume.
+    .chain((p.spec.encoder_dtype != DType::F32).then(|| ("encoder_dtype", p.spec.encoder_dtype.as_str().to_string())))
     .map(|(k, v)| (k.to_string(), v))
     .collect()
 }
@@ -819,6 +821,7 @@ fn run_json(
             "blend": p.spec.blend.as_ref().map(|(b, _)| b),
             "device": req.model.compute.device.to_string(),
             "refiner_dtype": p.refiner_dtype.as_str(),
+            "encoder_dtype": p.spec.encoder_dtype.as_str(),
             "cpu_bf16": req.model.compute.cpu_bf16_path().map(|b| b.name()),
             "fps": req.fps,
         },

@@ -72,9 +72,9 @@ fn render_on_gpu_matches_cpu() {
     let cpu = tmp.path().join("cpu");
     render_on(&m, &cpu, Compute::default());
     let gpu = tmp.path().join("gpu");
-    render_on(&m, &gpu, Compute { device: DeviceSpec::Cuda(0), refiner_dtype: DType::F32 });
+    render_on(&m, &gpu, Compute { device: DeviceSpec::Cuda(0), refiner_dtype: DType::F32, ..Default::default() });
     let half = tmp.path().join("bf16");
-    render_on(&m, &half, Compute { device: DeviceSpec::Cuda(0), refiner_dtype: DType::BF16 });
+    render_on(&m, &half, Compute { device: DeviceSpec::Cuda(0), refiner_dtype: DType::BF16, ..Default::default() });
     for dir in ["gsplat", "refined", "final"] {
         for i in 0..3 {
             let f = format!("frames/{dir}/{i:04}.png");
@@ -125,8 +125,8 @@ fn fit_on_gpu_matches_cpu() {
         out
     };
     let cpu = run("cpu", Compute::default(), None);
-    let gpu = run("gpu", Compute { device: DeviceSpec::Cuda(0), refiner_dtype: DType::F32 }, None);
-    let again = run("gpu-again", Compute { device: DeviceSpec::Cuda(0), refiner_dtype: DType::F32 }, None);
+    let gpu = run("gpu", Compute { device: DeviceSpec::Cuda(0), refiner_dtype: DType::F32, ..Default::default() }, None);
+    let again = run("gpu-again", Compute { device: DeviceSpec::Cuda(0), refiner_dtype: DType::F32, ..Default::default() }, None);
     let unfitted = run("unfitted", Compute::default(), Some(0));
     let loss = |d: &Path| {
         let l = &json(&d.join("run.json"))["settings"]["fit_loss"];

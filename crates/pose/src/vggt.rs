@@ -66,11 +66,14 @@ pub struct VggtPoseOptions {
     pub max_size: u32,
     /// Upstream's preprocessing mode (`crop`, upstream's default, is what `pose` uses).
     pub mode: PreprocessMode,
+    /// The aggregator's precision (`--encoder-dtype`): F32, or BF16 (its linears on weights packed in bf16
+    /// where the CPU has AVX512-BF16; `Vggt::with_trunk_dtype`). The heads stay f32.
+    pub dtype: DType,
 }
 
 impl VggtPoseOptions {
     pub fn new(weights: impl Into<PathBuf>, max_size: u32) -> Self {
-        Self { weights: weights.into(), max_size, mode: PreprocessMode::Crop }
+        Self { weights: weights.into(), max_size, mode: PreprocessMode::Crop, dtype: DType::F32 }
     }
 }
 
@@ -261,7 +264,7 @@ fn hash_file(h: &mut Sha256, p: &Path) -> Result<(), PoseError> {
 
 fn fingerprint_of(photos: &[PathBuf], src: &VggtSource, weights_sha: &str, opts: &VggtPoseOptions) -> Result<String, PoseError> {
     let mut h = Sha256::new();
-    h.update(format!("pose vggt 1|max {}|mode {}|cpu f32|conf {CONFIDENCE_THRESHOLD}|points {MAX_POINTS}\n", opts.max_size, opts.mode));
+    h.update(format!("pose vggt 1|max {}|mode {}|cpu {}|conf {CONFIDENCE_THRESHOLD}|points {MAX_POINTS}\n", opts.max_size, opts.mode, opts.dtype.as_str()));
     h.update(weights_sha);
     h.update(serde_json::to_string(&src.config).unwrap_or_default());
     h.update([0u8]);
@@ -428,7 +431,10 @@ pub fn pose_vggt(dir: &Path, out: &Path, opts: &VggtPoseOptions, progress: &dyn 
 
     let t = Instant::now();
     progress.begin("load", 0);
-    let loaded = vggt_weights::load_source(&src, &Device::Cpu, DType::F32).map_err(weights_error);
+    if !matches!(opts.dtype, DType::F32 | DType::BF16) {
+        return Err(PoseError::Vggt(format!("VGGT runs on the CPU in f32 or bf16, not {:?}", opts.dtype)));
+    }
+    let loaded = vggt_weights::load_source(&src, &Device::Cpu, opts.dtype).map_err(weights_error);
     progress.end();
     let (model, load_report) = loaded?;
     if !src.config.enable_camera || !src.config.enable_depth {
@@ -471,7 +477,7 @@ pub fn pose_vggt(dir: &Path, out: &Path, opts: &VggtPoseOptions, progress: &dyn 
                     max_size: opts.max_size,
                     preprocessing: opts.mode.to_string(),
                     device: "cpu".into(),
-                    dtype: "f32".into(),
+                    dtype: opts.dtype.as_str().into(),
                     confidence_threshold: CONFIDENCE_THRESHOLD,
                     max_points: MAX_POINTS,
                 },
@@ -505,14 +511,20 @@ fn forward(model: &mvsplat360_vggt::Vggt, pre: &Preprocessed) -> Result<Forward,
     let err = |e: candle_core::Error| PoseError::Vggt(format!("VGGT forward pass failed: {e}"));
     let images = pre.to_tensor(&Device::Cpu).map_err(err)?;
     let p = model.forward(&images, &[]).map_err(err)?;
-    let enc = p.pose_enc().ok_or_else(|| PoseError::Vggt("the model has no camera head".into()))?.to_vec2::<f32>().map_err(err)?;
+    // f32 whatever the trunk ran in (the heads' outputs are f32 upstream; the cast is a no-op then).
+    let enc = p
+        .pose_enc()
+        .ok_or_else(|| PoseError::Vggt("the model has no camera head".into()))?
+        .to_dtype(DType::F32)
+        .and_then(|t| t.to_vec2::<f32>())
+        .map_err(err)?;
     let encs = enc
         .iter()
         .map(|r| <[f32; 9]>::try_from(r.as_slice()).map_err(|_| PoseError::Vggt(format!("pose encoding of {} numbers, expected 9", r.len()))))
         .collect::<Result<Vec<_>, _>>()?;
     let (depth, conf) = p.depth.ok_or_else(|| PoseError::Vggt("the model has no depth head".into()))?;
-    let depth = depth.flatten_all().and_then(|t| t.to_vec1::<f32>()).map_err(err)?;
-    let conf = conf.flatten_all().and_then(|t| t.to_vec1::<f32>()).map_err(err)?;
+    let depth = depth.flatten_all().and_then(|t| t.to_dtype(DType::F32)).and_then(|t| t.to_vec1::<f32>()).map_err(err)?;
+    let conf = conf.flatten_all().and_then(|t| t.to_dtype(DType::F32)).and_then(|t| t.to_vec1::<f32>()).map_err(err)?;
     let n = pre.frames * pre.height * pre.width;
     if depth.len() != n || conf.len() != n || encs.len() != pre.frames {
         return Err(PoseError::Vggt(format!(

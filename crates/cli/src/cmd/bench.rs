@@ -76,6 +76,10 @@ enum What {
         /// Time only the backbone (CNN + multi-view transformer) instead of the whole encoder.
         #[arg(long)]
         backbone_only: bool,
+        /// Precision: `f32` or `bf16` (weights packed once in bf16, f32 activations; the JSON's `cpu_bf16`
+        /// names the path the products take on this CPU).
+        #[arg(long, default_value = "f32", value_parser = mvsplat360_pipeline::compute::parse_encoder_dtype)]
+        dtype: candle_core::DType,
         #[command(flatten)]
         common: Common,
     },
@@ -118,6 +122,9 @@ enum What {
         /// activations).
         #[arg(long, default_value = "f32", value_parser = mvsplat360_pipeline::compute::parse_dtype)]
         dtype: candle_core::DType,
+        /// Precision of the encoder: `f32` or `bf16` (CPU only: weights packed in bf16, f32 activations).
+        #[arg(long, default_value = "f32", value_parser = mvsplat360_pipeline::compute::parse_encoder_dtype)]
+        encoder_dtype: candle_core::DType,
         /// Context views.
         #[arg(long, default_value_t = 5)]
         views: usize,
@@ -263,14 +270,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             let opts = mvsplat360_splat::bench::RasterBenchOpts { gaussians, width, height, features, threads: common.threads.count(), runs: common.runs };
             mvsplat360_splat::bench::run_raster_bench(&opts)?
         }
-        What::Encoder { views, height, width, backbone_only, common } => {
+        What::Encoder { views, height, width, backbone_only, dtype, common } => {
             if height % 64 != 0 || width % 64 != 0 || views < 2 {
                 anyhow::bail!("bench encoder: need --views ≥ 2 and --height/--width multiples of 64 (got {views}, {height}x{width})");
             }
             if backbone_only {
-                mvsplat360_encoder::bench::run_backbone_bench(views, height, width, common.threads.count(), common.runs)?
+                mvsplat360_encoder::bench::run_backbone_bench(views, height, width, common.threads.count(), common.runs, dtype)?
             } else {
-                mvsplat360_encoder::bench::run_encoder_bench(views, height, width, common.threads.count(), common.runs)?
+                mvsplat360_encoder::bench::run_encoder_bench(views, height, width, common.threads.count(), common.runs, dtype)?
             }
         }
         What::Refiner { device, dtype, vae_frames, frames, latent_h, latent_w, common } => {
@@ -280,7 +287,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             if device == mvsplat360_pipeline::compute::DeviceSpec::Cpu && dtype == candle_core::DType::F16 {
                 anyhow::bail!("bench refiner: --dtype f16 needs --device cuda (the CPU runs f32 or bf16)");
             }
-            let compute = mvsplat360_pipeline::compute::Compute { device, refiner_dtype: dtype };
+            let compute = mvsplat360_pipeline::compute::Compute { device, refiner_dtype: dtype, ..Default::default() };
             let mut v = mvsplat360_refiner::bench::run_refiner_bench(&mvsplat360_refiner::bench::RefinerBench {
                 device: compute.open()?,
                 dtype,
@@ -292,10 +299,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             }
             v
         }
-        What::Scene { device, dtype, views, height, width, frames, steps, runs, warmup, tiny, no_refiner, threads } => {
+        What::Scene { device, dtype, encoder_dtype, views, height, width, frames, steps, runs, warmup, tiny, no_refiner, threads } => {
             mvsplat360_pipeline::bench::run_scene_bench(&mvsplat360_pipeline::bench::SceneBenchOpts {
                 device,
                 dtype,
+                encoder_dtype,
                 views,
                 height,
                 width,

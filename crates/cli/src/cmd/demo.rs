@@ -23,6 +23,10 @@ pub struct Args {
     /// `cpu`, `cuda` (GPU 0) or `cuda:N`. CUDA needs a binary built with `--features cuda` (see docs/gpu.md).
     #[arg(long, default_value = "auto")]
     pub device: mvsplat360_pipeline::compute::DeviceSpec,
+    /// Precision of the encoder: `f32` (default) or `bf16` (CPU only: weights packed in bf16, bf16 products
+    /// with f32 sums where the CPU has AVX512-BF16; recorded in run.json as `encoder_dtype`).
+    #[arg(long, default_value = "f32", value_parser = mvsplat360_pipeline::compute::parse_encoder_dtype)]
+    pub encoder_dtype: candle_core::DType,
 }
 
 /// The bundled scene (`assets/woodbox`): relative to the working directory, then to this binary's source tree.
@@ -43,7 +47,7 @@ pub fn run(a: Args, quiet: bool) -> anyhow::Result<()> {
         targets: TargetSpec::Orbit(a.frames),
         model: ModelArgs {
             ckpt: Some(model.clone()),
-            compute: mvsplat360_pipeline::compute::Compute { device: a.device, ..Default::default() },
+            compute: mvsplat360_pipeline::compute::Compute { device: a.device, encoder_dtype: a.encoder_dtype, ..Default::default() },
             ..ModelArgs::default()
         },
         size: None,

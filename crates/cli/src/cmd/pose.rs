@@ -54,7 +54,8 @@ pub struct PoseFlags {
     /// non-commercial) or of VGGT-1B-Commercial (gated by Meta), or a VGGT model folder (config.json +
     /// model.safetensors or model.pt); a path, or a name fetched into the Hugging Face cache when VGGT runs:
     /// `vggt-1b`, `vggt-1b-commercial` (HF_TOKEN with access), `hf:OWNER/REPO[/FILE][@REV]`, a Hub URL (an
-    /// existing path wins). VGGT runs on the CPU in f32 (about 5 GB of weights for VGGT-1B).
+    /// existing path wins). VGGT runs on the CPU in f32 (about 5 GB of weights for VGGT-1B), or bf16 with
+    /// --encoder-dtype bf16.
     #[arg(long, value_name = "PATH|NAME")]
     pub vggt_weights: Option<PathBuf>,
     /// Frames sampled from a video: the sharpest frame of each of this many equal intervals (at least 60 for a
@@ -84,6 +85,10 @@ pub struct PoseFlags {
     /// Whether COLMAP may use the GPU (bundle adjustment runs on the CPU either way).
     #[arg(long, value_enum, default_value_t = GpuChoice::Auto)]
     pub colmap_gpu: GpuChoice,
+    /// VGGT's precision: `pose --encoder-dtype`, or `render`'s (one flag there for the models before the
+    /// rasterizer).
+    #[arg(skip = candle_core::DType::F32)]
+    pub vggt_dtype: candle_core::DType,
 }
 
 impl PoseFlags {
@@ -108,7 +113,7 @@ impl PoseFlags {
     }
 
     fn vggt_options(&self, weights: &Path) -> VggtPoseOptions {
-        VggtPoseOptions::new(weights, self.max_size)
+        VggtPoseOptions { dtype: self.vggt_dtype, ..VggtPoseOptions::new(weights, self.max_size) }
     }
 }
 
@@ -134,6 +139,11 @@ pub struct Args {
     /// Print pose.json on stdout when done.
     #[arg(long)]
     pub json: bool,
+    /// Precision of VGGT's aggregator: `f32` (default) or `bf16` (the CPU's bf16 products on weights packed
+    /// once, where it has AVX512-BF16; the heads stay f32). pose.json records it (`settings.dtype`), and a
+    /// scene posed in another precision is not reused.
+    #[arg(long, default_value = "f32", value_parser = mvsplat360_pipeline::compute::parse_encoder_dtype)]
+    pub encoder_dtype: candle_core::DType,
 }
 
 /// A scene posed by either engine.
@@ -317,7 +327,8 @@ pub fn run(a: Args, quiet: bool) -> anyhow::Result<()> {
         eprintln!("interrupted: nothing was written to the scene folder; a rerun continues from COLMAP's finished stages (VGGT starts again)");
         std::process::exit(130);
     });
-    let posed = pose_scene(&a.input, &a.out, &a.flags, a.min_views, quiet)?;
+    let flags = PoseFlags { vggt_dtype: a.encoder_dtype, ..a.flags };
+    let posed = pose_scene(&a.input, &a.out, &flags, a.min_views, quiet)?;
     if a.json {
         println!("{}", posed.to_json().context("writing pose.json to stdout")?);
     }

@@ -144,6 +144,7 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<()> {
     super::progress::clean_partials_on_interrupt(&args.out);
     // Names fail (or download) before minutes of posing.
     args.model.resolve_names(super::names::Freshness::Ask, quiet)?;
+    args.pose.vggt_dtype = args.model.encoder_dtype;
     if needs_posing(&args.scene) {
         let scene = posed_scene(&args, quiet)?;
         args.scene = scene;

@@ -3,7 +3,7 @@
 
 use std::path::PathBuf;
 
-use mvsplat360_pipeline::compute::{parse_dtype, Compute, DeviceSpec};
+use mvsplat360_pipeline::compute::{parse_dtype, parse_encoder_dtype, Compute, DeviceSpec};
 use mvsplat360_pipeline::model::{ModelArgs, RefinerArg};
 use mvsplat360_pipeline::preprocess::InputSize;
 use mvsplat360_pipeline::render::RefineSettings;
@@ -88,9 +88,17 @@ pub struct ModelFlags {
     /// Precision of the refiner (UNet, VAE, CLIP): `f32`, `f16` or `bf16`. Half precision halves the refiner's
     /// weights' memory and on a GPU is faster. On the CPU, bf16 multiplies bf16 weights (packed at load) by
     /// f32 activations rounded to bf16, with f32 sums, where the CPU has AVX512-BF16 (≈ 2× the f32 rate), and
-    /// is storage only elsewhere (said once, recorded in run.json). The encoder and rasterizer run in f32.
+    /// is storage only elsewhere (said once, recorded in run.json). The encoder: --encoder-dtype; the
+    /// rasterizer runs in f32.
     #[arg(long, default_value = "f32", value_parser = parse_dtype)]
     pub dtype: candle_core::DType,
+    /// Precision of the encoder (backbone, multi-view transformer, cost-volume and depth UNets) and, when a
+    /// video or photo folder is posed first, of VGGT: `f32` (as the official code) or `bf16` (CPU only: weights
+    /// packed once in bf16, f32 activations, bf16 products with f32 sums where the CPU has AVX512-BF16; norms,
+    /// attention, the cost volume and the Gaussian adapter stay f32). The encoder's depth places the Gaussians,
+    /// so bf16 there is its own choice; run.json records it (`encoder_dtype`).
+    #[arg(long, default_value = "f32", value_parser = parse_encoder_dtype)]
+    pub encoder_dtype: candle_core::DType,
     /// Steps of test-time fitting: the Gaussians' distances along their pixel rays and opacities are adjusted
     /// so that each context photo is reproduced by the other views' Gaussians (not in the official pipeline).
     /// Default: the model's own setting (the shipped model: see its MODEL.md; official weights: 0 = off).
@@ -121,7 +129,7 @@ impl ModelFlags {
             encoder: self.encoder.clone(),
             refiner: self.refiner.clone(),
             experiment: self.experiment.clone(),
-            compute: Compute { device: self.device, refiner_dtype: self.dtype },
+            compute: Compute { device: self.device, refiner_dtype: self.dtype, encoder_dtype: self.encoder_dtype },
             fit_steps: self.fit_steps,
             no_blend: self.no_blend,
         }
