@@ -89,8 +89,8 @@ enum What {
         /// Where it runs: `cpu`, `cuda` or `cuda:N` (CUDA needs a `--features cuda` build).
         #[arg(long, default_value = "cpu")]
         device: mvsplat360_pipeline::compute::DeviceSpec,
-        /// Precision: `f32`, `f16` (GPU only) or `bf16` (on the CPU: bf16 weights and products, f32
-        /// activations; the JSON's `cpu_bf16` names the path).
+        /// Precision: `f32`, `f16` or `bf16` (on the CPU: bf16 weights and products, f32 activations; the
+        /// JSON's `cpu_bf16` names the path).
         #[arg(long, default_value = "f32", value_parser = mvsplat360_pipeline::compute::parse_dtype)]
         dtype: candle_core::DType,
         /// Latent frames the VAE decodes (one per call).
@@ -211,7 +211,8 @@ enum What {
         #[arg(long, default_value = "cpu")]
         device: mvsplat360_pipeline::compute::DeviceSpec,
         /// Precision of the aggregator: `f32` or `bf16` (the heads stay f32, as upstream); `f16` on a GPU only. bf16
-        /// on a CPU with AVX512-BF16 runs the blocks' linears in the packed bf16 product, the rest in f32.
+        /// on a CPU with AVX512-BF16 runs the blocks' linears and attention products in bf16 (f32 sums), the rest
+        /// in f32.
         #[arg(long, default_value = "f32", value_parser = mvsplat360_pipeline::compute::parse_dtype)]
         dtype: candle_core::DType,
         /// Frames (photos) in the forward.
@@ -283,9 +284,6 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         What::Refiner { device, dtype, vae_frames, frames, latent_h, latent_w, common } => {
             if frames == 0 || latent_h == 0 || latent_w == 0 || latent_h % 8 != 0 || latent_w % 8 != 0 {
                 anyhow::bail!("bench refiner: need --frames ≥ 1 and latent sizes that are positive multiples of 8 (three 2× downsamplings) (got {frames}, {latent_h}x{latent_w})");
-            }
-            if device == mvsplat360_pipeline::compute::DeviceSpec::Cpu && dtype == candle_core::DType::F16 {
-                anyhow::bail!("bench refiner: --dtype f16 needs --device cuda (the CPU runs f32 or bf16)");
             }
             let compute = mvsplat360_pipeline::compute::Compute { device, refiner_dtype: dtype, ..Default::default() };
             let mut v = mvsplat360_refiner::bench::run_refiner_bench(&mvsplat360_refiner::bench::RefinerBench {
