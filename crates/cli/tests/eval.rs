@@ -149,18 +149,20 @@ fn eval_ranks_started_by_srun_share_one_out() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     assert_eq!(json(&three)["methods"], a["methods"]);
     assert_eq!(mtimes(&three), before, "--merge rewrote scene files");
-    // Records of a bf16 run (a GPU's; the CPU cannot render in bf16): the CPU merges them, and the table says bf16.
+    // Records of a bf16 run (edited, to keep the test short): a merge takes them, and the table says bf16.
     let settings = three.join("eval.json");
     let mut v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&settings).unwrap()).unwrap();
     v["refiner_dtype"] = "bf16".into();
     std::fs::write(&settings, serde_json::to_string(&v).unwrap()).unwrap();
-    let set_dtype = |scene: &str, dtype: &str| {
+    let set = |scene: &str, key: &str, dtype: &str| {
         let p = three.join("scenes").join(format!("{scene}.json"));
         let mut r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
         assert!(r["rendered_by"]["pid"].as_u64().is_some(), "the record names its process: {r}");
-        r["rendered_by"]["refiner_dtype"] = dtype.into();
+        assert_eq!(r["rendered_by"]["encoder_dtype"], "f32", "the record names the encoder's precision: {r}");
+        r["rendered_by"][key] = dtype.into();
         std::fs::write(&p, serde_json::to_string(&r).unwrap()).unwrap();
     };
+    let set_dtype = |scene: &str, dtype: &str| set(scene, "refiner_dtype", dtype);
     set_dtype("woodbox_a", "bf16");
     set_dtype("woodbox_b", "bf16");
     let o = eval_cmd(&empty, &data, &index, &m, &three).arg("--merge").output().unwrap();
@@ -171,7 +173,13 @@ fn eval_ranks_started_by_srun_share_one_out() {
     set_dtype("woodbox_b", "f16");
     let o = eval_cmd(&empty, &data, &index, &m, &three).arg("--merge").output().unwrap();
     let e = String::from_utf8_lossy(&o.stderr);
-    assert!(!o.status.success() && e.contains("woodbox_b (f16)") && !e.contains("woodbox_a (bf16)"), "{e}");
+    assert!(!o.status.success() && e.contains("woodbox_b (refiner f16") && !e.contains("woodbox_a ("), "{e}");
+    // A record whose encoder ran in another precision is refused too.
+    set_dtype("woodbox_b", "bf16");
+    set("woodbox_a", "encoder_dtype", "bf16");
+    let o = eval_cmd(&empty, &data, &index, &m, &three).arg("--merge").output().unwrap();
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && e.contains("woodbox_a (refiner bf16, encoder bf16)") && !e.contains("woodbox_b ("), "{e}");
     // --merge on an out with a scene missing names it and writes nothing.
     let part = tmp.path().join("part");
     let o = eval_cmd(&empty, &data, &index, &m, &part).args(["--scenes", "woodbox_a"]).output().unwrap();

@@ -77,8 +77,8 @@ impl DeviceSpec {
 
 /// `--dtype` of the refiner (UNet, VAE, CLIP): f32 (default), f16 or bf16. On the CPU, bf16 keeps f32
 /// activations and multiplies bf16 weights packed once at load (`vdpbf16ps` where the CPU has AVX512-BF16,
-/// storage only otherwise: see [`cpu_bf16_path`]). The encoder and the rasterizer run in f32, as in the
-/// official code.
+/// storage only otherwise: see [`cpu_bf16_path`]); f16 stores the weights in f16 and widens them for the f32
+/// kernels (the CPU has no f16 dot product). The encoder's precision is `--encoder-dtype`.
 pub fn parse_dtype(s: &str) -> std::result::Result<DType, String> {
     match s {
         "f32" | "fp32" => Ok(DType::F32),

@@ -291,6 +291,13 @@ pub struct RenderedBy {
     pub device: String,
     /// The refiner's `--dtype` (`f32` also without a refiner).
     pub refiner_dtype: String,
+    /// The encoder's `--encoder-dtype` (`f32` in records written before the flag).
+    #[serde(default = "f32_name")]
+    pub encoder_dtype: String,
+}
+
+fn f32_name() -> String {
+    "f32".into()
 }
 
 /// One scene's work, from its index entry.
@@ -411,6 +418,11 @@ fn settings_json(req: &EvalRequest, spec: &crate::model::ModelSpec, size: InputS
     let dtype = req.model.compute.refiner_dtype;
     if spec.refiner.is_some() && dtype != candle_core::DType::F32 {
         v["refiner_dtype"] = json!(dtype.as_str());
+    }
+    // A bf16 encoder moves every Gaussian, so it is part of the settings too (f32 adds nothing, as above).
+    let enc = req.model.compute.encoder_dtype;
+    if enc != candle_core::DType::F32 {
+        v["encoder_dtype"] = json!(enc.as_str());
     }
     // As read back from eval.json (f32 settings print shortest-f32 and parse back as a different f64).
     serde_json::to_string(&v).ok().and_then(|t| serde_json::from_str(&t).ok()).unwrap_or(v)
@@ -542,6 +554,7 @@ fn render_scene(cx: &Ctx, scene: Scene, plan: &ScenePlan, mine: &dyn Fn() -> boo
             pid: std::process::id(),
             device: cx.req.model.compute.device.to_string(),
             refiner_dtype: if cx.refine_file.is_some() { cx.req.model.compute.refiner_dtype.as_str().to_string() } else { "f32".into() },
+            encoder_dtype: cx.req.model.compute.encoder_dtype.as_str().to_string(),
         }),
     };
     // The official loaders skip scenes with a view wider than max_fov (all views of the scene are checked).

@@ -95,10 +95,12 @@ fn run_settings(req: &EvalRequest, spec: &crate::model::ModelSpec, size: InputSi
     let mut settings = settings_json(req, spec, size);
     if req.merge_only {
         let stored: Option<serde_json::Value> = std::fs::read_to_string(req.out.join(SETTINGS_JSON)).ok().and_then(|t| serde_json::from_str(&t).ok());
-        match stored.as_ref().and_then(|v| v.get("refiner_dtype")) {
-            Some(d) => settings["refiner_dtype"] = d.clone(),
-            None => {
-                settings.as_object_mut().map(|o| o.remove("refiner_dtype"));
+        for key in ["refiner_dtype", "encoder_dtype"] {
+            match stored.as_ref().and_then(|v| v.get(key)) {
+                Some(d) => settings[key] = d.clone(),
+                None => {
+                    settings.as_object_mut().map(|o| o.remove(key));
+                }
             }
         }
     }
@@ -334,15 +336,21 @@ fn write_tables(cx: &Ctx, info: &RunInfo, mut tally: Tally) -> Result<EvalSummar
     let done_records: Vec<&SceneRecord> = tally.records.iter().flatten().filter(|r| r.skipped.is_none()).collect();
     // One table, one precision: eval.json keeps processes of another --dtype out; this catches edited folders.
     let want = info.settings.get("refiner_dtype").and_then(|v| v.as_str()).unwrap_or("f32");
+    let want_enc = info.settings.get("encoder_dtype").and_then(|v| v.as_str()).unwrap_or("f32");
     let mixed: Vec<String> = done_records
         .iter()
-        .filter_map(|r| r.rendered_by.as_ref().filter(|b| b.refiner_dtype != want).map(|b| format!("{} ({})", r.scene, b.refiner_dtype)))
+        .filter_map(|r| {
+            r.rendered_by
+                .as_ref()
+                .filter(|b| b.refiner_dtype != want || b.encoder_dtype != want_enc)
+                .map(|b| format!("{} (refiner {}, encoder {})", r.scene, b.refiner_dtype, b.encoder_dtype))
+        })
         .collect();
     if !mixed.is_empty() {
         return Err(flag(
             "--out",
             format!(
-                "{}: these scenes were rendered in another precision than the folder's {want}: {}; render them again (remove their scenes/*.json)",
+                "{}: these scenes were rendered in another precision than the folder's (refiner {want}, encoder {want_enc}): {}; render them again (remove their scenes/*.json)",
                 out.display(),
                 mixed.join(", ")
             ),
