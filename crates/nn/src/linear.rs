@@ -270,28 +270,55 @@ pub fn geglu_ff(x: &Tensor, w1: &Tensor, b1: &Tensor, w2: &Tensor, b2: &Tensor, 
     let b2v = b2.to_vec1::<f32>()?;
     let mut dst = vec![0f32; rows * o];
     init_rows(&mut dst, o, Some(&b2v), scale, adds)?;
-    let chunk = ((16usize << 20) / hidden2.max(1)).max(64).min(rows.max(1));
-    let mut hbuf = vec![0f32; chunk * hidden2];
-    let mut gbuf = vec![0f32; chunk * inner];
     with_f32(x, |xd| {
         with_f32(w1, |w1d| {
             with_f32(w2, |w2d| {
-                let mut r0 = 0;
-                while r0 < rows {
-                    let m = chunk.min(rows - r0);
-                    gemm_xwt(&xd[r0 * c..(r0 + m) * c], m, c, w1d, hidden2, &mut hbuf[..m * hidden2], false, 1.0);
-                    let per = (m / rayon::current_num_threads().max(1) / 4).max(1);
-                    hbuf[..m * hidden2]
-                        .par_chunks(per * hidden2)
-                        .zip(gbuf[..m * inner].par_chunks_mut(per * inner))
-                        .for_each(|(h, g)| geglu_rows(h, &b1v, g, inner));
-                    gemm_xwt(&gbuf[..m * inner], m, inner, w2d, o, &mut dst[r0 * o..(r0 + m) * o], true, scale);
-                    r0 += m;
-                }
+                geglu_chunked(
+                    xd,
+                    (rows, c, inner, o),
+                    &b1v,
+                    1.0,
+                    &mut dst,
+                    |x, m, h| gemm_xwt(x, m, c, w1d, hidden2, h, false, 1.0),
+                    |g, m, d| gemm_xwt(g, m, inner, w2d, o, d, true, scale),
+                )
             })
         })
     })???;
     Tensor::from_vec(dst, od, x.device())
+}
+
+/// The GEGLU feed-forward's body in row chunks, so the 2·inner-wide hidden activation stays ≈ 64 MiB:
+/// `first(x rows, m, h)` writes the first projection, the gate (bias, GELU, product, times `gate_scale`
+/// unless 1) makes g, `second(g, m, dst rows)` accumulates the output projection.
+#[allow(clippy::too_many_arguments)]
+fn geglu_chunked(
+    xd: &[f32],
+    (rows, c, inner, o): (usize, usize, usize, usize),
+    b1v: &[f32],
+    gate_scale: f32,
+    dst: &mut [f32],
+    mut first: impl FnMut(&[f32], usize, &mut [f32]),
+    mut second: impl FnMut(&[f32], usize, &mut [f32]),
+) {
+    let hidden2 = 2 * inner;
+    let chunk = ((16usize << 20) / hidden2.max(1)).max(64).min(rows.max(1));
+    let mut hbuf = vec![0f32; chunk * hidden2];
+    let mut gbuf = vec![0f32; chunk * inner];
+    let mut r0 = 0;
+    while r0 < rows {
+        let m = chunk.min(rows - r0);
+        first(&xd[r0 * c..(r0 + m) * c], m, &mut hbuf[..m * hidden2]);
+        let per = (m / rayon::current_num_threads().max(1) / 4).max(1);
+        hbuf[..m * hidden2].par_chunks(per * hidden2).zip(gbuf[..m * inner].par_chunks_mut(per * inner)).for_each(|(h, g)| {
+            geglu_rows(h, b1v, g, inner);
+            if gate_scale != 1.0 {
+                g.iter_mut().for_each(|v| *v *= gate_scale);
+            }
+        });
+        second(&gbuf[..m * inner], m, &mut dst[r0 * o..(r0 + m) * o]);
+        r0 += m;
+    }
 }
 
 /// [`geglu_ff`] from tensor ops (differentiable, any device).
@@ -549,24 +576,20 @@ pub fn geglu_ff_bf16(
     let b2v = b2.to_vec1::<f32>()?;
     let mut dst = vec![0f32; rows * o];
     init_rows(&mut dst, o, Some(&b2v), scale, adds)?;
-    let chunk = ((16usize << 20) / hidden2.max(1)).max(64).min(rows.max(1));
-    let mut hbuf = vec![0f32; chunk * hidden2];
-    let mut gbuf = vec![0f32; chunk * inner];
     with_f32(x, |xd| {
-        let mut r0 = 0;
-        while r0 < rows {
-            let m = chunk.min(rows - r0);
-            crate::bf16::matmul_bf16(&xd[r0 * c..(r0 + m) * c], m, c, w1, &mut hbuf[..m * hidden2], false);
-            let per = (m / rayon::current_num_threads().max(1) / 4).max(1);
-            hbuf[..m * hidden2].par_chunks(per * hidden2).zip(gbuf[..m * inner].par_chunks_mut(per * inner)).for_each(|(h, g)| {
-                geglu_rows(h, &b1v, g, inner);
-                if scale != 1.0 {
-                    g.iter_mut().for_each(|v| *v *= scale);
-                }
-            });
-            crate::bf16::matmul_bf16(&gbuf[..m * inner], m, inner, w2, &mut dst[r0 * o..(r0 + m) * o], true);
-            r0 += m;
-        }
+        geglu_chunked(
+            xd,
+            (rows, c, inner, o),
+            &b1v,
+            scale,
+            &mut dst,
+            |x, m, h| {
+                crate::bf16::matmul_bf16(x, m, c, w1, h, false);
+            },
+            |g, m, d| {
+                crate::bf16::matmul_bf16(g, m, inner, w2, d, true);
+            },
+        )
     })?;
     Tensor::from_vec(dst, od, x.device())
 }
