@@ -73,6 +73,24 @@ fn unet_in_half_precision_matches_f32() {
     }
 }
 
+/// Heads of 64 (as SVD's): in CPU bf16 the spatial self-attention runs on the packed `[q; k; v]` projection and
+/// the fused bf16 attention kernel (the tiny model's heads of 16 take the f32 kernel), same bound.
+#[test]
+fn unet_with_heads_of_64_in_bf16_matches_f32() {
+    let dev = Device::Cpu;
+    let cfg = VideoUNetConfig { model_channels: 64, num_head_channels: 64, channel_mult: vec![1], attention_resolutions: vec![1], ..VideoUNetConfig::tiny() };
+    let f = 2;
+    let x = Tensor::randn(0f32, 1.0, (2 * f, 8, 8, 10), &dev).unwrap();
+    let ctx = Tensor::randn(0f32, 1.0, (2 * f, 1, 32), &dev).unwrap();
+    let y = timestep_embedding(&[0.02; 4], 32, 10000.0, &dev).unwrap();
+    let ts = [0.3f32, -0.2, 0.7, 0.1];
+    let run = |m: &VideoUNet| m.forward(&UNetInputs { x: &x, timesteps: &ts, context: &ctx, y: Some(&y), num_video_frames: f, num_splits: None }).unwrap();
+    let full = run(&VideoUNet::random(&cfg, 12, &dev).unwrap());
+    let m = VideoUNet::random_as(&cfg, 12, &dev, DType::BF16).unwrap();
+    let half = run(&m);
+    check("UNet, heads of 64", DType::BF16, 1.0 / 256.0, &half, &full);
+}
+
 #[test]
 fn vae_in_half_precision_matches_f32() {
     let dev = Device::Cpu;
