@@ -10,7 +10,7 @@
 use candle_core::{DType, Device, Result, Tensor};
 use rayon::prelude::*;
 
-use super::{conv2d_fused, epilogue_row, temporal_conv, with_f32_opt, Conv2dConfig, ConvEpilogue, OutPtr, RawEpilogue, ShiftGeometry};
+use super::{conv2d_fused, epilogue_row, temporal_conv, temporal_dst, with_f32_opt, Conv2dConfig, ConvEpilogue, OutPtr, RawEpilogue, ShiftGeometry};
 use crate::bf16::conv_kernel::{matmul_rows, pair_row, Bf16Rows};
 use crate::bf16::{bf16_to_f32, path, Bf16Path};
 
@@ -374,19 +374,7 @@ pub fn temporal_conv_bf16(
             candle_core::bail!("temporal conv: residual {:?}, output {:?}", r.dims(), [n, co, h, wd]);
         }
     }
-    // dst = residual + scale·(bias + item_bias) in one pass.
-    let mut dst = vec![0f32; n * co * s];
-    with_f32_opt(f32_opt(residual)?.as_ref(), |rd| {
-        dst.par_chunks_mut(s).enumerate().for_each(|(row, d)| {
-            let (item, o) = (row / co, row % co);
-            let add = scale * (bv[o] + ib.as_ref().map_or(0.0, |v| v[item * co + o]));
-            match rd {
-                Some(rd) => d.iter_mut().zip(&rd[row * s..][..s]).for_each(|(v, &r)| *v = r + add),
-                None => d.fill(add),
-            }
-        });
-        Ok(())
-    })?;
+    let mut dst = with_f32_opt(f32_opt(residual)?.as_ref(), |rd| Ok(temporal_dst((n, co, s), &bv, ib.as_deref(), rd, scale)))?;
     let x32 = x.to_dtype(DType::F32)?.contiguous()?;
     // Pair rows of the kt frames in use, frame f in slot f % kt (kt consecutive frames never share a slot):
     // each frame converted once, just before its first use, into a buffer that stays in L3.

@@ -771,20 +771,12 @@ pub fn temporal_conv(
         Some(t) => Some(t.flatten_all()?.to_vec1::<f32>()?),
         None => None,
     };
-    let mut dst = match residual {
-        Some(r) => with_f32(r, |d| d.to_vec())?,
-        None => vec![0f32; n * co * s],
-    };
-    if dst.len() != n * co * s {
-        candle_core::bail!("temporal conv: residual has {} elements, output {}", dst.len(), n * co * s);
-    }
-    dst.par_chunks_mut(s).enumerate().for_each(|(row, d)| {
-        let (item, o) = (row / co, row % co);
-        let add = scale * (bv[o] + ib.as_ref().map_or(0.0, |v| v[item * co + o]));
-        for v in d {
-            *v += add;
+    if let Some(r) = residual {
+        if r.elem_count() != n * co * s {
+            candle_core::bail!("temporal conv: residual has {} elements, output {}", r.elem_count(), n * co * s);
         }
-    });
+    }
+    let mut dst = with_f32_opt(residual, |rd| Ok(temporal_dst((n, co, s), &bv, ib.as_deref(), rd, scale)))?;
     let threads = rayon::current_num_threads();
     let small = s * co < 1 << 16;
     with_f32(x, |xd| {
@@ -827,6 +819,21 @@ pub fn temporal_conv(
         })
     })??;
     Tensor::from_vec(dst, (n, co, h, wd), x.device())
+}
+
+/// The temporal convolutions' destination before their products accumulate into it: for output row (item, o)
+/// of `s` values, `residual + scale·(bias[o] + item_bias[item, o])`.
+pub(crate) fn temporal_dst((n, co, s): (usize, usize, usize), bias: &[f32], item_bias: Option<&[f32]>, residual: Option<&[f32]>, scale: f32) -> Vec<f32> {
+    let mut dst = vec![0f32; n * co * s];
+    dst.par_chunks_mut(s.max(1)).enumerate().for_each(|(row, d)| {
+        let (item, o) = (row / co, row % co);
+        let add = scale * (bias[o] + item_bias.map_or(0.0, |v| v[item * co + o]));
+        match residual {
+            Some(r) => d.iter_mut().zip(&r[row * s..][..s]).for_each(|(v, &r)| *v = r + add),
+            None => d.fill(add),
+        }
+    });
+    dst
 }
 
 /// [`temporal_conv`] from tensor ops (records a backward): one matmul per output frame.
