@@ -144,6 +144,10 @@ fn encoder_bench(views: usize, height: usize, width: usize, runs: usize, dtype: 
     let [images, intrinsics, extrinsics, near, far] = synthetic_context(1, views, height, width, &dev)?;
     let mut times = Vec::new();
     for i in 0..runs.max(1) + 1 {
+        if i == 1 {
+            // The warm-up's stages are not part of the profile.
+            let _ = mvsplat360_nn::prof::take_report();
+        }
         let t0 = Instant::now();
         let g = model.forward(&images, &intrinsics, &extrinsics, &near, &far)?;
         let _ = g.means.sum_all()?.to_scalar::<f32>()?;
@@ -152,6 +156,14 @@ fn encoder_bench(views: usize, height: usize, width: usize, runs: usize, dtype: 
         }
     }
     let (dt, path) = dtype_json(dtype);
-    Ok(json!({"bench": "encoder", "views": views, "height": height, "width": width, "dtype": dt, "cpu_bf16": path,
-        "threads": rayon::current_num_threads(), "forward_ms": median(times), "peak_mib": peak_rss_mib()}))
+    let timed = times.len() as f64;
+    let mut out = json!({"bench": "encoder", "views": views, "height": height, "width": width, "dtype": dt, "cpu_bf16": path,
+        "threads": rayon::current_num_threads(), "forward_ms": median(times), "peak_mib": peak_rss_mib()});
+    if mvsplat360_nn::prof::is_enabled() {
+        // Mean ms per timed forward (MVSPLAT360_PROFILE=1); nested scopes are also inside their parents.
+        let prof: serde_json::Map<String, serde_json::Value> =
+            mvsplat360_nn::prof::take_report().into_iter().map(|(n, ms, calls)| (n.to_string(), json!({ "ms": ms / timed, "calls": calls }))).collect();
+        out["profile"] = serde_json::Value::Object(prof);
+    }
+    Ok(out)
 }

@@ -5,14 +5,14 @@
 //!
 //! In bf16: the CNN's convolutions (7×7/2, 3×3 stride 1 and 2, the 1×1 shortcuts and output), the transformer's
 //! q/k/v/merge projections and MLP, every convolution of the cost-volume and depth-refinement UNets and heads
-//! (stride 1 and 2, the ×2-upsampling ones), and the UNets' attention qkv / proj_out (1×1).
+//! (stride 1 and 2, the ×2-upsampling ones), the UNets' attention qkv / proj_out (1×1), and attention's own
+//! products q·kᵀ and weights·v (the transformer's shifted windows with their region mask, heads of 128; the
+//! UNets' heads of 32: `mvsplat360_nn::attention_bf16`, softmax in f32).
 //!
 //! Kept f32, and why:
 //! - InstanceNorm, LayerNorm, GroupNorm: means and variances over thousands of values, where bf16's 8 bits
 //!   would lose the small differences a norm divides by.
-//! - Softmax and the attention products (the transformer's shifted-window attention with its region mask, the
-//!   UNets' heads of 32): no bf16 kernel here takes a region mask or heads other than 64, and softmax sums
-//!   exponentials that span many octaves.
+//! - Softmax (max, exp, sums, the region mask's −100): it sums exponentials that span many octaves.
 //! - The cost volume (plane-sweep warp and correlation) and its geometry: the depth candidates are told apart
 //!   by correlation differences of a few percent, and the sampling grid is sub-pixel geometry.
 //! - The depth head's softmax over candidates, the disparity → depth (1/x), upsampling, GELU/SiLU/sigmoid.

@@ -9,8 +9,10 @@
 //! Independent RNE roundings of both operands predict 0.6u per product (√2 · u/√3 · E[1/m²]^½), so the bound
 //! leaves ≈ 3× for sums that cancel and gains above 1. L counts the bf16 products on the longest path from the
 //! stage's f32 input (each stage is fed the f32 model's input, so the bound is the stage's own): the CNN 14, the
-//! transformer 6 per block, the UNets their ResBlock pairs, attention qkv + proj_out, resampling and in/out
-//! convolutions ([`unet_chain`]).
+//! transformer 10 per block (per attention layer q/k/v, q·kᵀ, weights·v, merge; the MLP's two), the UNets their
+//! ResBlock pairs, attention (qkv, q·kᵀ, weights·v, proj_out), resampling and in/out convolutions
+//! ([`unet_chain`]), and the cost volume's correlation before the depth stages. Attention's own products and the
+//! correlation run in bf16 since the encoder packs them too (`attention_bf16`, `warp_correlation_bf16`).
 //!
 //! End to end the stages compound with the transformer's own conditioning (its f32 parity error grows ≤ 1.5× a
 //! block, tests/backbone.rs), so no useful per-chain bound exists there; the demo's frames are the end-to-end
@@ -33,10 +35,10 @@ fn bound(l: usize) -> f64 {
 }
 
 /// Products on the longest path through an `ldm_unet` UNet (num_res_blocks 1): the input conv, per level a
-/// ResBlock (2 convs) with attention (qkv, proj_out) where listed and a downsampling conv; the middle's two
+/// ResBlock (2 convs) with attention (qkv, q·kᵀ, weights·v, proj_out) where listed and a downsampling conv; the middle's two
 /// ResBlocks; per level on the way up two ResBlocks (+ attention) and an upsampling conv; the output conv.
 fn unet_chain(levels: usize, attn: &[usize]) -> usize {
-    let block = |ds: usize| 2 + if attn.contains(&ds) { 2 } else { 0 };
+    let block = |ds: usize| 2 + if attn.contains(&ds) { 4 } else { 0 };
     let mut l = 1;
     let mut ds = 1;
     for level in 0..levels {
@@ -120,12 +122,13 @@ fn stages(model: &EncoderCostVolume, reference: &EncoderCostVolume, inp: &HashMa
         })
         .unwrap();
     let it = d.intermediates.unwrap();
-    let corr = 1 + unet_chain(cfg.costvolume_unet_channel_mult.len(), &cfg.costvolume_unet_attn_res) + 1;
+    // The cost volume's correlation (bf16 dot products), the input conv, the UNet, the output conv.
+    let corr = 1 + 1 + unet_chain(cfg.costvolume_unet_channel_mult.len(), &cfg.costvolume_unet_attn_res) + 1;
     let logits = corr + 2;
     let refine = logits + 1 + unet_chain(cfg.depth_unet_channel_mult.len(), &cfg.depth_unet_attn_res) + 2;
     vec![
         ("cnn", 1 + 2 * 2 * 3 + 1, cnn),
-        ("transformer", 6 * cfg.num_transformer_layers, trans),
+        ("transformer", 10 * cfg.num_transformer_layers, trans),
         ("corr_refine_net", corr, it.corr_refine_net_out),
         ("depth_head logits", logits, it.depth_head_lowres_out),
         ("to_disparity", refine, it.to_disparity_out),

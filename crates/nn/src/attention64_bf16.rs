@@ -91,7 +91,7 @@ fn attention_rounded<const TRUNC: bool>(buf: &[f32], n: usize, l: usize, c: usiz
 /// tests' mutation).
 #[cfg(target_arch = "x86_64")]
 #[inline]
-fn pair<const TRUNC: bool>(lo: f32, hi: f32) -> u32 {
+pub(crate) fn pair<const TRUNC: bool>(lo: f32, hi: f32) -> u32 {
     let h = |x: f32| if TRUNC { x.to_bits() >> 16 } else { crate::bf16::f32_to_bf16(x) as u32 };
     h(lo) | (h(hi) << 16)
 }
@@ -100,7 +100,7 @@ fn pair<const TRUNC: bool>(lo: f32, hi: f32) -> u32 {
 /// (stride `ds`), consecutive values paired, an odd last value paired with 0.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512bf16")]
-unsafe fn to_pairs<const TRUNC: bool>(src: &[f32], ss: usize, rows: usize, len: usize, dst: &mut [u32], ds: usize) {
+pub(crate) unsafe fn to_pairs<const TRUNC: bool>(src: &[f32], ss: usize, rows: usize, len: usize, dst: &mut [u32], ds: usize) {
     debug_assert!(src.len() >= (rows - 1) * ss + len && dst.len() >= (rows - 1) * ds + len.div_ceil(2));
     for r in 0..rows {
         let (s, d) = (src.as_ptr().add(r * ss), dst.as_mut_ptr().add(r * ds));

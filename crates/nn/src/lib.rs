@@ -14,8 +14,8 @@
 //! | [`grid_sample`] | `grid_sample` | custom op + backward | 4-tap `gather` (composed) |
 //! | [`warp_correlation`] | `warp_correlation` | custom op + backward | `grid_sample` · sum over channels |
 //! | [`layout`] | `channels_last` | blocked multi-threaded transpose | candle permute + copy |
-//! | [`bf16`] | `matmul_bf16`, `Bf16Weights`, `linear::linear_fused_bf16`, `rope::qkv_attention_bf16` (opt-in, inference) | AVX512-BF16 `vdpbf16ps` gemm and fused head-64 attention (runtime-detected); without it storage only (bf16 weights widened, f32 gemm) | — (CPU only) |
-//! | [`conv::bf16`] | `conv2d_fused_bf16`, `temporal_conv_bf16`, `Bf16ConvWeights`, `Bf16TemporalWeights` (opt-in, inference) | AVX512-BF16 gemm of weights packed once × activations in channel-pair rows (a tap's shifted view, a clip's frames: row offsets); without it storage only (weights widened, the f32 convs) | — (CPU only; elsewhere the f32 path on the widened weights) |
+//! | [`bf16`] | `matmul_bf16`, `Bf16Weights`, `linear::linear_fused_bf16`, `rope::qkv_attention_bf16`, `attention_bf16::fused_attention_bf16`, `warp_correlation::warp_correlation_bf16` (opt-in, inference) | AVX512-BF16 `vdpbf16ps` gemm, fused attention (heads of 64; of 32/64/128 with a region mask) and the correlation's channel dot products (runtime-detected); without it storage only (bf16 weights widened, f32 gemm) or the f32 kernel | — (CPU only) |
+//! | [`conv::bf16`] | `conv2d_fused_bf16`, `temporal_conv_bf16`, `Bf16ConvWeights`, `Bf16TemporalWeights`, `conv::winograd::Winograd3x3::new_bf16` (opt-in, inference) | AVX512-BF16 gemm of weights packed once × activations in channel-pair rows (a tap's shifted view, a clip's frames: row offsets); without it storage only (weights widened, the f32 convs) | — (CPU only; elsewhere the f32 path on the widened weights) |
 //! | [`upsample`] | `upsample_bilinear`, `upsample_nearest` | custom op + backward / candle | `index_select` lerp / candle |
 //!
 //! The CUDA column is a composition, not a kernel of ours, unless `MVSPLAT360_GPU_OPS` selects one ([`gpu_ops`];
@@ -29,6 +29,7 @@ pub mod activation;
 pub mod attention;
 mod attention64;
 mod attention64_bf16;
+pub mod attention_bf16;
 pub mod bench;
 pub mod bf16;
 pub mod conv;

@@ -9,6 +9,7 @@ use crate::backbone::nn::{LayerNorm, LinearNoBias};
 use crate::backbone::unimatch::utils::{shifted_window_labels, shifted_window_mask};
 use mvsplat360_nn::activation::gelu;
 use mvsplat360_nn::attention::{fused_attention, RegionMask};
+use mvsplat360_nn::attention_bf16::fused_attention_bf16;
 use mvsplat360_nn::softmax::masked_softmax;
 
 /// Shifted-window mask for `m` key views: region labels for the fused inference kernel, and the dense additive
@@ -83,7 +84,7 @@ impl TransformerLayer {
         })
     }
 
-    /// The projections and the MLP packed in bf16 (CPU inference; the norms and attention stay f32).
+    /// The projections and the MLP packed in bf16 (CPU inference); attention then multiplies in bf16, norms stay f32.
     pub fn pack_bf16(&mut self) -> Result<()> {
         for l in [&mut self.q_proj, &mut self.k_proj, &mut self.v_proj, &mut self.merge] {
             l.pack_bf16()?;
@@ -101,10 +102,12 @@ impl TransformerLayer {
     /// features). `mask` is the shifted-window mask for this `m` (used only by shifted layers).
     pub fn forward(&self, source: &Tensor, kv_source: &Tensor, rows: Option<(&Tensor, usize)>, g: WindowGeom, mask: Option<&ShiftMask>) -> Result<Tensor> {
         let (n, l, c) = source.dims3()?;
+        let prof = mvsplat360_nn::prof::scope("encoder.transformer.qkv");
         // Scale q rather than the scores (fewer elements; same value up to f32 rounding).
         let q = (self.q_proj.forward(source)? * (1.0 / (c as f64).sqrt()))?;
         let k = self.k_proj.forward(kv_source)?;
         let v = self.v_proj.forward(kv_source)?;
+        drop(prof);
         let (k, v) = match rows {
             Some((idx, m)) => (k.index_select(idx, 0)?.reshape((n, m, l, c))?, v.index_select(idx, 0)?.reshape((n, m, l, c))?),
             None => (k.unsqueeze(1)?, v.unsqueeze(1)?),
@@ -113,13 +116,21 @@ impl TransformerLayer {
         if self.with_shift && mask.is_none() {
             candle_core::bail!("shifted-window layer called without its attention mask");
         }
-        let message = window_attention(&q, &k, &v, g, self.with_shift, mask)?;
+        let prof = mvsplat360_nn::prof::scope("encoder.transformer.attention");
+        // Packed layers multiply attention in bf16 too (f32 where the CPU lacks the feature).
+        let message = window_attention_as(&q, &k, &v, g, self.with_shift, mask, self.q_proj.weight.is_bf16())?;
+        drop(prof);
+        let prof = mvsplat360_nn::prof::scope("encoder.transformer.merge+norm");
         let message = self.norm1.forward(&self.merge.forward(&message)?)?;
+        drop(prof);
+        let _prof = mvsplat360_nn::prof::scope("encoder.transformer.mlp");
         let message = match &self.ffn {
             Some((fc1, fc2, norm2)) => {
-                let x = Tensor::cat(&[source, &message], 2)?;
-                let x = gelu(&fc1.forward(&x)?)?;
-                norm2.forward(&fc2.forward(&x)?)?
+                let h = fc1.forward(&Tensor::cat(&[source, &message], 2)?)?;
+                let prof = mvsplat360_nn::prof::scope("encoder.transformer.mlp.gelu");
+                let g = gelu(&h)?;
+                drop((prof, h));
+                norm2.forward(&fc2.forward(&g)?)?
             }
             None => message,
         };
@@ -129,10 +140,15 @@ impl TransformerLayer {
 
 /// Single-head windowed attention. `q [N, L, C]`, `k, v [N, m, L, C]`, L = h·w row-major.
 pub fn window_attention(q: &Tensor, k: &Tensor, v: &Tensor, g: WindowGeom, shift: bool, mask: Option<&ShiftMask>) -> Result<Tensor> {
+    window_attention_as(q, k, v, g, shift, mask, false)
+}
+
+/// [`window_attention`], its products in bf16 when `bf16` (inference: `attention_bf16::fused_attention_bf16`).
+fn window_attention_as(q: &Tensor, k: &Tensor, v: &Tensor, g: WindowGeom, shift: bool, mask: Option<&ShiftMask>, bf16: bool) -> Result<Tensor> {
     let (n, l, c) = q.dims3()?;
     let m = k.dim(1)?;
     if ![q, k, v].iter().any(|t| t.track_op()) {
-        return window_attention_fused(q, k, v, g, shift, mask);
+        return window_attention_fused(q, k, v, g, shift, mask, bf16);
     }
     let mask = match mask {
         Some(mk) if shift => Some(mk.dense()?),
@@ -186,7 +202,7 @@ fn invert(perm: &[u32]) -> Vec<u32> {
 }
 
 /// Inference path: the same window gathers, then one fused attention call (no score tensor).
-fn window_attention_fused(q: &Tensor, k: &Tensor, v: &Tensor, g: WindowGeom, shift: bool, mask: Option<&ShiftMask>) -> Result<Tensor> {
+fn window_attention_fused(q: &Tensor, k: &Tensor, v: &Tensor, g: WindowGeom, shift: bool, mask: Option<&ShiftMask>, bf16: bool) -> Result<Tensor> {
     let (n, l, c) = q.dims3()?;
     let m = k.dim(1)?;
     let WindowGeom { h, w, splits } = g;
@@ -202,7 +218,8 @@ fn window_attention_fused(q: &Tensor, k: &Tensor, v: &Tensor, g: WindowGeom, shi
     let kw = k.reshape((n * m * l, c))?.index_select(&kv_rows, 0)?.reshape((n * kk, m * lw, c))?;
     let vw = v.reshape((n * m * l, c))?.index_select(&kv_rows, 0)?.reshape((n * kk, m * lw, c))?;
     let region = if shift { mask.map(|mk| &mk.region) } else { None };
-    let out = fused_attention(&qw, &kw, &vw, region)?;
+    let _prof = mvsplat360_nn::prof::scope("encoder.transformer.attention.kernel");
+    let out = if bf16 { fused_attention_bf16(&qw, &kw, &vw, region)? } else { fused_attention(&qw, &kw, &vw, region)? };
     out.reshape((n * l, c))?.index_select(&q_inv, 0)?.reshape((n, l, c))
 }
 

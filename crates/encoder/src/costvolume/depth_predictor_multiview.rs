@@ -9,7 +9,7 @@ use super::ldm_unet::{Conv2d, GroupNorm, UNetCfg, UNetModel};
 use crate::config::EncoderCostVolumeCfg;
 use mvsplat360_nn::activation::gelu;
 use mvsplat360_nn::upsample::{upsample_bilinear, upsample_nearest};
-use mvsplat360_nn::warp_correlation::warp_correlation;
+use mvsplat360_nn::warp_correlation::{warp_correlation, warp_correlation_bf16};
 
 /// Inputs of the depth predictor (all `(b, v)`-major as the encoder holds them).
 #[derive(Debug, Clone, Copy)]
@@ -207,7 +207,8 @@ impl DepthPredictorMultiView {
 
         // Cost volume against the nearest views.
         let geo = CostVolumeGeometry::new(inp, self.cfg.num_depth_candidates, self.cfg.costvolume_nearest_n_views)?;
-        let cost_volume = cost_volume(&feat01, inp.features_trans, &geo)?;
+        mvsplat360_nn::prof::lap("encoder.cost_volume.geometry", &mut t);
+        let cost_volume = cost_volume_as(&feat01, inp.features_trans, &geo, self.corr_conv.weight.is_bf16())?;
         let disp_candidates = Tensor::from_vec(geo.disparities.clone(), (n, geo.d), feat01.device())?;
         let corr_in = Tensor::cat(&[&cost_volume, &feat01], 1)?;
         mvsplat360_nn::prof::lap("encoder.cost_volume", &mut t);
@@ -238,7 +239,16 @@ impl DepthPredictorMultiView {
         mvsplat360_nn::prof::lap("encoder.refine_unet", &mut t);
 
         let gin = Tensor::cat(&[&refine_out, &images, &upsampled], 1)?;
-        let raw = self.to_gaussians.1.forward(&gelu(&self.to_gaussians.0.forward(&gin)?)?)?;
+        // Each full-resolution intermediate is dropped once used (a shadowed binding would live to the end).
+        let prof = mvsplat360_nn::prof::scope("encoder.to_gaussians.conv0");
+        let h = self.to_gaussians.0.forward(&gin)?;
+        drop((prof, gin));
+        let prof = mvsplat360_nn::prof::scope("encoder.to_gaussians.gelu");
+        let g = gelu(&h)?;
+        drop((prof, h));
+        let prof = mvsplat360_nn::prof::scope("encoder.to_gaussians.conv1");
+        let raw = self.to_gaussians.1.forward(&g)?;
+        drop((prof, g));
         mvsplat360_nn::prof::lap("encoder.to_gaussians", &mut t);
         let disp_dens = self.to_disparity.1.forward(&gelu(&self.to_disparity.0.forward(&refine_out)?)?)?;
         mvsplat360_nn::prof::lap("encoder.to_disparity", &mut t);
@@ -472,13 +482,21 @@ impl CostVolumeGeometry {
 /// The warp and the dot are fused ([`warp_correlation`]), so the warped features never exist in memory.
 /// `feat01 [(v b),C,h,w]`, `features [B,V,C,h,w]` → `[(v b), D, h, w]`.
 pub fn cost_volume(feat01: &Tensor, features: &Tensor, geo: &CostVolumeGeometry) -> Result<Tensor> {
+    cost_volume_as(feat01, features, geo, false)
+}
+
+/// [`cost_volume`], its channel dot products in bf16 when `bf16` (a packed encoder: `warp_correlation_bf16`).
+fn cost_volume_as(feat01: &Tensor, features: &Tensor, geo: &CostVolumeGeometry, bf16: bool) -> Result<Tensor> {
     let (b, v, c, h, w) = features.dims5()?;
     let dev: &Device = feat01.device();
     let flat = features.reshape((b * v, c, h, w))?;
     let mut total: Option<Tensor> = None;
     for (src, grid) in geo.sources.iter().zip(&geo.grids) {
         let feat10 = flat.index_select(&Tensor::from_vec(src.clone(), geo.n, dev)?, 0)?;
-        let corr = (warp_correlation(feat01, &feat10, grid, geo.d)? / (c as f64).sqrt())?;
+        let prof = mvsplat360_nn::prof::scope("encoder.cost_volume.warp_correlation");
+        let corr = if bf16 { warp_correlation_bf16(feat01, &feat10, grid, geo.d)? } else { warp_correlation(feat01, &feat10, grid, geo.d)? };
+        drop(prof);
+        let corr = (corr / (c as f64).sqrt())?;
         total = Some(match total {
             Some(t) => (t + corr)?,
             None => corr,

@@ -9,6 +9,7 @@ use candle_nn::VarBuilder;
 
 use super::util::{Act, Conv1x1, Conv2d, GroupNorm};
 use mvsplat360_nn::attention::fused_attention;
+use mvsplat360_nn::attention_bf16::fused_attention_bf16;
 use mvsplat360_nn::softmax::softmax_last;
 
 /// Post-norm residual block: `skip(x) + SiLU(GN(conv(SiLU(GN(conv(x))))))`.
@@ -76,7 +77,7 @@ impl AttentionBlock {
         })
     }
 
-    /// qkv and proj_out packed in bf16 (the attention itself stays f32: see [`crate::bf16`]).
+    /// qkv and proj_out packed in bf16; the attention then multiplies in bf16 too (see [`crate::bf16`]).
     pub fn pack_bf16(&mut self) -> Result<()> {
         self.qkv.pack_bf16()?;
         self.proj_out.pack_bf16()
@@ -102,7 +103,11 @@ impl AttentionBlock {
         let a = if ![&q, &k, &vv].iter().any(|t| t.track_op()) {
             // Inference: token-major operands, scores never materialised.
             let tok = |x: &Tensor| x.transpose(1, 2)?.contiguous();
-            fused_attention(&tok(&q)?, &tok(&k)?, &tok(&vv)?, None)?.transpose(1, 2)?.contiguous()?
+            let _prof = mvsplat360_nn::prof::scope("encoder.unet.attention.kernel");
+            let (q, k, vv) = (tok(&q)?, tok(&k)?, tok(&vv)?);
+            // A packed block multiplies attention in bf16 too (f32 where the CPU lacks the feature).
+            let a = if self.qkv.weight.is_bf16() { fused_attention_bf16(&q, &k, &vv, None)? } else { fused_attention(&q, &k, &vv, None)? };
+            a.transpose(1, 2)?.contiguous()?
         } else {
             // weight[b, t, s] = Σ_c q[b,c,t] k[b,c,s]
             let w = q.transpose(1, 2)?.contiguous()?.matmul(&k.contiguous()?)?;
@@ -122,6 +127,7 @@ impl AttentionBlock {
         let dims = x.dims().to_vec();
         let (n, c) = (dims[0], dims[1]);
         let xf = x.reshape((n, c, ()))?;
+        let _prof = mvsplat360_nn::prof::scope("encoder.unet.attention_block");
         let h = self.attention(&self.qkv.forward(&xf)?, num_frames)?;
         let h = self.norm.forward_act(&self.proj_out.forward(&h)?, Act::None)?;
         (xf + h)?.reshape(dims.as_slice())

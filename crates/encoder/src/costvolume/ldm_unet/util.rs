@@ -175,6 +175,7 @@ impl GroupNorm {
 
     /// `act(GN(x))`.
     pub fn forward_act(&self, x: &Tensor, act: Act) -> Result<Tensor> {
+        let _prof = mvsplat360_nn::prof::scope("encoder.groupnorm");
         mvsplat360_nn::norm::group_norm_act(x, &self.weight, &self.bias, self.groups, self.eps, act)
     }
 }
