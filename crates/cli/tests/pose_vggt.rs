@@ -248,3 +248,64 @@ fn auto_falls_back_to_vggt_when_colmap_cannot_pose_the_photos() {
     assert_eq!((r["model_input"]["width"].as_u64(), r["model_input"]["height"].as_u64(), r["views"].as_array().unwrap().len()), (Some(518), Some(28), 20));
     assert!(entries(t).iter().all(|e| !e.starts_with('.')), "a work folder was left: {:?}", entries(t));
 }
+
+/// `pose --encoder-dtype bf16` runs VGGT's packed trunk: pose.json says so, its fingerprint is not f32's (so an
+/// f32 scene folder is not taken for it), and its pose encodings lie within the VGGT parity bound of f32's
+/// (relative RMS ≤ 0.05, as `crates/vggt/tests/parity.rs` holds bf16 to the official f32 outputs) yet differ.
+#[test]
+fn vggt_poses_in_bf16_and_records_it() {
+    let tmp = tempfile::tempdir().unwrap();
+    let weights = tiny_vggt(&tmp.path().join("tiny"), 16, 16);
+    let photos = photos(&tmp.path().join("photos"), 5);
+    let pose = |dtype: &str, out: &Path| {
+        ok(bin()
+            .args(["--quiet", "pose"])
+            .arg(&photos)
+            .args(["--engine", "vggt", "--encoder-dtype", dtype, "--vggt-weights"])
+            .arg(&weights)
+            .arg("--out")
+            .arg(out)
+            .output()
+            .unwrap());
+        serde_json::from_str::<serde_json::Value>(&std::fs::read_to_string(out.join("pose.json")).unwrap()).unwrap()
+    };
+    let (a, b) = (tmp.path().join("f32"), tmp.path().join("bf16"));
+    let (f, h) = (pose("f32", &a), pose("bf16", &b));
+    assert_eq!((f["settings"]["dtype"].as_str(), h["settings"]["dtype"].as_str()), (Some("f32"), Some("bf16")));
+    assert_ne!(f["fingerprint"], h["fingerprint"]);
+    let enc = |r: &serde_json::Value| -> Vec<f64> {
+        r["views"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .flat_map(|v| v["pose_encoding"].as_array().unwrap().iter().map(|x| x.as_f64().unwrap()).collect::<Vec<_>>())
+            .collect()
+    };
+    let (ef, eh) = (enc(&f), enc(&h));
+    assert_eq!(ef.len(), 5 * 9);
+    let rms = |v: &[f64]| (v.iter().map(|x| x * x).sum::<f64>() / v.len() as f64).sqrt();
+    let diff: Vec<f64> = ef.iter().zip(&eh).map(|(x, y)| x - y).collect();
+    let rel = rms(&diff) / rms(&ef);
+    eprintln!("bf16 vs f32 pose encodings: relative RMS {rel:.2e}");
+    assert!(rel > 0.0 && rel <= 0.05, "relative RMS {rel:.2e}");
+    // The f32 folder is not reused for a bf16 run: it is refused, named, and left as it was.
+    let before = std::fs::read(a.join("pose.json")).unwrap();
+    let msg = refused(
+        tmp.path(),
+        &[
+            "pose".as_ref(),
+            photos.as_os_str(),
+            "--engine".as_ref(),
+            "vggt".as_ref(),
+            "--encoder-dtype".as_ref(),
+            "bf16".as_ref(),
+            "--vggt-weights".as_ref(),
+            weights.as_os_str(),
+            "--out".as_ref(),
+            a.as_os_str(),
+        ],
+        &["already exists", "settings"],
+    );
+    assert!(msg.contains(&*a.to_string_lossy()), "{msg}");
+    assert_eq!(std::fs::read(a.join("pose.json")).unwrap(), before);
+}

@@ -66,8 +66,9 @@ pub struct VggtPoseOptions {
     pub max_size: u32,
     /// Upstream's preprocessing mode (`crop`, upstream's default, is what `pose` uses).
     pub mode: PreprocessMode,
-    /// The aggregator's precision (`--encoder-dtype`): F32, or BF16 (its linears on weights packed in bf16
-    /// where the CPU has AVX512-BF16; `Vggt::with_trunk_dtype`). The heads stay f32.
+    /// VGGT's precision (`--encoder-dtype`): F32, or BF16 (the aggregator's linears and the DPT heads'
+    /// products on weights packed in bf16 where the CPU has AVX512-BF16; `Vggt::with_trunk_dtype`). The camera
+    /// head stays f32.
     pub dtype: DType,
 }
 

@@ -18,7 +18,7 @@ pub struct VggtBench {
     pub runs: usize,
     pub warmup: usize,
     pub seed: u64,
-    /// The aggregator's dtype (the heads stay f32).
+    /// The aggregator's dtype (bf16 on a CPU with AVX512-BF16 puts the DPT heads' products in bf16 too).
     pub trunk: candle_core::DType,
 }
 
@@ -132,6 +132,8 @@ pub fn run(cfg: &VggtConfig, b: &VggtBench, device: &Device) -> candle_core::Res
         "dtype": format!("{:?}", b.trunk).to_lowercase(),
         // What the trunk's big linears run on: the packed bf16 product (its path) or the trunk's dtype's gemm.
         "trunk_linears": if model.aggregator.bf16_packed() { mvsplat360_nn::bf16::path().name().to_string() } else { format!("{:?} gemm", b.trunk).to_lowercase() },
+        // What the DPT heads' products run on: bf16 (the packed model's heads, `DptHead::pack_bf16`) or f32.
+        "heads": if model.depth_head.as_ref().or(model.point_head.as_ref()).is_some_and(|h| h.bf16_packed()) { mvsplat360_nn::bf16::path().name().to_string() } else { "f32".to_string() },
         "frames": b.frames,
         "size": format!("{}x{}", b.width, b.height),
         "threads": rayon::current_num_threads(),

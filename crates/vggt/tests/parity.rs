@@ -270,8 +270,9 @@ fn bf16_within_bound(model: &Vggt, label: &str) -> Vec<Vec<f64>> {
 
 /// The bf16 trunk (upstream's autocast) on the CPU: with AVX512-BF16 the blocks' linears (attention qkv/proj,
 /// MLP fc1/fc2) run in `nn`'s packed bf16 product and everything else in f32 (attention's products would run in
-/// bf16 too for heads of 64; the fixtures' heads of 8 keep them f32: `layers::attention`'s test covers that wiring); without it, candle's bf16 ops
-/// with the aggregator's weights and tokens in bf16. The heads are f32 either way. bf16 keeps 8 significant
+/// bf16 too for heads of 64; the fixtures' heads of 8 keep them f32: `layers::attention`'s test covers that wiring),
+/// and so do the DPT heads' products (bf16 Winograd, packed convs and linears; their activations f32); without
+/// it, candle's bf16 ops with the aggregator's weights and tokens in bf16 and the heads in f32. bf16 keeps 8 significant
 /// bits (u = 2⁻⁸); each block rounds its products' operands (and, through candle, its outputs), and ~10 blocks
 /// compound that, so the outputs are compared by their RMS error against 0.05 × the reference's RMS (≈ 13 u):
 /// a wrong cast, a head left in bf16 or a token taken from the wrong place gives O(1) errors.
@@ -279,13 +280,17 @@ fn bf16_within_bound(model: &Vggt, label: &str) -> Vec<Vec<f64>> {
 fn bf16_trunk_within_bf16_error() {
     let (_, cfg, _tmp, tensors) = load_model(0);
     let model = weights::from_tensors(tensors, &cfg, &Device::Cpu, DType::BF16).unwrap();
-    assert_eq!(model.aggregator.frame_blocks[0].attn.qkv.weight.dtype(), DType::BF16);
     assert_eq!(model.depth_head.as_ref().unwrap().norm.weight.dtype(), DType::F32);
     let packed = mvsplat360_nn::bf16::hardware_dpbf16();
     assert_eq!(model.aggregator.bf16_packed(), packed, "the linears are packed exactly when the CPU has AVX512-BF16");
     if packed {
         assert_eq!(model.aggregator.camera_token.dtype(), DType::F32, "tokens stay f32 with packed linears");
         assert!(model.aggregator.patch_embed.blocks[0].mlp.fc2.packed.is_some(), "DINOv2's blocks are packed too");
+        let qkv = &model.aggregator.frame_blocks[0].attn.qkv;
+        assert_eq!(qkv.weight.elem_count(), 0, "no weight tensor kept beside the packed copy");
+        assert!(model.depth_head.as_ref().unwrap().bf16_packed() && model.point_head.as_ref().unwrap().bf16_packed(), "the heads' products in bf16");
+    } else {
+        assert_eq!(model.aggregator.frame_blocks[0].attn.qkv.weight.dtype(), DType::BF16);
     }
     bf16_within_bound(&model, if packed { "packed bf16 linears" } else { "candle bf16" });
 }

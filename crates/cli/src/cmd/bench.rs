@@ -210,9 +210,10 @@ enum What {
         /// Where it runs: `cpu`, `cuda` or `cuda:N` (CUDA needs a `--features cuda` build).
         #[arg(long, default_value = "cpu")]
         device: mvsplat360_pipeline::compute::DeviceSpec,
-        /// Precision of the aggregator: `f32` or `bf16` (the heads stay f32, as upstream); `f16` on a GPU only. bf16
-        /// on a CPU with AVX512-BF16 runs the blocks' linears and attention products in bf16 (f32 sums), the rest
-        /// in f32.
+        /// Precision of VGGT: `f32` or `bf16`; `f16` on a GPU only. bf16 on a CPU with AVX512-BF16 runs the
+        /// aggregator's linears and attention products and the DPT heads' convolutions and projections in bf16
+        /// (weights packed once, f32 sums), the rest in f32 (norms, softmax, the camera head); on a GPU bf16 is
+        /// the aggregator's only (the heads stay f32, as upstream).
         #[arg(long, default_value = "f32", value_parser = mvsplat360_pipeline::compute::parse_dtype)]
         dtype: candle_core::DType,
         /// Frames (photos) in the forward.

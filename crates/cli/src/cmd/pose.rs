@@ -139,9 +139,9 @@ pub struct Args {
     /// Print pose.json on stdout when done.
     #[arg(long)]
     pub json: bool,
-    /// Precision of VGGT's aggregator: `f32` (default) or `bf16` (the CPU's bf16 products on weights packed
-    /// once, where it has AVX512-BF16; the heads stay f32). pose.json records it (`settings.dtype`), and a
-    /// scene posed in another precision is not reused.
+    /// Precision of VGGT: `f32` (default) or `bf16` (the CPU's bf16 products on weights packed once, where it
+    /// has AVX512-BF16: the aggregator and the DPT heads' convolutions; the camera head stays f32). pose.json
+    /// records it (`settings.dtype`), and a scene posed in another precision is not reused.
     #[arg(long, default_value = "f32", value_parser = mvsplat360_pipeline::compute::parse_encoder_dtype)]
     pub encoder_dtype: candle_core::DType,
 }

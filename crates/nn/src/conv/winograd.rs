@@ -51,6 +51,19 @@
 //! patch has large |d| terms in Ŝ that S weights by |g| = 0 — which is why the bound is stated with Ŝ, not S.
 //! F(4×4, 3×3) was not chosen: its points ±2, ±½ give transform entries up to 8 and amplification in the
 //! hundreds (Ŝ/S), i.e. an error two orders of magnitude above a direct convolution's.
+//!
+//! # bf16 products (issue 73)
+//! [`Winograd3x3::new_bf16`] keeps the transformed weights in bf16 only (`U_kᵀ`, C_out rows of ⌈C_in/2⌉
+//! channel pairs, rounded to nearest even from f32 `Û` and packed once); the forward rounds each block's
+//! `V̂_k` to bf16 pair rows and runs the 16 products in `vdpbf16ps` (`crate::bf16::conv_kernel`, f32
+//! accumulation); transforms, bias and epilogue stay f32. Without AVX512-BF16 (or inside
+//! [`crate::bf16::with_bf16_masked`] on the calling thread) the stored bf16 `U` is widened to f32 and the f32
+//! kernel runs (storage only). Error: the two bf16 roundings (|ε| ≤ u₈ = 2⁻⁸ each) multiply every term of the
+//! bound above, and the reduction runs over K = 2⌈C_in/2⌉ channels in ⌈K/512⌉ blocks (one more f32 rounding
+//! each): `|Ŷ − Y| ≤ ((1 + u₈)²(1 + γ_n) − 1)·(Ŝ + |b|) + γ_n|r| + 18K·2⁻¹²⁶`, n = K + ⌈K/512⌉ + 8
+//! (the last term: `vdpbf16ps` flushes denormal operands and partial sums, ≤ 2⁻¹²⁶ per term and addition, 9
+//! `M` entries per output). First order ≈ (2u₈ + (C_in + 9)u)·Ŝ: the bf16 roundings dominate from the first
+//! channel, independent of C_in, against f32's (C_in + 8)u.
 
 use std::sync::Arc;
 
@@ -58,6 +71,8 @@ use candle_core::{Result, Tensor};
 use rayon::prelude::*;
 
 use super::{conv2d, Conv2dConfig};
+use crate::bf16::conv_kernel::{matmul_rows, pair_row, Bf16Rows};
+use crate::bf16::{bf16_to_f32, Bf16Path};
 use crate::mode::{cpu_f32, is_differentiable, with_f32};
 
 /// Tiles per block (rounded to whole tile rows): large enough that each of the 16 products amortises the
@@ -95,7 +110,32 @@ pub struct Winograd3x3 {
     co: usize,
     /// `16 × C_out × C_in`: `U_k[c, o]` at `(k·C_out + o)·C_in + c`. None when the weight is not CPU f32.
     u: Option<Arc<[f32]>>,
+    /// [`Winograd3x3::new_bf16`]: the 16 `U_kᵀ` in bf16 (then `u` is None).
+    ub: Option<Arc<PackedU>>,
     b: Option<Arc<[f32]>>,
+}
+
+/// The 16 transformed weights `U_kᵀ` in bf16: C_out rows of ⌈C_in/2⌉ channel pairs each.
+struct PackedU(Vec<Bf16Rows>);
+
+impl std::fmt::Debug for PackedU {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "PackedU(16 bf16 matrices)")
+    }
+}
+
+/// `Û = fl32(G g Gᵀ)` of every (o, c) kernel: `16 × C_out × C_in`, `U_k[c, o]` at `(k·C_out + o)·C_in + c`.
+fn transform_weights(w: &[f32], co: usize, ci: usize) -> Vec<f32> {
+    let mut u = vec![0f32; 16 * co * ci];
+    for o in 0..co {
+        for c in 0..ci {
+            let t = transform_kernel(&w[(o * ci + c) * 9..][..9]);
+            for (k, v) in t.iter().enumerate() {
+                u[(k * co + o) * ci + c] = *v as f32;
+            }
+        }
+    }
+    u
 }
 
 /// `G g Gᵀ` for one 3×3 kernel (f64).
@@ -127,18 +167,7 @@ impl Winograd3x3 {
         }
         let build = kh == 3 && kw == 3 && cpu_f32(weight) && bias.is_none_or(cpu_f32);
         let (u, b) = if build {
-            let u = with_f32(weight, |w| {
-                let mut u = vec![0f32; 16 * co * ci];
-                for o in 0..co {
-                    for c in 0..ci {
-                        let t = transform_kernel(&w[(o * ci + c) * 9..][..9]);
-                        for (k, v) in t.iter().enumerate() {
-                            u[(k * co + o) * ci + c] = *v as f32;
-                        }
-                    }
-                }
-                u
-            })?;
+            let u = with_f32(weight, |w| transform_weights(w, co, ci))?;
             let b = match bias {
                 Some(b) => Some(Arc::from(with_f32(b, |v| v.to_vec())?)),
                 None => None,
@@ -147,12 +176,53 @@ impl Winograd3x3 {
         } else {
             (None, None)
         };
-        Ok(Self { weight: weight.clone(), bias: bias.cloned(), ci, co, u, b })
+        Ok(Self { weight: weight.clone(), bias: bias.cloned(), ci, co, u, ub: None, b })
+    }
+
+    /// [`Self::new`] with the transformed weights kept in bf16 only (rounded to nearest even from the f32
+    /// `Û`, packed once; 8/9 of the f32 weight's memory): the 16 products run in `vdpbf16ps` where the calling
+    /// thread's [`crate::bf16::path`] has it, else on `Û` widened back to f32 (storage only). See the module doc.
+    pub fn new_bf16(weight: &Tensor, bias: Option<&Tensor>) -> Result<Self> {
+        let mut me = Self::new(weight, bias)?;
+        if let Some(u) = me.u.take() {
+            let (co, ci) = (me.co, me.ci);
+            let cpp = ci.div_ceil(2);
+            let packed = (0..16)
+                .map(|k| {
+                    let uk = &u[k * co * ci..][..co * ci];
+                    Bf16Rows::pack(co, cpp, |o, p| {
+                        let at = |c: usize| if c < ci { uk[o * ci + c] } else { 0.0 };
+                        (at(2 * p), at(2 * p + 1))
+                    })
+                })
+                .collect();
+            me.ub = Some(Arc::new(PackedU(packed)));
+        }
+        Ok(me)
     }
 
     /// Whether forwards of CPU f32 inputs run the Winograd kernel (false: always the fallback).
     pub fn is_transformed(&self) -> bool {
-        self.u.is_some()
+        self.u.is_some() || self.ub.is_some()
+    }
+
+    /// Whether the transformed weights are held in bf16 ([`Self::new_bf16`]).
+    pub fn is_bf16(&self) -> bool {
+        self.ub.is_some()
+    }
+
+    /// The bf16 `Û` widened to f32 (exact), in the f32 kernel's layout (the storage-only path's weights).
+    fn widened_u(&self, pu: &PackedU) -> Vec<f32> {
+        let (co, ci) = (self.co, self.ci);
+        let mut u = vec![0f32; 16 * co * ci];
+        for (k, a) in pu.0.iter().enumerate() {
+            for o in 0..co {
+                for c in 0..ci {
+                    u[(k * co + o) * ci + c] = bf16_to_f32((a.word(o, c / 2) >> (16 * (c & 1))) as u16);
+                }
+            }
+        }
+        u
     }
 
     /// `conv2d(x, weight, bias, padding 1)`.
@@ -173,14 +243,24 @@ impl Winograd3x3 {
             candle_core::bail!("conv2d: input has {c} channels, weight expects {}", self.ci);
         }
         let residual_ok = epi.residual.is_none_or(|r| cpu_f32(r) && !r.track_op() && r.dims() == [n, self.co, h, w]);
-        let (Some(u), true) = (&self.u, cpu_f32(x) && !is_differentiable() && !x.track_op() && residual_ok) else {
+        if !(self.is_transformed() && cpu_f32(x) && !is_differentiable() && !x.track_op() && residual_ok) {
             return self.fallback(x, epi);
-        };
+        }
         let geo = Geo { n, ci: c, co: self.co, h, w, th: h.div_ceil(2), tw: w.div_ceil(2) };
         let x = x.contiguous()?;
+        let widened;
+        let kernel = match (&self.u, &self.ub) {
+            (Some(u), _) => Kernel::F32(u),
+            (None, Some(pu)) if crate::bf16::path() == Bf16Path::Dpbf16 => Kernel::Bf16(&pu.0),
+            (None, Some(pu)) => {
+                widened = self.widened_u(pu);
+                Kernel::F32(&widened)
+            }
+            (None, None) => unreachable!("checked by is_transformed"),
+        };
         let out = with_f32(&x, |xd| match epi.residual {
-            Some(r) => with_f32(r, |rd| winograd_raw(xd, u, self.b.as_deref(), Some(rd), &geo, epi, target_tiles)),
-            None => Ok(winograd_raw(xd, u, self.b.as_deref(), None, &geo, epi, target_tiles)),
+            Some(r) => with_f32(r, |rd| winograd_any(xd, kernel, self.b.as_deref(), Some(rd), &geo, epi, target_tiles)),
+            None => Ok(winograd_any(xd, kernel, self.b.as_deref(), None, &geo, epi, target_tiles)),
         })??;
         Tensor::from_vec(out, (n, self.co, h, w), x.device())
     }
@@ -217,26 +297,43 @@ struct Geo {
     tw: usize,
 }
 
+/// The products' weights: f32 `Û` (the f32 layout) or the 16 bf16 `U_kᵀ`.
+#[derive(Clone, Copy)]
+enum Kernel<'a> {
+    F32(&'a [f32]),
+    Bf16(&'a [Bf16Rows]),
+}
+
+fn winograd_any(x: &[f32], k: Kernel, bias: Option<&[f32]>, res: Option<&[f32]>, g: &Geo, epi: WinogradEpilogue, target_tiles: usize) -> Vec<f32> {
+    match k {
+        Kernel::F32(u) => winograd_raw(x, u, bias, res, g, epi, target_tiles),
+        Kernel::Bf16(ub) => winograd_raw_bf16(x, ub, bias, res, g, epi, target_tiles),
+    }
+}
+
 #[derive(Clone, Copy)]
 struct OutPtr(*mut f32);
 // SAFETY: each task writes the output rows of its own tile rows only.
 unsafe impl Send for OutPtr {}
 unsafe impl Sync for OutPtr {}
 
-/// The kernel on contiguous NCHW data; returns `(N, C_out, H, W)`.
-fn winograd_raw(x: &[f32], u: &[f32], bias: Option<&[f32]>, res: Option<&[f32]>, g: &Geo, epi: WinogradEpilogue, target_tiles: usize) -> Vec<f32> {
-    let Geo { n, ci, co, h, w, th, tw } = *g;
-    let rows = n * th;
+/// Whole tile rows per block, about `target` tiles each, the block count a multiple of the thread count where
+/// there are enough rows (no thread idles at the end): (rows per block, blocks).
+fn row_blocks(rows: usize, tw: usize, target: usize) -> (usize, usize) {
     let threads = rayon::current_num_threads().max(1);
-    // Whole tile rows per block: about `target_tiles` (fewer where the scratch would pass MAX_SCRATCH), the
-    // block count a multiple of the thread count where there are enough rows (no thread idles at the end).
-    let target = target_tiles.min(MAX_SCRATCH / (16 * (ci + co))).max(1);
     let mut blocks = rows.div_ceil(target.div_ceil(tw));
     if rows >= threads {
         blocks = blocks.div_ceil(threads) * threads;
     }
     let rpb = rows.div_ceil(blocks);
-    let blocks = rows.div_ceil(rpb);
+    (rpb, rows.div_ceil(rpb))
+}
+
+/// The kernel on contiguous NCHW data; returns `(N, C_out, H, W)`.
+fn winograd_raw(x: &[f32], u: &[f32], bias: Option<&[f32]>, res: Option<&[f32]>, g: &Geo, epi: WinogradEpilogue, target_tiles: usize) -> Vec<f32> {
+    let Geo { n, ci, co, h, w, th, tw } = *g;
+    let rows = n * th;
+    let (rpb, blocks) = row_blocks(rows, tw, target_tiles.min(MAX_SCRATCH / (16 * (ci + co))).max(1));
     let mut out = vec![0f32; n * co * h * w];
     let optr = OutPtr(out.as_mut_ptr());
     (0..blocks).into_par_iter().for_each_init(
@@ -283,65 +380,124 @@ fn winograd_raw(x: &[f32], u: &[f32], bias: Option<&[f32]>, res: Option<&[f32]>,
     out
 }
 
+/// [`winograd_raw`] with the 16 products in bf16: per block the same f32 input transform, `V̂_k` rounded to
+/// pair rows (`vp[(k·⌈C_in/2⌉ + p)·t + tile]`), `M_k (C_out × t) = U_kᵀ · V̂_k` by the rows gemm (its own
+/// tasks nested in the block's), the same output transform.
+fn winograd_raw_bf16(x: &[f32], ub: &[Bf16Rows], bias: Option<&[f32]>, res: Option<&[f32]>, g: &Geo, epi: WinogradEpilogue, target_tiles: usize) -> Vec<f32> {
+    let Geo { n, ci, co, h, w, th, tw } = *g;
+    let cpp = ci.div_ceil(2);
+    let rows = n * th;
+    let (rpb, blocks) = row_blocks(rows, tw, target_tiles.min(MAX_SCRATCH / (16 * (co + cpp))).max(1));
+    let mut out = vec![0f32; n * co * h * w];
+    let optr = OutPtr(out.as_mut_ptr());
+    (0..blocks).into_par_iter().for_each_init(
+        || (Vec::<f32>::new(), Vec::<f32>::new(), Vec::<u32>::new()),
+        |(m, tmp, vp), bi| {
+            let g0 = bi * rpb;
+            let g1 = (g0 + rpb).min(rows);
+            let t = (g1 - g0) * tw;
+            m.resize(16 * co * t, 0.0);
+            vp.resize(16 * cpp * t, 0);
+            tmp.resize(16 * (tw + 1) + 32 * tw, 0.0);
+            input_transform_pairs(x, vp, tmp, g, g0, g1, epi.relu_input);
+            let brows: Vec<usize> = (0..cpp).map(|p| p * t).collect();
+            for (k, a) in ub.iter().enumerate() {
+                matmul_rows(a, 0, &vp[k * cpp * t..][..cpp * t], &brows, t, &mut m[k * co * t..][..co * t], t, 1.0, false);
+            }
+            output_transform(m, tmp, bias, res, g, g0, g1, epi, optr);
+        },
+    );
+    out
+}
+
 #[inline(never)]
 /// `V_k[c, tile]` at `v[(k·ci + c)·t + tile]` for the tiles of tile rows g0..g1 (global: image·th + row).
 fn input_transform(x: &[f32], v: &mut [f32], tmp: &mut [f32], g: &Geo, g0: usize, g1: usize, relu: bool) {
+    let t = (g1 - g0) * g.tw;
+    for c in 0..g.ci {
+        for gr in g0..g1 {
+            let t0 = (gr - g0) * g.tw;
+            transform_tile_row(x, tmp, g, c, gr, relu, v, |k| (k * g.ci + c) * t + t0);
+        }
+    }
+}
+
+#[inline(never)]
+/// [`input_transform`] written as bf16 pair rows: `vp[(k·⌈ci/2⌉ + p)·t + tile]` = channels 2p, 2p + 1 of
+/// `V̂_k` (f32, the same operations) rounded to nearest even; `tmp` ≥ 16·(tw + 1) + 32·tw floats.
+fn input_transform_pairs(x: &[f32], vp: &mut [u32], tmp: &mut [f32], g: &Geo, g0: usize, g1: usize, relu: bool) {
+    let (ci, tw) = (g.ci, g.tw);
+    let (cpp, t) = (ci.div_ceil(2), (g1 - g0) * tw);
+    let (tmp, two) = tmp.split_at_mut(16 * (tw + 1));
+    let two = &mut two[..32 * tw];
+    for p in 0..cpp {
+        for gr in g0..g1 {
+            let t0 = (gr - g0) * tw;
+            for h in 0..2.min(ci - 2 * p) {
+                transform_tile_row(x, tmp, g, 2 * p + h, gr, relu, two, |k| (2 * k + h) * tw);
+            }
+            for k in 0..16 {
+                let hi = (2 * p + 1 < ci).then(|| &two[(2 * k + 1) * tw..][..tw]);
+                pair_row(&two[2 * k * tw..][..tw], hi, &mut vp[(k * cpp + p) * t + t0..][..tw]);
+            }
+        }
+    }
+}
+
+/// `V̂_k` of channel c for the tw tiles of tile row gr, written to `dst[off(k)..][..tw]`.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn transform_tile_row(x: &[f32], tmp: &mut [f32], g: &Geo, c: usize, gr: usize, relu: bool, dst: &mut [f32], off: impl Fn(usize) -> usize) {
     let Geo { ci, h, w, th, tw, .. } = *g;
-    let t = (g1 - g0) * tw;
     let e = tw + 1;
     // tmp: 4 rows × (even, odd) de-interleaved padded columns: E_i[j] = d(row i, x = 2j − 1), O_i[j] = d(row i, x = 2j).
     let (ev, od) = tmp[..8 * e].split_at_mut(4 * e);
-    for c in 0..ci {
-        for gr in g0..g1 {
-            let (b, tr) = (gr / th, gr % th);
-            let plane = &x[(b * ci + c) * h * w..][..h * w];
-            for i in 0..4 {
-                let (er, or) = (&mut ev[i * e..][..e], &mut od[i * e..][..e]);
-                let y = (2 * tr + i) as isize - 1;
-                if y < 0 || y as usize >= h {
-                    er.fill(0.0);
-                    or.fill(0.0);
-                    continue;
-                }
-                let src = &plane[y as usize * w..][..w];
-                // x = 2j − 1 for E (j ≥ 1), x = 2j for O; zeros past the image (O[tw], E[w/2 + 1..]).
-                er[0] = 0.0;
-                for ((o, ev), pair) in or.iter_mut().zip(&mut er[1..]).zip(src.chunks_exact(2)) {
-                    *o = pair[0];
-                    *ev = pair[1];
-                }
-                if w % 2 == 1 {
-                    or[w / 2] = src[w - 1];
-                }
-                or[tw] = 0.0;
-                er[w / 2 + 1..].fill(0.0);
-                if relu {
-                    er.iter_mut().chain(or.iter_mut()).for_each(|v| *v = v.max(0.0));
-                }
-            }
-            // Rows: Bᵀ d (in place on both halves): r0 = d0 − d2, r1 = d1 + d2, r2 = d2 − d1, r3 = d1 − d3.
-            for half in [&mut *ev, &mut *od] {
-                let (r01, r23) = half.split_at_mut(2 * e);
-                let (r0, r1) = r01.split_at_mut(e);
-                let (r2, r3) = r23.split_at_mut(e);
-                for (((d0, d1), d2), d3) in r0.iter_mut().zip(r1.iter_mut()).zip(r2.iter_mut()).zip(r3.iter_mut()) {
-                    (*d0, *d1, *d2, *d3) = (*d0 - *d2, *d1 + *d2, *d2 - *d1, *d1 - *d3);
-                }
-            }
-            // Columns: (· B) with e0 = E[j], e1 = O[j], e2 = E[j+1], e3 = O[j+1].
-            let t0 = (gr - g0) * tw;
-            for xi in 0..4 {
-                let er = &ev[xi * e..][..e];
-                let or = &od[xi * e..][..e];
-                let (e0, e2) = (&er[..tw], &er[1..]);
-                let (e1, e3) = (&or[..tw], &or[1..]);
-                let off = |nu: usize| ((xi * 4 + nu) * ci + c) * t + t0;
-                v[off(0)..][..tw].iter_mut().zip(e0.iter().zip(e2)).for_each(|(d, (a, b))| *d = a - b);
-                v[off(1)..][..tw].iter_mut().zip(e1.iter().zip(e2)).for_each(|(d, (a, b))| *d = a + b);
-                v[off(2)..][..tw].iter_mut().zip(e2.iter().zip(e1)).for_each(|(d, (a, b))| *d = a - b);
-                v[off(3)..][..tw].iter_mut().zip(e1.iter().zip(e3)).for_each(|(d, (a, b))| *d = a - b);
-            }
+    let (b, tr) = (gr / th, gr % th);
+    let plane = &x[(b * ci + c) * h * w..][..h * w];
+    for i in 0..4 {
+        let (er, or) = (&mut ev[i * e..][..e], &mut od[i * e..][..e]);
+        let y = (2 * tr + i) as isize - 1;
+        if y < 0 || y as usize >= h {
+            er.fill(0.0);
+            or.fill(0.0);
+            continue;
         }
+        let src = &plane[y as usize * w..][..w];
+        // x = 2j − 1 for E (j ≥ 1), x = 2j for O; zeros past the image (O[tw], E[w/2 + 1..]).
+        er[0] = 0.0;
+        for ((o, ev), pair) in or.iter_mut().zip(&mut er[1..]).zip(src.chunks_exact(2)) {
+            *o = pair[0];
+            *ev = pair[1];
+        }
+        if w % 2 == 1 {
+            or[w / 2] = src[w - 1];
+        }
+        or[tw] = 0.0;
+        er[w / 2 + 1..].fill(0.0);
+        if relu {
+            er.iter_mut().chain(or.iter_mut()).for_each(|v| *v = v.max(0.0));
+        }
+    }
+    // Rows: Bᵀ d (in place on both halves): r0 = d0 − d2, r1 = d1 + d2, r2 = d2 − d1, r3 = d1 − d3.
+    for half in [&mut *ev, &mut *od] {
+        let (r01, r23) = half.split_at_mut(2 * e);
+        let (r0, r1) = r01.split_at_mut(e);
+        let (r2, r3) = r23.split_at_mut(e);
+        for (((d0, d1), d2), d3) in r0.iter_mut().zip(r1.iter_mut()).zip(r2.iter_mut()).zip(r3.iter_mut()) {
+            (*d0, *d1, *d2, *d3) = (*d0 - *d2, *d1 + *d2, *d2 - *d1, *d1 - *d3);
+        }
+    }
+    // Columns: (· B) with e0 = E[j], e1 = O[j], e2 = E[j+1], e3 = O[j+1].
+    for xi in 0..4 {
+        let er = &ev[xi * e..][..e];
+        let or = &od[xi * e..][..e];
+        let (e0, e2) = (&er[..tw], &er[1..]);
+        let (e1, e3) = (&or[..tw], &or[1..]);
+        let off = |nu: usize| off(xi * 4 + nu);
+        dst[off(0)..][..tw].iter_mut().zip(e0.iter().zip(e2)).for_each(|(d, (a, b))| *d = a - b);
+        dst[off(1)..][..tw].iter_mut().zip(e1.iter().zip(e2)).for_each(|(d, (a, b))| *d = a + b);
+        dst[off(2)..][..tw].iter_mut().zip(e2.iter().zip(e1)).for_each(|(d, (a, b))| *d = a - b);
+        dst[off(3)..][..tw].iter_mut().zip(e1.iter().zip(e3)).for_each(|(d, (a, b))| *d = a - b);
     }
 }
 
@@ -585,6 +741,164 @@ mod tests {
                 assert!(worst(&fb, &want, &bound) <= 1.0, "fallback epilogue {:?}", (n, ci, co, h, w));
             }
         }
+    }
+
+    const U8: f64 = 1.0 / 256.0;
+
+    /// A bf16 operand as `vdpbf16ps` reads it (nearest even, denormals to zero).
+    fn r8(x: f32) -> f64 {
+        crate::bf16::bf16_to_f32_daz(crate::bf16::f32_to_bf16(x)) as f64
+    }
+
+    /// The kernel's f32 `V̂ = Bᵀ d B` (same operations, same order) of the tile (ty, tx) of image b, channel c.
+    fn v_hat(x: &[f32], (ci, h, w): (usize, usize, usize), relu: bool, b: usize, c: usize, ty: usize, tx: usize) -> [f32; 16] {
+        let d = |i: usize, j: usize| -> f32 {
+            let (y, xx) = ((2 * ty + i) as isize - 1, (2 * tx + j) as isize - 1);
+            if y < 0 || xx < 0 || y as usize >= h || xx as usize >= w {
+                return 0.0;
+            }
+            let v = x[((b * ci + c) * h + y as usize) * w + xx as usize];
+            if relu {
+                v.max(0.0)
+            } else {
+                v
+            }
+        };
+        let bt = |a: [f32; 4]| [a[0] - a[2], a[1] + a[2], a[2] - a[1], a[1] - a[3]];
+        let cols: [[f32; 4]; 4] = std::array::from_fn(|j| bt([d(0, j), d(1, j), d(2, j), d(3, j)]));
+        let mut out = [0f32; 16];
+        for xi in 0..4 {
+            let r = bt([cols[0][xi], cols[1][xi], cols[2][xi], cols[3][xi]]);
+            out[xi * 4..][..4].copy_from_slice(&r);
+        }
+        out
+    }
+
+    /// Per output: the f64 result of the bf16-rounded operands (`r8(Û)·r8(V̂)` summed exactly, the output
+    /// transform and bias exact) and the transform-domain absolute sum of those terms.
+    fn rounded_reference(x: &[f32], wt: &[f32], (n, ci, co, h, w): (usize, usize, usize, usize, usize), relu: bool) -> (Vec<f64>, Vec<f64>) {
+        let u = transform_weights(wt, co, ci);
+        let at: [[f64; 4]; 2] = [[1.0, 1.0, 1.0, 0.0], [0.0, 1.0, -1.0, -1.0]];
+        let (th, tw) = (h.div_ceil(2), w.div_ceil(2));
+        let mut want = vec![0f64; n * co * h * w];
+        let mut sabs = vec![0f64; n * co * h * w];
+        for b in 0..n {
+            for ty in 0..th {
+                for tx in 0..tw {
+                    let vs: Vec<[f64; 16]> = (0..ci).map(|c| v_hat(x, (ci, h, w), relu, b, c, ty, tx).map(r8)).collect();
+                    for o in 0..co {
+                        let (mut m, mut ma) = ([0f64; 16], [0f64; 16]);
+                        for (c, v) in vs.iter().enumerate() {
+                            for k in 0..16 {
+                                let t = r8(u[(k * co + o) * ci + c]) * v[k];
+                                m[k] += t;
+                                ma[k] += t.abs();
+                            }
+                        }
+                        for p in 0..2 {
+                            for q in 0..2 {
+                                let (y, xx) = (2 * ty + p, 2 * tx + q);
+                                if y >= h || xx >= w {
+                                    continue;
+                                }
+                                let i = ((b * co + o) * h + y) * w + xx;
+                                for k in 0..16 {
+                                    want[i] += at[p][k / 4] * at[q][k % 4] * m[k];
+                                    sabs[i] += (at[p][k / 4] * at[q][k % 4]).abs() * ma[k];
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        (want, sabs)
+    }
+
+    /// The bf16 products within the module's bound against the f64 direct convolution of the unrounded
+    /// operands, and within the f32 summation's γ against the f64 sum of the bf16-rounded operands (the tight
+    /// check: a truncating conversion fails it); a result 1 % off fails the tight check, one 1 % past its
+    /// bound the loose one; masked it is the f32 kernel on the
+    /// widened `Û`, bit for bit. Shapes off the 12 × 32 tile, odd C_in, C_in = 515 (two 256-pair blocks), tile
+    /// rows of 35 tiles (two column panels), blocks of 1 and 5 tiles, with and without bias and epilogue.
+    #[test]
+    fn winograd_bf16_within_derived_bound_on_seeds_and_shapes() {
+        let dpbf16 = crate::bf16::path() == crate::bf16::Bf16Path::Dpbf16;
+        if !dpbf16 {
+            eprintln!("no AVX512-BF16 on this CPU: only the storage-only path is checked");
+        }
+        let shapes: Vec<(usize, usize, usize, usize, usize)> = SHAPES.iter().copied().chain([(1, 515, 5, 4, 6), (1, 8, 13, 3, 70)]).collect();
+        let (mut worst_loose, mut worst_tight) = (0f64, 0f64);
+        for seed in 0..2u64 {
+            for (si, &(n, ci, co, h, w)) in shapes.iter().enumerate() {
+                let sd = 500 + seed * 100 + si as u64;
+                let x = data(sd, n * ci * h * w, 1.0);
+                let x: Vec<f32> = x.iter().enumerate().map(|(i, &v)| if i % 7 == 3 { v * 100.0 } else { v }).collect();
+                let wt = data(sd + 50, co * ci * 9, 0.5);
+                let bias = data(sd + 70, co, 2.0);
+                let res = data(sd + 90, n * co * h * w, 3.0);
+                let kk = 2 * ci.div_ceil(2);
+                let nn = kk + kk.div_ceil(512) + 8;
+                let flush = 18.0 * kk as f64 * 2f64.powi(-126);
+                let loose = (1.0 + U8) * (1.0 + U8) * (1.0 + gamma(nn)) - 1.0;
+                let tight = gamma(kk + kk.div_ceil(512) + 5);
+                let xt = tensor(&x, &[n, ci, h, w]);
+                let rt = tensor(&res, &[n, co, h, w]);
+                let wg = Winograd3x3::new_bf16(&tensor(&wt, &[co, ci, 3, 3]), Some(&tensor(&bias, &[co]))).unwrap();
+                assert!(wg.is_transformed() && wg.is_bf16());
+                let f32_u = transform_weights(&wt, co, ci);
+                let geo = Geo { n, ci, co, h, w, th: h.div_ceil(2), tw: w.div_ceil(2) };
+                for relu_in in [false, true] {
+                    let (exact, shat) = reference(&x, &wt, (n, ci, co, h, w), relu_in);
+                    let (rwant, rabs) = rounded_reference(&x, &wt, (n, ci, co, h, w), relu_in);
+                    let epi = if relu_in {
+                        WinogradEpilogue { relu_input: true, residual: Some(&rt), relu_residual: true, relu_output: false }
+                    } else {
+                        WinogradEpilogue::default()
+                    };
+                    let r_add = |i: usize| if relu_in { res[i].max(0.0) as f64 } else { 0.0 };
+                    let bi = |i: usize| bias[i / (h * w) % co] as f64;
+                    let want: Vec<f64> = (0..exact.len()).map(|i| exact[i] + bi(i) + r_add(i)).collect();
+                    let bound: Vec<f64> = (0..exact.len()).map(|i| loose * (shat[i] + bi(i).abs()) + gamma(nn) * r_add(i).abs() + flush).collect();
+                    let twant: Vec<f64> = (0..exact.len()).map(|i| rwant[i] + bi(i) + r_add(i)).collect();
+                    let tbound: Vec<f64> = (0..exact.len()).map(|i| tight * (rabs[i] + bi(i).abs() + r_add(i).abs()) + flush).collect();
+                    for tiles in [TARGET_TILES, 1, 5] {
+                        let got = vec4(&wg.forward_blocked(&xt, epi, tiles).unwrap());
+                        let tag = format!("seed {seed} shape {:?} relu/residual {relu_in} tiles {tiles}", (n, ci, co, h, w));
+                        // Masked: the f32 kernel on the widened Û, bit for bit.
+                        let masked = crate::bf16::with_bf16_masked(|| vec4(&wg.forward_blocked(&xt, epi, tiles).unwrap()));
+                        let wide = wg.widened_u(wg.ub.as_deref().unwrap());
+                        let rd = relu_in.then_some(&res[..]);
+                        let f32_wide = winograd_raw(&x, &wide, Some(&bias), rd, &geo, epi, tiles);
+                        assert!(
+                            masked.iter().zip(&f32_wide).all(|(a, b)| a.to_bits() == b.to_bits()),
+                            "{tag}: masked is not the f32 kernel on the widened weights"
+                        );
+                        assert!(worst(&masked, &want, &bound) <= 1.0, "{tag}: masked off the bound");
+                        if !dpbf16 {
+                            continue;
+                        }
+                        let r = worst(&got, &want, &bound);
+                        assert!(r <= 1.0, "{tag}: error {r} × bound");
+                        let rt_ = worst(&got, &twant, &tbound);
+                        assert!(rt_ <= 1.0, "{tag}: {rt_} × the rounded operands' f32-summation bound");
+                        (worst_loose, worst_tight) = (worst_loose.max(r), worst_tight.max(rt_));
+                        let moved: Vec<f32> = got.iter().map(|v| v * 1.01).collect();
+                        assert!(worst(&moved, &twant, &tbound) > 1.0, "{tag}: a 1 % change passes the tight check");
+                        // One result moved 1 % past its derived bound fails it.
+                        let mut past = got.clone();
+                        past[0] = (want[0] + 1.01 * bound[0]) as f32;
+                        assert!(worst(&past, &want, &bound) > 1.0, "{tag}: a result past the bound passes");
+                        // The packed products ran: some result differs from the f32 kernel's.
+                        let f32_out = winograd_raw(&x, &f32_u, Some(&bias), rd, &geo, epi, tiles);
+                        if n * ci * h * w > 8 {
+                            assert!(got.iter().zip(&f32_out).any(|(a, b)| a != b), "{tag}: equal to f32 (bf16 products did not run?)");
+                        }
+                    }
+                }
+            }
+        }
+        eprintln!("largest |error| / bound: {worst_loose:.3} (unrounded operands), {worst_tight:.3} (rounded operands)");
     }
 
     #[test]

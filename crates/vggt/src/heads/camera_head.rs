@@ -32,7 +32,15 @@ pub struct CameraHead {
 
 impl CameraHead {
     pub fn new(vb: VarBuilder, dim_in: usize, cfg: &CameraHeadConfig) -> Result<Self> {
-        let spec = BlockSpec { dim: dim_in, num_heads: cfg.num_heads, mlp_ratio: cfg.mlp_ratio, qk_norm: false, norm_eps: TORCH_LN_EPS, layer_scale: true };
+        let spec = BlockSpec {
+            dim: dim_in,
+            num_heads: cfg.num_heads,
+            mlp_ratio: cfg.mlp_ratio,
+            qk_norm: false,
+            norm_eps: TORCH_LN_EPS,
+            layer_scale: true,
+            pack_bf16: false,
+        };
         Ok(Self {
             trunk: (0..cfg.trunk_depth).map(|i| Block::new(vb.pp("trunk").pp(i), spec)).collect::<Result<Vec<_>>>()?,
             token_norm: LayerNorm::new(vb.pp("token_norm"), dim_in, TORCH_LN_EPS)?,

@@ -2,19 +2,39 @@
 //! per layer LayerNorm, a 1×1 projection, the UV positional embedding, a resize to 4×, 2×, 1× and ½× the
 //! patch grid; RefineNet-style fusion from coarse to fine; a 3×3 conv; bilinear (align_corners) to the image
 //! size; the embedding again; a 3×3 conv, ReLU, 1×1 conv to the outputs. Runs in f32 whatever the trunk's
-//! dtype (upstream disables autocast for the heads).
+//! dtype (upstream disables autocast for the heads), except with the CPU's packed bf16 trunk, where
+//! [`DptHead::pack_bf16`] puts the products in bf16 too (activations, transforms and sums stay f32).
 
 use std::collections::BTreeMap;
 
+use std::sync::Arc;
+
 use candle_core::{Result, Tensor};
 use candle_nn::VarBuilder;
+use mvsplat360_nn::bf16::Bf16Weights;
+use mvsplat360_nn::conv::bf16::{conv2d_fused_bf16, Bf16ConvWeights};
 use mvsplat360_nn::conv::{Winograd3x3, WinogradEpilogue};
-use mvsplat360_nn::{conv2d, Conv2dConfig};
+use mvsplat360_nn::{conv2d, Conv2dConfig, ConvEpilogue};
 
 use super::head_act::{activate_head, Activation};
 use super::utils::position_embed_uv;
 use crate::config::DptConfig;
-use crate::layers::{LayerNorm, TORCH_LN_EPS};
+use crate::layers::{LayerNorm, PackedBf16, TORCH_LN_EPS};
+
+/// A conv weight packed for `nn`'s bf16 convolution (shared by clones).
+#[derive(Clone)]
+pub struct PackedConvBf16(pub Arc<Bf16ConvWeights>);
+
+impl std::fmt::Debug for PackedConvBf16 {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "PackedConvBf16{:?}", self.0.dims())
+    }
+}
+
+/// Whether a packed bf16 product applies to `x`: a CPU f32 input at inference (else the f32 weights).
+fn bf16_applies(x: &Tensor) -> bool {
+    x.device().is_cpu() && x.dtype() == candle_core::DType::F32 && !mvsplat360_nn::mode::is_differentiable() && !x.track_op()
+}
 
 #[derive(Debug, Clone)]
 pub struct Conv {
@@ -25,6 +45,8 @@ pub struct Conv {
     /// here once (16/9 of the weight's memory; ≈ 2× faster than the shifted gemms on 2 Zen 4 cores, issue 69).
     /// Its forward falls back to `conv2d` itself where it does not apply (another device or dtype, autograd).
     pub winograd: Option<Winograd3x3>,
+    /// The weight packed for `nn`'s bf16 convolution ([`Conv::pack_bf16`], convs without a Winograd kernel).
+    pub packed: Option<PackedConvBf16>,
 }
 
 impl Conv {
@@ -33,13 +55,26 @@ impl Conv {
         let bias = if bias { Some(vb.get(c_out, "bias")?) } else { None };
         let winograd =
             if k == 3 && stride == 1 && padding == 1 { Some(Winograd3x3::new(&weight, bias.as_ref())?).filter(|w| w.is_transformed()) } else { None };
-        Ok(Self { weight, bias, cfg: Conv2dConfig { padding, stride, dilation: 1 }, winograd })
+        Ok(Self { weight, bias, cfg: Conv2dConfig { padding, stride, dilation: 1 }, winograd, packed: None })
+    }
+
+    /// Products in bf16 (issue 73): the Winograd kernel's transformed weights held in bf16 only
+    /// ([`Winograd3x3::new_bf16`]), any other conv packed for `conv2d_fused_bf16`. Storage only where the
+    /// calling thread's `nn::bf16::path` lacks AVX512-BF16 (the bf16 weights widened, f32 arithmetic).
+    pub fn pack_bf16(&mut self) -> Result<()> {
+        if self.winograd.is_some() {
+            self.winograd = Some(Winograd3x3::new_bf16(&self.weight, self.bias.as_ref())?);
+        } else if self.packed.is_none() {
+            self.packed = Some(PackedConvBf16(Arc::new(Bf16ConvWeights::from_conv(&self.weight)?)));
+        }
+        Ok(())
     }
 
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        match &self.winograd {
-            Some(w) => w.forward(x),
-            None => conv2d(x, &self.weight, self.bias.as_ref(), self.cfg),
+        match (&self.winograd, &self.packed) {
+            (Some(w), _) => w.forward(x),
+            (None, Some(p)) if bf16_applies(x) => conv2d_fused_bf16(x, &p.0, self.bias.as_ref(), self.cfg, ConvEpilogue::default()),
+            _ => conv2d(x, &self.weight, self.bias.as_ref(), self.cfg),
         }
     }
 }
@@ -54,19 +89,30 @@ pub struct ConvTransposePatch {
     pub bias: Tensor,
     pub k: usize,
     pub c_out: usize,
+    /// The weight packed for `nn`'s bf16 product ([`ConvTransposePatch::pack_bf16`]).
+    pub packed: Option<PackedBf16>,
 }
 
 impl ConvTransposePatch {
     pub fn new(vb: VarBuilder, c_in: usize, c_out: usize, k: usize) -> Result<Self> {
         let w = vb.get((c_in, c_out, k, k), "weight")?;
         let bias = vb.get(c_out, "bias")?.reshape((c_out, 1))?.broadcast_as((c_out, k * k))?.contiguous()?.reshape(c_out * k * k)?;
-        Ok(Self { weight: w.reshape((c_in, c_out * k * k))?.t()?.contiguous()?, bias, k, c_out })
+        Ok(Self { weight: w.reshape((c_in, c_out * k * k))?.t()?.contiguous()?, bias, k, c_out, packed: None })
+    }
+
+    /// The gemm in bf16 (`linear_fused_bf16`; storage only without AVX512-BF16).
+    pub fn pack_bf16(&mut self) -> Result<()> {
+        self.packed = Some(PackedBf16(Arc::new(Bf16Weights::from_linear(&self.weight)?)));
+        Ok(())
     }
 
     /// `rows (n·h·w, C_in)`: the input pixels row-major (the tokens' layout) → `(n, C_out, h·k, w·k)`.
     pub fn forward_rows(&self, rows: &Tensor, n: usize, h: usize, w: usize) -> Result<Tensor> {
         let k = self.k;
-        let y = mvsplat360_nn::linear::linear_fused(rows, &self.weight, Some(&self.bias), 1.0, &[])?;
+        let y = match &self.packed {
+            Some(p) if bf16_applies(rows) => mvsplat360_nn::linear::linear_fused_bf16(rows, &p.0, Some(&self.bias), 1.0, &[])?,
+            _ => mvsplat360_nn::linear::linear_fused(rows, &self.weight, Some(&self.bias), 1.0, &[])?,
+        };
         y.reshape((n, h, w, self.c_out, k, k))?.permute((0, 3, 1, 4, 2, 5))?.contiguous()?.reshape((n, self.c_out, h * k, w * k))
     }
 }
@@ -126,10 +172,11 @@ impl FeatureFusionBlock {
         if let (Some(u), Some(x1)) = (&self.res_conf_unit1, x1) {
             out = (out + u.forward(x1)?)?;
         }
-        let out = self.res_conf_unit2.forward(&out)?;
+        // Reassigned, not shadowed: each intermediate is freed as soon as the next exists (peak memory).
+        out = self.res_conf_unit2.forward(&out)?;
         let (_, _, h, w) = out.dims4()?;
         let size = size.unwrap_or((2 * h, 2 * w));
-        let out = mvsplat360_nn::upsample::upsample_bilinear(&out, size)?;
+        out = mvsplat360_nn::upsample::upsample_bilinear(&out, size)?;
         self.out_conv.forward(&out)
     }
 }
@@ -149,6 +196,8 @@ pub struct DptHead {
     pub activation: Activation,
     pub patch_size: usize,
     pub cfg: DptConfig,
+    /// The 1×1 projections as linear layers packed for `nn`'s bf16 product ([`DptHead::pack_bf16`]).
+    pub projects_bf16: Option<Vec<PackedBf16>>,
 }
 
 impl DptHead {
@@ -179,7 +228,46 @@ impl DptHead {
             activation,
             patch_size,
             cfg: cfg.clone(),
+            projects_bf16: None,
         })
+    }
+
+    /// The head's products in bf16 on the CPU (issue 73; the model's packed bf16 trunk asks for it): the 1×1
+    /// projections and the transposed convs through the packed linear product, the 3×3 stride-1 convs through
+    /// the bf16 Winograd kernel, the stride-2 conv and the fusion blocks' 1×1 convs through
+    /// `conv2d_fused_bf16`. The final 32 → 2/4 1×1 conv stays f32 (K = 32: too short for the packed product to
+    /// gain). Norms, resizes, positional embeddings, transforms, ReLUs, sums and activations stay f32.
+    pub fn pack_bf16(&mut self) -> Result<()> {
+        let mut proj = Vec::with_capacity(self.projects.len());
+        for p in &self.projects {
+            let (oc, c) = (p.weight.dim(0)?, p.weight.dim(1)?);
+            proj.push(PackedBf16(Arc::new(Bf16Weights::from_linear(&p.weight.reshape((oc, c))?)?)));
+        }
+        self.projects_bf16 = Some(proj);
+        for r in &mut self.resize_layers {
+            match r {
+                Resize::Up(u) => u.pack_bf16()?,
+                Resize::Down(d) => d.pack_bf16()?,
+                Resize::Identity => {}
+            }
+        }
+        for c in &mut self.layer_rn {
+            c.pack_bf16()?;
+        }
+        for f in &mut self.refinenet {
+            for u in f.res_conf_unit1.iter_mut().chain(std::iter::once(&mut f.res_conf_unit2)) {
+                u.conv1.pack_bf16()?;
+                u.conv2.pack_bf16()?;
+            }
+            f.out_conv.pack_bf16()?;
+        }
+        self.output_conv1.pack_bf16()?;
+        self.output_conv2a.pack_bf16()
+    }
+
+    /// Whether [`DptHead::pack_bf16`] ran.
+    pub fn bf16_packed(&self) -> bool {
+        self.projects_bf16.is_some()
     }
 
     /// `x (N, C, h, w) + 0.1 · embed(uv grid of (h, w) with the image's aspect W/H)`.
@@ -233,6 +321,7 @@ impl DptHead {
         let p = self.patch_size;
         let (ph, pw) = (img_h / p, img_w / p);
         let mut feats = Vec::with_capacity(4);
+        let prof = mvsplat360_nn::prof::scope("vggt.dpt.project_resize");
         for (i, layer) in self.cfg.intermediate_layer_idx.iter().enumerate() {
             let t = tokens.get(layer).ok_or_else(|| candle_core::Error::Msg(format!("DPT head: aggregated layer {layer} not kept")))?;
             let n_tok = t.dim(1)?;
@@ -244,8 +333,11 @@ impl DptHead {
             let proj = &self.projects[i];
             let oc = proj.weight.dim(0)?;
             let pe = Self::pos_embed_rows(nf, ph, pw, oc, img_w, img_h, x.device())?;
-            let rows =
-                mvsplat360_nn::linear::linear_fused(&x.reshape((nf * ph * pw, c))?, &proj.weight.reshape((oc, c))?, proj.bias.as_ref(), 1.0, &[(&pe, 1.0)])?;
+            let xr = x.reshape((nf * ph * pw, c))?;
+            let rows = match &self.projects_bf16 {
+                Some(pk) if bf16_applies(&xr) => mvsplat360_nn::linear::linear_fused_bf16(&xr, &pk[i].0, proj.bias.as_ref(), 1.0, &[(&pe, 1.0)])?,
+                _ => mvsplat360_nn::linear::linear_fused(&xr, &proj.weight.reshape((oc, c))?, proj.bias.as_ref(), 1.0, &[(&pe, 1.0)])?,
+            };
             let channels_first = |r: &Tensor| r.reshape((nf, ph * pw, oc))?.permute((0, 2, 1))?.contiguous()?.reshape((nf, oc, ph, pw));
             let x = match &self.resize_layers[i] {
                 Resize::Up(u) => u.forward_rows(&rows, nf, ph, pw)?,
@@ -254,16 +346,79 @@ impl DptHead {
             };
             feats.push(x);
         }
-        let rn: Vec<Tensor> = feats.iter().zip(&self.layer_rn).map(|(x, c)| c.forward(x)).collect::<Result<_>>()?;
+        drop(prof);
+        let prof = mvsplat360_nn::prof::scope("vggt.dpt.layer_rn");
+        let mut rn: Vec<Tensor> = feats.iter().zip(&self.layer_rn).map(|(x, c)| c.forward(x)).collect::<Result<_>>()?;
+        drop(feats);
         let size = |t: &Tensor| -> Result<(usize, usize)> { Ok((t.dim(2)?, t.dim(3)?)) };
-        let out = self.refinenet[3].forward(&rn[3], None, Some(size(&rn[2])?))?;
-        let out = self.refinenet[2].forward(&out, Some(&rn[2]), Some(size(&rn[1])?))?;
-        let out = self.refinenet[1].forward(&out, Some(&rn[1]), Some(size(&rn[0])?))?;
-        let out = self.refinenet[0].forward(&out, Some(&rn[0]), None)?;
-        let out = self.output_conv1.forward(&out)?;
-        let out = mvsplat360_nn::upsample::upsample_bilinear(&out, (ph * p, pw * p))?;
-        let out = Self::apply_pos_embed(&out, img_w, img_h)?;
-        let out = self.output_conv2b.forward(&self.output_conv2a.forward(&out)?.relu()?)?;
+        drop(prof);
+        let prof = mvsplat360_nn::prof::scope("vggt.dpt.refinenet");
+        // `out` reassigned and each level's input dropped once used: the full-size intermediates are freed as
+        // soon as the next one exists (the heads' transient is most of the forward's peak memory).
+        let mut out = self.refinenet[3].forward(&rn[3], None, Some(size(&rn[2])?))?;
+        rn.truncate(3);
+        out = self.refinenet[2].forward(&out, Some(&rn[2]), Some(size(&rn[1])?))?;
+        rn.truncate(2);
+        out = self.refinenet[1].forward(&out, Some(&rn[1]), Some(size(&rn[0])?))?;
+        rn.truncate(1);
+        out = self.refinenet[0].forward(&out, Some(&rn[0]), None)?;
+        drop(rn);
+        drop(prof);
+        let _prof = mvsplat360_nn::prof::scope("vggt.dpt.output");
+        out = self.output_conv1.forward(&out)?;
+        out = mvsplat360_nn::upsample::upsample_bilinear(&out, (ph * p, pw * p))?;
+        out = Self::apply_pos_embed(&out, img_w, img_h)?;
+        out = self.output_conv2a.forward(&out)?.relu()?;
+        out = self.output_conv2b.forward(&out)?;
         activate_head(&out, self.activation)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use candle_core::{DType, Device};
+
+    fn rel_rms(a: &Tensor, r: &Tensor) -> f64 {
+        let a = a.flatten_all().unwrap().to_dtype(DType::F64).unwrap().to_vec1::<f64>().unwrap();
+        let r = r.flatten_all().unwrap().to_dtype(DType::F64).unwrap().to_vec1::<f64>().unwrap();
+        let e = a.iter().zip(&r).map(|(x, y)| (x - y) * (x - y)).sum::<f64>();
+        (e / r.iter().map(|y| y * y).sum::<f64>()).sqrt()
+    }
+
+    /// The packed head (every product in bf16: projections, transposed convs, bf16 Winograd, stride-2 and 1×1
+    /// convs; the kernels' own error-model tests are in `nn`) on two seeds and two image sizes: with AVX512-BF16
+    /// its outputs differ from the f32 head's, and masked at run time (storage only: f32 products on the bf16
+    /// weights) they differ again; both within the parity tests' bound of 0.05 × RMS (≈ 13u, a chain of 17
+    /// products of ≈ u each). Packing a clone leaves the f32 head's outputs bit for bit.
+    #[test]
+    fn packed_head_runs_bf16_products_and_falls_back_masked() {
+        let dev = Device::Cpu;
+        let cfg = DptConfig { features: 16, out_channels: [8, 16, 24, 24], intermediate_layer_idx: [0, 1, 2, 3], frames_chunk_size: 2 };
+        let dpbf16 = mvsplat360_nn::bf16::path() == mvsplat360_nn::bf16::Bf16Path::Dpbf16;
+        for (seed, (ph, pw)) in [(1u64, (5, 7)), (2, (6, 3))] {
+            let vb = mvsplat360_dataset::weights::random_var_builder(seed, &dev);
+            let head = DptHead::new(vb, 32, 4, 4, Activation::InvLog, &cfg).unwrap();
+            let mut packed = head.clone();
+            packed.pack_bf16().unwrap();
+            assert!(packed.bf16_packed() && packed.layer_rn[0].winograd.as_ref().unwrap().is_bf16() && packed.refinenet[0].out_conv.packed.is_some());
+            let tokens: BTreeMap<usize, Tensor> = (0..4).map(|i| (i, Tensor::randn(0f32, 1.0, (3, 1 + ph * pw, 32), &dev).unwrap())).collect();
+            let (h, w) = (4 * ph, 4 * pw);
+            let f = head.forward(&tokens, h, w, 1).unwrap();
+            let b = packed.forward(&tokens, h, w, 1).unwrap();
+            let m = mvsplat360_nn::bf16::with_bf16_masked(|| packed.forward(&tokens, h, w, 1)).unwrap();
+            let f2 = head.forward(&tokens, h, w, 1).unwrap();
+            let bits = |t: &Tensor| t.flatten_all().unwrap().to_vec1::<f32>().unwrap().into_iter().map(f32::to_bits).collect::<Vec<_>>();
+            assert_eq!(bits(&f.0), bits(&f2.0), "the f32 head changed");
+            for (tag, o) in [("bf16", &b), ("masked", &m)] {
+                let (e0, e1) = (rel_rms(&o.0, &f.0), rel_rms(&o.1, &f.1));
+                eprintln!("seed {seed} {ph}x{pw} {tag}: rel rms {e0:.2e} (points), {e1:.2e} (confidence)");
+                assert!(e0 <= 0.05 && e1 <= 0.05, "seed {seed} {tag}: {e0} / {e1}");
+            }
+            if dpbf16 {
+                assert_ne!(bits(&b.0), bits(&f.0), "seed {seed}: the packed head computed in f32");
+                assert_ne!(bits(&b.0), bits(&m.0), "seed {seed}: the mask did not reach the head's products");
+            }
+        }
     }
 }

@@ -20,6 +20,9 @@ pub struct BlockSpec {
     pub norm_eps: f64,
     /// `init_values` truthy upstream: the block has `ls1.gamma`/`ls2.gamma`.
     pub layer_scale: bool,
+    /// Pack the four big linears for the CPU's bf16 product as the block is built ([`Block::pack_bf16`]), so a
+    /// model never holds more than one block's f32 weights besides the packed ones.
+    pub pack_bf16: bool,
 }
 
 #[derive(Debug, Clone)]
@@ -41,7 +44,11 @@ impl Block {
             attn.proj = attn.proj.scaled_by(&vb.pp("ls1").get(s.dim, "gamma")?)?;
             mlp.fc2 = mlp.fc2.scaled_by(&vb.pp("ls2").get(s.dim, "gamma")?)?;
         }
-        Ok(Self { norm1, attn, norm2, mlp })
+        let mut b = Self { norm1, attn, norm2, mlp };
+        if s.pack_bf16 {
+            b.pack_bf16()?;
+        }
+        Ok(b)
     }
 
     /// Packs the block's four big linears (attention `qkv` and `proj`, MLP `fc1` and `fc2`, LayerScale already

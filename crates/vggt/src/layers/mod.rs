@@ -15,7 +15,7 @@ use candle_nn::VarBuilder;
 /// weight was packed by [`Linear::pack_bf16`].
 #[derive(Debug, Clone)]
 pub struct Linear {
-    /// `(out, in)`; bf16 once packed (the packed copy is what runs).
+    /// `(out, in)`; empty once packed (the packed copy is the only weight kept: no f32 or bf16 tensor beside it).
     pub weight: Tensor,
     pub bias: Option<Tensor>,
     /// The weight in bf16, packed once at load for `vdpbf16ps` ([`mvsplat360_nn::bf16`]); None: the f32 gemm
@@ -63,7 +63,7 @@ impl Linear {
                 mvsplat360_nn::linear::linear_fused_bf16(x, &p.0, self.bias.as_ref(), 1.0, adds)
             }
             Some(_) => {
-                let w = self.weight.to_dtype(x.dtype())?;
+                let w = self.weight_f32()?.to_device(x.device())?.to_dtype(x.dtype())?;
                 let b = self.bias.as_ref().map(|b| b.to_dtype(x.dtype())).transpose()?;
                 mvsplat360_nn::linear::linear_fused(x, &w, b.as_ref(), 1.0, adds)
             }
@@ -74,17 +74,29 @@ impl Linear {
     }
 
     /// Packs the weight (any dtype; f32 here, after any folding, so it is rounded to bf16 once) for `nn`'s bf16
-    /// product and keeps the weight tensor in bf16 only (the f32 copy is dropped; the bias stays as it is).
+    /// product and drops the weight tensor (the packed copy is the weight; the bias stays as it is).
     pub fn pack_bf16(&mut self) -> Result<()> {
+        if self.packed.is_some() {
+            return Ok(());
+        }
         self.packed = Some(PackedBf16(std::sync::Arc::new(mvsplat360_nn::bf16::Bf16Weights::from_linear(&self.weight)?)));
-        self.weight = self.weight.to_dtype(DType::BF16)?;
+        self.weight = Tensor::zeros(0, DType::F32, self.weight.device())?;
         Ok(())
+    }
+
+    /// The weight `(out, in)` in f32: the tensor, or the packed bf16 values widened (exact; a fallback's copy).
+    pub fn weight_f32(&self) -> Result<Tensor> {
+        match &self.packed {
+            Some(p) => Tensor::from_vec(p.0.to_f32_kn(), (p.0.k(), p.0.n()), &candle_core::Device::Cpu)?.t()?.contiguous(),
+            None => self.weight.to_dtype(DType::F32),
+        }
     }
 
     /// The layer followed by a per-channel scale (`LayerScale`), folded into the weights once at load:
     /// `γ ⊙ (W x + b) = (diag(γ) W) x + γ ⊙ b`.
     pub fn scaled_by(&self, gamma: &Tensor) -> Result<Self> {
-        let weight = self.weight.to_dtype(gamma.dtype())?.broadcast_mul(&gamma.unsqueeze(1)?)?;
+        let w = if self.packed.is_some() { self.weight_f32()?.to_device(gamma.device())? } else { self.weight.clone() };
+        let weight = w.to_dtype(gamma.dtype())?.broadcast_mul(&gamma.unsqueeze(1)?)?;
         let bias = self.bias.as_ref().map(|b| b * gamma).transpose()?;
         let mut out = Self { weight, bias, packed: None };
         if self.packed.is_some() {

@@ -33,9 +33,10 @@ impl DinoVisionTransformer {
         num_heads: usize,
         mlp_ratio: f64,
         num_register_tokens: usize,
+        pack_bf16: bool,
     ) -> Result<Self> {
         let grid = img_size / patch_size;
-        let spec = BlockSpec { dim: embed_dim, num_heads, mlp_ratio, qk_norm: false, norm_eps: DINO_LN_EPS, layer_scale: true };
+        let spec = BlockSpec { dim: embed_dim, num_heads, mlp_ratio, qk_norm: false, norm_eps: DINO_LN_EPS, layer_scale: true, pack_bf16 };
         let blocks = (0..depth).map(|i| Block::new(vb.pp("blocks").pp(i), spec)).collect::<Result<Vec<_>>>()?;
         // Unused at inference (masked pre-training), but part of the state dict: requested so strict loading
         // accounts for it.

@@ -34,6 +34,16 @@ pub type AggregatedTokens = BTreeMap<usize, Tensor>;
 
 impl Aggregator {
     pub fn new(vb: VarBuilder, cfg: &VggtConfig) -> Result<Self> {
+        Self::build(vb, cfg, false)
+    }
+
+    /// [`Aggregator::new`] with every block's linears packed for the CPU's bf16 product as each block is built
+    /// ([`Block::pack_bf16`]): the f32 weights of one block at a time, never the whole trunk's.
+    pub fn new_packed_bf16(vb: VarBuilder, cfg: &VggtConfig) -> Result<Self> {
+        Self::build(vb, cfg, true)
+    }
+
+    fn build(vb: VarBuilder, cfg: &VggtConfig, pack_bf16: bool) -> Result<Self> {
         let c = cfg.embed_dim;
         let patch_embed = DinoVisionTransformer::new(
             vb.pp("patch_embed"),
@@ -44,8 +54,17 @@ impl Aggregator {
             cfg.patch_embed_num_heads,
             cfg.mlp_ratio,
             cfg.num_register_tokens,
+            pack_bf16,
         )?;
-        let spec = BlockSpec { dim: c, num_heads: cfg.num_heads, mlp_ratio: cfg.mlp_ratio, qk_norm: cfg.qk_norm, norm_eps: TORCH_LN_EPS, layer_scale: true };
+        let spec = BlockSpec {
+            dim: c,
+            num_heads: cfg.num_heads,
+            mlp_ratio: cfg.mlp_ratio,
+            qk_norm: cfg.qk_norm,
+            norm_eps: TORCH_LN_EPS,
+            layer_scale: true,
+            pack_bf16,
+        };
         let blocks = |name: &str| (0..cfg.depth).map(|i| Block::new(vb.pp(name).pp(i), spec)).collect::<Result<Vec<_>>>();
         Ok(Self {
             patch_embed,

@@ -45,34 +45,39 @@ impl Vggt {
         Self::with_trunk_dtype(vb, cfg, DType::F32)
     }
 
-    /// The aggregator's weights and tokens in `trunk` (bf16 on a GPU, as upstream's autocast); the heads stay
-    /// f32 whatever the trunk's dtype, as upstream runs them with autocast disabled.
+    /// The aggregator's weights and tokens in `trunk` (bf16 on a GPU, as upstream's autocast); the heads' tensors
+    /// stay f32 whatever the trunk's dtype, as upstream runs them with autocast disabled.
     ///
     /// A bf16 trunk on a CPU with AVX512-BF16 ([`mvsplat360_nn::bf16::path`] on the calling thread, so
     /// [`mvsplat360_nn::bf16::with_bf16_masked`] around the load opts out) runs only the blocks' big linears in
     /// bf16: attention `qkv`/`proj` and MLP `fc1`/`fc2` take `nn::linear::linear_fused_bf16` (weights rounded
     /// to bf16 and packed once here, activations rounded to bf16 as they are packed, f32 accumulation), and so do
     /// attention's two products for heads of 64 (`nn::rope::qkv_attention_bf16`). The tokens stay f32, and so do
-    /// the patch embedding, the norms, QK-norm, RoPE, the softmax, GELU, biases and residual sums. Without the feature (or on a GPU) a bf16 trunk is candle's bf16
-    /// storage and ops throughout, as before; an f32 trunk is unchanged.
+    /// the patch embedding, the norms, QK-norm, RoPE, the softmax, GELU, biases and residual sums. Each block is
+    /// packed as it is built (one block's f32 weights at a time; no weight tensor kept beside the packed copy).
+    /// The DPT heads' products run in bf16 too ([`DptHead::pack_bf16`]: bf16 Winograd, packed convs and
+    /// linears, f32 activations); the camera head stays f32. Without the feature (or on a GPU) a bf16 trunk is
+    /// candle's bf16 storage and ops throughout and the heads f32, as before; an f32 model is unchanged.
     pub fn with_trunk_dtype(vb: VarBuilder, cfg: &VggtConfig, trunk: DType) -> Result<Self> {
         cfg.validate().map_err(candle_core::Error::Msg)?;
         let dim = 2 * cfg.embed_dim;
         let heads = vb.clone().set_dtype(DType::F32);
         let vb = heads.clone();
         let cpu_dpbf16 = trunk == DType::BF16 && vb.device().is_cpu() && mvsplat360_nn::bf16::path() == mvsplat360_nn::bf16::Bf16Path::Dpbf16;
-        let aggregator = if cpu_dpbf16 {
-            let mut a = Aggregator::new(vb.pp("aggregator"), cfg)?;
-            a.pack_bf16_linears()?;
-            a
-        } else {
-            Aggregator::new(vb.pp("aggregator").set_dtype(trunk), cfg)?
+        let aggregator =
+            if cpu_dpbf16 { Aggregator::new_packed_bf16(vb.pp("aggregator"), cfg)? } else { Aggregator::new(vb.pp("aggregator").set_dtype(trunk), cfg)? };
+        let dpt = |name: &str, out: usize, act: Activation| -> Result<DptHead> {
+            let mut h = DptHead::new(vb.pp(name), dim, cfg.patch_size, out, act, &cfg.dpt)?;
+            if cpu_dpbf16 {
+                h.pack_bf16()?;
+            }
+            Ok(h)
         };
         Ok(Self {
             aggregator,
             camera_head: if cfg.enable_camera { Some(CameraHead::new(vb.pp("camera_head"), dim, &cfg.camera_head)?) } else { None },
-            point_head: if cfg.enable_point { Some(DptHead::new(vb.pp("point_head"), dim, cfg.patch_size, 4, Activation::InvLog, &cfg.dpt)?) } else { None },
-            depth_head: if cfg.enable_depth { Some(DptHead::new(vb.pp("depth_head"), dim, cfg.patch_size, 2, Activation::Exp, &cfg.dpt)?) } else { None },
+            point_head: if cfg.enable_point { Some(dpt("point_head", 4, Activation::InvLog)?) } else { None },
+            depth_head: if cfg.enable_depth { Some(dpt("depth_head", 2, Activation::Exp)?) } else { None },
             cfg: cfg.clone(),
         })
     }
