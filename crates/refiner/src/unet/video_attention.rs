@@ -19,6 +19,10 @@ pub(crate) fn norm(w: &Weights, name: &str, c: usize, eps: f64) -> Result<Norm> 
     Ok(Norm { weight: w.get(&format!("{name}.weight"), &[c])?, bias: w.get(&format!("{name}.bias"), &[c])?, eps })
 }
 
+/// Rows of q/k/v a fused (bf16) self-attention computes at a time: ≈ 28 MB of f32 q/k/v rows at 320
+/// channels, against ≈ 0.77 GB for the bench's whole 2×14 frames of 64×112.
+const CHUNK_ROWS: usize = 1 << 13;
+
 /// sgm `CrossAttention` / `MemoryEfficientCrossAttention` (same weights): q/k/v without bias, `to_out.0` with bias.
 #[derive(Debug)]
 pub struct CrossAttention {
@@ -92,14 +96,11 @@ impl CrossAttention {
         let (q, k, v) = match &self.proj {
             QkvProjection::Separate { to_q, to_k, to_v } => (to_q.forward(xn)?, to_k.forward(xn)?, to_v.forward(xn)?),
             QkvProjection::Fused(qkv) => {
+                if let Some(out) = self.fused_self_attention(qkv, xn, residual, layout, CHUNK_ROWS)? {
+                    return Ok(out);
+                }
                 let qkv = qkv.forward(xn)?;
                 let three = *qkv.dims().last().unwrap_or(&3);
-                let rows = qkv.elem_count() / three.max(1);
-                let od: Vec<usize> = residual.dims().iter().take(residual.rank().saturating_sub(1)).copied().chain([three / 3]).collect();
-                if layout == SeqLayout::contiguous(layout.count, layout.len) && layout.count * layout.len == rows {
-                    let o = qkv_attention_bf16(&qkv.reshape((layout.count, layout.len, three))?, self.heads, None, None, None)?;
-                    return self.to_out.forward_fused(&o.reshape(od)?, 1.0, &[(residual, 1.0)]);
-                }
                 let part = |i: usize| qkv.narrow(candle_core::D::Minus1, i * three / 3, three / 3);
                 (part(0)?, part(1)?, part(2)?)
             }
@@ -111,6 +112,56 @@ impl CrossAttention {
             *l = inner;
         }
         self.to_out.forward_fused(&o.reshape(od)?, 1.0, &[(residual, 1.0)])
+    }
+
+    /// Self-attention on the packed `[q; k; v]` projection (bf16 weights), whole sequences at a time, about
+    /// `chunk_rows` rows each: q/k/v exist for one chunk only, not for the whole batch — at the bench size they
+    /// were the step's largest activations (issue 73). Contiguous sequences (spatial) and the frame-major
+    /// temporal layout (one pixel over the frames); `None` for other layouts. Rows are independent through the
+    /// projections and sequences through the attention, so the chunking does not change the arithmetic.
+    fn fused_self_attention(&self, qkv: &Linear, xn: &Tensor, residual: &Tensor, layout: SeqLayout, chunk_rows: usize) -> Result<Option<Tensor>> {
+        let (cin, c) = (*xn.dims().last().unwrap_or(&1), *residual.dims().last().unwrap_or(&1));
+        let rows = residual.elem_count() / c.max(1);
+        let SeqLayout { count, len, inner_count: s, .. } = layout;
+        if count * len != rows || rows == 0 || xn.elem_count() != rows * cin {
+            return Ok(None);
+        }
+        let attend = |x: &Tensor, r: &Tensor, chunk: SeqLayout| -> Result<Tensor> {
+            let q = qkv.forward(x)?;
+            let three = *q.dims().last().unwrap_or(&3);
+            let o = if chunk == SeqLayout::contiguous(chunk.count, chunk.len) {
+                qkv_attention_bf16(&q.reshape((chunk.count, chunk.len, three))?, self.heads, None, None, None)?.reshape((chunk.count * chunk.len, three / 3))?
+            } else {
+                let part = |i: usize| q.narrow(1, i * three / 3, three / 3);
+                multi_head_attention_seqs(&part(0)?, &part(1)?, &part(2)?, chunk, self.heads, usize::MAX)?
+            };
+            self.to_out.forward_fused(&o, 1.0, &[(r, 1.0)])
+        };
+        let (x2, r2) = (xn.reshape((rows, cin))?, residual.reshape((rows, c))?);
+        let out = Tensor::zeros((rows, c), residual.dtype(), residual.device())?;
+        if layout == SeqLayout::contiguous(count, len) {
+            let per = (chunk_rows / len).max(1);
+            for g in (0..count).step_by(per) {
+                let n = per.min(count - g);
+                let y = attend(&x2.narrow(0, g * len, n * len)?, &r2.narrow(0, g * len, n * len)?, SeqLayout::contiguous(n, len))?;
+                out.slice_set(&y, 0, g * len)?;
+            }
+        } else if s > 0 && count % s == 0 && layout == (SeqLayout { count, len, inner_count: s, outer: len * s, inner: 1, pos: s }) {
+            // Row (w·len + t)·s + p: window w, frame t, pixel p. A chunk is a range of pixels of every window.
+            let w = count / s;
+            let per = (chunk_rows / (w * len)).max(1);
+            let (x4, r4, o4) = (x2.reshape((w, len, s, cin))?, r2.reshape((w, len, s, c))?, out.reshape((w, len, s, c))?);
+            for p in (0..s).step_by(per) {
+                let n = per.min(s - p);
+                let take = |t: &Tensor, ch: usize| t.narrow(2, p, n)?.contiguous()?.reshape((w * len * n, ch));
+                let chunk = SeqLayout { count: w * n, len, inner_count: n, outer: len * n, inner: 1, pos: n };
+                let y = attend(&take(&x4, cin)?, &take(&r4, c)?, chunk)?;
+                o4.slice_set(&y.reshape((w, len, n, c))?, 2, p)?;
+            }
+        } else {
+            return Ok(None);
+        }
+        Ok(Some(out.reshape(residual.dims())?))
     }
 
     /// `residual + to_out(attention(to_q(xn), context))`; the rows of `residual` (N rows in total, any
@@ -192,11 +243,12 @@ impl BasicTransformerBlock {
     fn forward(&self, x: &Tensor, context: &Tensor, max_elems: usize) -> Result<Tensor> {
         let _p = mvsplat360_nn::prof::scope("transformer.spatial_block");
         let (n, l, _) = x.dims3()?;
-        let x = {
+        // Assignments, not shadowing `let`s: each stage's input is freed as soon as the next exists.
+        let mut x = {
             let _a = mvsplat360_nn::prof::scope("attn.self_spatial");
             self.attn1.self_attention(&self.norm1.layer_norm(x)?, x, SeqLayout::contiguous(n, l), max_elems)?
         };
-        let x = cross(&self.attn2, &self.norm2, &x, context, max_elems)?;
+        x = cross(&self.attn2, &self.norm2, &x, context, max_elems)?;
         self.ff.forward_fused(&self.norm3.layer_norm(&x)?, 1.0, &[(&x, 1.0)])
     }
 }
@@ -251,13 +303,14 @@ impl VideoTransformerBlock {
             candle_core::bail!("num_splits {splits} does not divide the {frames} video frames");
         }
         let tw = frames / splits;
-        let h = self.ff_in.forward_fused(&self.norm_in.layer_norm(x)?, 1.0, &[(x, 1.0)])?;
+        let mut h = self.ff_in.forward_fused(&self.norm_in.layer_norm(x)?, 1.0, &[(x, 1.0)])?;
         let layout = SeqLayout { count: b * splits * s, len: tw, inner_count: s, outer: tw * s, inner: 1, pos: s };
-        let h = {
+        // Assignments, not shadowing `let`s: each stage's input is freed as soon as the next exists.
+        h = {
             let _a = mvsplat360_nn::prof::scope("attn.self_temporal");
             self.attn1.self_attention(&self.norm1.layer_norm(&h)?, &h, layout, max_elems)?
         };
-        let h = cross(&self.attn2, &self.norm2, &h, time_context, max_elems)?;
+        h = cross(&self.attn2, &self.norm2, &h, time_context, max_elems)?;
         let a = 1.0 - keep.1;
         self.ff.forward_fused(&self.norm3.layer_norm(&h)?, a, &[(&h, a), (keep.0, keep.1)])
     }
@@ -319,8 +372,8 @@ impl SpatialVideoTransformer {
         let b = n / frames;
         let (_, lc, dc) = context.dims3()?;
         let time_context = context.reshape((b, frames, lc, dc))?.narrow(1, 0, 1)?.reshape((b, lc, dc))?;
-        let h = self.norm.group_norm(x, 32, 1, false)?;
-        let mut h = self.proj_in.from_channels_first(&h.reshape((n, c, hh * ww))?)?;
+        // The norm's output dies here, not at the end of the block (a shadowed binding would live on).
+        let mut h = self.proj_in.from_channels_first(&self.norm.group_norm(x, 32, 1, false)?.reshape((n, c, hh * ww))?)?;
         let idx: Vec<f32> = (0..n).map(|i| (i % frames) as f32).collect();
         let t_emb = timestep_embedding(&idx, self.channels, self.max_period, x.device())?.to_dtype(x.dtype())?;
         let emb = self.time_pos_embed.1.forward(&self.time_pos_embed.0.forward(&t_emb)?.silu()?)?.unsqueeze(1)?;
@@ -362,15 +415,37 @@ mod tests {
         let f32m = CrossAttention::load(&Weights::random(6, &dev), "a", dim, dim, heads, 64, true).unwrap();
         let bf16m = CrossAttention::load(&Weights::random(6, &dev).with_dtype(candle_core::DType::BF16), "a", dim, dim, heads, 64, true).unwrap();
         assert!(matches!(bf16m.proj, QkvProjection::Fused(_)), "bf16 self-attention packs one projection");
-        for (n, l) in [(2usize, 70usize), (1, 131)] {
-            let x = Tensor::randn(0f32, 3.0, (n, l, dim), &dev).unwrap();
-            let (want, got) = (f32m.forward(&x, None, usize::MAX).unwrap(), bf16m.forward(&x, None, usize::MAX).unwrap());
-            let err = (&got - &want).unwrap().sqr().unwrap().sum_all().unwrap().to_scalar::<f32>().unwrap().sqrt();
+        let u = 1.0 / 256.0;
+        let check = |what: &str, got: &Tensor, want: &Tensor| {
+            let err = (got - want).unwrap().sqr().unwrap().sum_all().unwrap().to_scalar::<f32>().unwrap().sqrt();
             let rel = err / want.sqr().unwrap().sum_all().unwrap().to_scalar::<f32>().unwrap().sqrt();
-            let u = 1.0 / 256.0;
-            eprintln!("({n}, {l}): relative L2 {rel:.2e} ({:.2} u)", rel / u);
-            assert!(rel > 0.0 && rel <= 2.0 * 13f32.sqrt() * 0.82 * u, "({n}, {l}): relative L2 {rel:.2e} ({:.2} u)", rel / u);
+            eprintln!("{what}: relative L2 {rel:.2e} ({:.2} u)", rel / u);
+            assert!(rel > 0.0 && rel <= 2.0 * 13f32.sqrt() * 0.82 * u, "{what}: relative L2 {rel:.2e} ({:.2} u)", rel / u);
+        };
+        let zero = |x: &Tensor| x.zeros_like().unwrap();
+        for (n, l) in [(2usize, 70usize), (1, 131), (3, 33)] {
+            let x = Tensor::randn(0f32, 3.0, (n, l, dim), &dev).unwrap();
+            let want = f32m.forward(&x, None, usize::MAX).unwrap();
+            check(&format!("({n}, {l})"), &bf16m.forward(&x, None, usize::MAX).unwrap(), &want);
+            // Chunks of one sequence, of two (ragged for n = 3), of all.
+            let QkvProjection::Fused(qkv) = &bf16m.proj else { unreachable!() };
+            for rows in [1, 2 * l, usize::MAX] {
+                let got = bf16m.fused_self_attention(qkv, &x, &zero(&x), SeqLayout::contiguous(n, l), rows).unwrap().unwrap();
+                check(&format!("({n}, {l}) in chunks of {rows} rows"), &got, &want);
+            }
         }
+        // The temporal layout (2 windows of 5 frames of 37 pixels, frame-major) in chunks of 1, 2, 7 (ragged) and
+        // all pixels, against the f32 attention over the same layout.
+        let QkvProjection::Fused(qkv) = &bf16m.proj else { unreachable!() };
+        let (w, t, s) = (2usize, 5usize, 37usize);
+        let x = Tensor::randn(0f32, 3.0, (w * t, s, dim), &dev).unwrap();
+        let layout = SeqLayout { count: w * s, len: t, inner_count: s, outer: t * s, inner: 1, pos: s };
+        let want = f32m.self_attention(&x, &zero(&x), layout, usize::MAX).unwrap();
+        for pixels in [1, 2, 7, s] {
+            let got = bf16m.fused_self_attention(qkv, &x, &zero(&x), layout, pixels * w * t).unwrap().unwrap();
+            check(&format!("temporal, {pixels} pixels a chunk"), &got, &want);
+        }
+        assert!(bf16m.fused_self_attention(qkv, &x, &zero(&x), SeqLayout { inner: 2, ..layout }, 64).unwrap().is_none());
     }
 
     #[test]

@@ -56,6 +56,10 @@ impl TemporalConv {
     }
 }
 
+/// Pixels a spatial ResBlock on packed bf16 weights computes at a time (items of a frame batch): at 64×112
+/// latents two frames, ≈ 55 MB for a 960-channel norm output against ≈ 0.77 GB for the bench's 2×14 frames.
+const CHUNK_PIXELS: usize = 1 << 14;
+
 /// sgm `ResBlock` (2-D) or its `time_stack` twin (3-D, kernel (kt,1,1)); no up/down, no scale-shift norm.
 #[derive(Debug)]
 struct ResBlock {
@@ -105,10 +109,39 @@ impl ResBlock {
     /// `emb_act` = SiLU(emb), shared by every block. Returns `skip(x) + out_scale·h` (out_scale folds the
     /// AlphaBlender of a `time_stack` into the last conv).
     fn forward(&self, x: &Tensor, emb_act: &Tensor, frames: usize, out_scale: Option<f32>) -> Result<Tensor> {
+        self.forward_chunked(x, emb_act, frames, out_scale, CHUNK_PIXELS)
+    }
+
+    /// A spatial block on packed bf16 weights runs a few items at a time (≈ `chunk_pixels` pixels): its norm
+    /// outputs and first conv exist for those items only — at the bench size the up path's 960-channel norm
+    /// was the step's largest activation (issue 73). Items are independent here (norms per item, 2D convs), so
+    /// the chunking does not change the arithmetic.
+    fn forward_chunked(&self, x: &Tensor, emb_act: &Tensor, frames: usize, out_scale: Option<f32>, chunk_pixels: usize) -> Result<Tensor> {
         let _p = mvsplat360_nn::prof::scope(if self.temporal { "unet.resblock_temporal" } else { "unet.resblock_spatial" });
-        let f = if self.temporal { frames } else { 1 };
         let e = self.emb.forward(emb_act)?;
-        let epi1 = ConvEpilogue { item_bias: Some(&e), ..Default::default() };
+        let packed = matches!(&self.conv1, Either::Spatial(Conv { w: ConvWeight::Bf16(_), .. }));
+        let (n, _, h, w) = x.dims4()?;
+        let per = (chunk_pixels / (h * w).max(1)).max(1);
+        if self.temporal || !packed || is_differentiable() || per >= n || e.dim(0)? != n {
+            return self.forward_items(x, &e, frames, out_scale);
+        }
+        let mut out: Option<Tensor> = None;
+        for i in (0..n).step_by(per) {
+            let m = per.min(n - i);
+            let y = self.forward_items(&x.narrow(0, i, m)?, &e.narrow(0, i, m)?, frames, out_scale)?;
+            let o = match out.take() {
+                Some(o) => o,
+                None => Tensor::zeros((n, y.dim(1)?, y.dim(2)?, y.dim(3)?), y.dtype(), y.device())?,
+            };
+            o.slice_set(&y, 0, i)?;
+            out = Some(o);
+        }
+        out.ok_or_else(|| candle_core::Error::Msg("ResBlock: empty batch".into()))
+    }
+
+    fn forward_items(&self, x: &Tensor, e: &Tensor, frames: usize, out_scale: Option<f32>) -> Result<Tensor> {
+        let f = if self.temporal { frames } else { 1 };
+        let epi1 = ConvEpilogue { item_bias: Some(e), ..Default::default() };
         let h = self.conv1.forward(&self.norm1.group_norm(x, 32, f, true)?, frames, epi1)?;
         let skip = match &self.skip {
             Some(s) => s.forward(x)?,
@@ -143,8 +176,10 @@ impl VideoResBlock {
     }
 
     /// alpha·xs + (1−alpha)·(xs + h_t) = xs + (1−alpha)·h_t, folded into the temporal block's last conv.
-    fn forward(&self, x: &Tensor, emb_act: &Tensor, frames: usize) -> Result<Tensor> {
-        let xs = self.spatial.forward(x, emb_act, frames, None)?;
+    /// Takes `x` by value: on the way up it is the skip concatenation, freed once the spatial block has read it.
+    fn forward(&self, x: Tensor, emb_act: &Tensor, frames: usize) -> Result<Tensor> {
+        let xs = self.spatial.forward(&x, emb_act, frames, None)?;
+        drop(x);
         if is_differentiable() {
             // time_stack returns xs + h_t (identity skip): alpha·xs + (1 − alpha)·(xs + h_t), alpha a tensor.
             let xt = self.time_stack.forward(&xs, emb_act, frames, None)?;
@@ -304,7 +339,7 @@ impl VideoUNet {
         for l in layers {
             h = match l {
                 Layer::Conv(c) | Layer::Down(c) => c.forward(&h)?,
-                Layer::Res(r) => r.forward(&h, emb_act, frames)?,
+                Layer::Res(r) => r.forward(h, emb_act, frames)?,
                 Layer::Attn(a) => a.forward(&h, ctx, frames, splits, max)?,
                 Layer::Up(c) => {
                     let (_, _, hh, ww) = h.dims4()?;
@@ -368,5 +403,45 @@ impl VideoUNet {
         }
         let h = self.out_norm.group_norm(&h, 32, 1, true)?;
         self.out_conv.forward(&h)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use candle_core::Device;
+
+    /// The bf16 spatial ResBlock computed a few items at a time against the f32 block on the same weights.
+    /// Error model (`tests/half.rs`): ≈ 0.82u relative per product with both operands rounded, independent
+    /// products adding in quadrature; the longest chain here is conv1 → conv2 beside the 1×1 skip, ≤ 3
+    /// products, so √3·0.82u ≈ 1.4u, and the bound takes twice that. A chunk written at the wrong items or
+    /// with another item's embedding is an O(1) error.
+    #[test]
+    fn chunked_bf16_resblock_matches_f32() {
+        let dev = Device::Cpu;
+        // 3 channels a norm group: a per-item bias is not normalised away.
+        let (i, o, emb) = (128, 96, 48);
+        for seed in [4u64, 10] {
+            let load = |w: &Weights| ResBlock::load(w, "r", i, o, emb, 1e-5, None).unwrap();
+            let f32b = load(&Weights::random(seed, &dev));
+            let bf16b = load(&Weights::random(seed, &dev).with_dtype(DType::BF16));
+            assert!(matches!(&bf16b.conv1, Either::Spatial(Conv { w: ConvWeight::Bf16(_), .. })));
+            let (n, h, w) = (5, 6, 7);
+            let x = Tensor::randn(0f32, 1.0, (n, i, h, w), &dev).unwrap();
+            let e = Tensor::randn(0f32, 1.0, (n, emb), &dev).unwrap();
+            let want = f32b.forward(&x, &e, n, None).unwrap();
+            let whole = bf16b.forward_chunked(&x, &e, n, None, usize::MAX).unwrap();
+            let u = 1.0f32 / 256.0;
+            for items in [1, 2, n] {
+                let got = bf16b.forward_chunked(&x, &e, n, None, items * h * w).unwrap();
+                let err = (&got - &want).unwrap().sqr().unwrap().sum_all().unwrap().to_scalar::<f32>().unwrap().sqrt();
+                let rel = err / want.sqr().unwrap().sum_all().unwrap().to_scalar::<f32>().unwrap().sqrt();
+                eprintln!("seed {seed}, {items} items a chunk: relative L2 {rel:.2e} ({:.2} u)", rel / u);
+                assert!(rel > 0.0 && rel <= 2.0 * 3f32.sqrt() * 0.82 * u, "seed {seed}, {items} items: {rel:.2e} ({:.2} u)", rel / u);
+                // Items are independent: the chunks give the whole batch's numbers.
+                let d = (&got - &whole).unwrap().abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap();
+                assert_eq!(d, 0.0, "seed {seed}, {items} items a chunk differs from the whole batch");
+            }
+        }
     }
 }
