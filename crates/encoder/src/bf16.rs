@@ -1,20 +1,23 @@
 //! The encoder in bf16 on the CPU (`--encoder-dtype bf16`, issue 73): every linear and convolution weight packed
 //! once in bf16 ([`EncoderCostVolume::pack_bf16`](crate::EncoderCostVolume::pack_bf16); the f32 weight is
-//! dropped), activations f32 and rounded to bf16 only inside the products (`vdpbf16ps`, f32 sums; storage only
-//! without AVX512-BF16 — `mvsplat360_nn::bf16` decides per call).
+//! dropped, but for the Gaussian head's two kernels, ≈ 0.6 MB, kept as its Winograd kernel's fallback),
+//! activations f32 and rounded to bf16 only inside the products (`vdpbf16ps`, f32 sums; storage only without
+//! AVX512-BF16 — `mvsplat360_nn::bf16` decides per call).
 //!
 //! In bf16: the CNN's convolutions (7×7/2, 3×3 stride 1 and 2, the 1×1 shortcuts and output), the transformer's
 //! q/k/v/merge projections and MLP, every convolution of the cost-volume and depth-refinement UNets and heads
-//! (stride 1 and 2, the ×2-upsampling ones), the UNets' attention qkv / proj_out (1×1), and attention's own
-//! products q·kᵀ and weights·v (the transformer's shifted windows with their region mask, heads of 128; the
-//! UNets' heads of 32: `mvsplat360_nn::attention_bf16`, softmax in f32).
+//! (stride 1 and 2, the ×2-upsampling ones; the Gaussian head's two full-resolution 3×3 ones as bf16 Winograd
+//! F(2×2, 3×3), `mvsplat360_nn::conv::Winograd3x3::new_bf16`), the UNets' attention qkv / proj_out (1×1), and
+//! attention's own products q·kᵀ and weights·v (the transformer's shifted windows with their region mask, heads
+//! of 128; the UNets' heads of 32: `mvsplat360_nn::attention_bf16`, softmax in f32).
 //!
 //! Kept f32, and why:
 //! - InstanceNorm, LayerNorm, GroupNorm: means and variances over thousands of values, where bf16's 8 bits
 //!   would lose the small differences a norm divides by.
 //! - Softmax (max, exp, sums, the region mask's −100): it sums exponentials that span many octaves.
-//! - The cost volume (plane-sweep warp and correlation) and its geometry: the depth candidates are told apart
-//!   by correlation differences of a few percent, and the sampling grid is sub-pixel geometry.
+//! - The cost volume's geometry and warp (the bilinear tap weights): the sampling grid is sub-pixel geometry.
+//!   Its channel dot products are bf16 (`mvsplat360_nn::warp_correlation::warp_correlation_bf16`, features
+//!   rounded once, f32 sums).
 //! - The depth head's softmax over candidates, the disparity → depth (1/x), upsampling, GELU/SiLU/sigmoid.
 //! - The Gaussian adapter (means from depth along rays, covariances, SH rotation): it places the Gaussians.
 //!

@@ -189,8 +189,10 @@ fn bf16_encoder_stages_hold_the_chain_bound() {
                 fails.push(format!("{seed} {name}: storage-only rel. RMS {e:.3e} > {b:.3e}"));
             }
             // f32 arithmetic on the same weights: only summation order may differ (measured: bit for bit).
+            // Not the Gaussian head: packed, it rounds its Winograd-transformed weights (storage only: the f32
+            // Winograd kernel on them, tested in `mvsplat360_nn::conv::winograd`), not the 3×3 kernels.
             let d = rel_rms(m, s);
-            if !(d <= 1e-5) {
+            if *name != "raw_gaussians" && !(d <= 1e-5) {
                 fails.push(format!("{seed} {name}: storage-only differs from f32 on bf16-rounded weights by {d:.3e}"));
             }
             if mvsplat360_nn::bf16::hardware_dpbf16() && rel_rms(m, p) == 0.0 {

@@ -6,8 +6,10 @@ use candle_nn::VarBuilder;
 
 use super::ldm_unet::util::Act;
 use super::ldm_unet::{Conv2d, GroupNorm, UNetCfg, UNetModel};
+use crate::bf16::{refuse_var, ConvWeight};
 use crate::config::EncoderCostVolumeCfg;
 use mvsplat360_nn::activation::gelu;
+use mvsplat360_nn::conv::Winograd3x3;
 use mvsplat360_nn::upsample::{upsample_bilinear, upsample_nearest};
 use mvsplat360_nn::warp_correlation::{warp_correlation, warp_correlation_bf16};
 
@@ -95,6 +97,10 @@ pub struct DepthPredictorMultiView {
     refine_norm: GroupNorm,
     refine_unet: UNetModel,
     to_gaussians: (Conv2d, Conv2d),
+    /// Packed bf16 ([`Self::pack_bf16`]): the Gaussian head's two full-resolution 3×3 convolutions as bf16
+    /// Winograd F(2×2, 3×3), the encoder's largest bf16 stage (0.28–0.33× their f32 time against 0.45–0.66× for
+    /// the direct bf16 kernel on these shapes: docs/research/cpu-bf16.md §6).
+    to_gaussians_winograd: Option<(Winograd3x3, Winograd3x3)>,
     to_disparity: (Conv2d, Conv2d),
 }
 
@@ -139,6 +145,7 @@ impl DepthPredictorMultiView {
             refine_norm: GroupNorm::new(refine.pp("1"), 4, du)?,
             refine_unet: UNetModel::new(refine.pp("3"), &unet_cfg(du, &cfg.depth_unet_attn_res, &cfg.depth_unet_channel_mult))?,
             to_gaussians: (Conv2d::same3(vb.pp("to_gaussians").pp("0"), du + 3 + c, 2 * raw)?, Conv2d::same3(vb.pp("to_gaussians").pp("2"), 2 * raw, raw)?),
+            to_gaussians_winograd: None,
             to_disparity: (
                 Conv2d::same3(vb.pp("to_disparity").pp("0"), du, 2 * du)?,
                 Conv2d::same3(vb.pp("to_disparity").pp("2"), 2 * du, 2 * cfg.gaussians_per_pixel)?,
@@ -150,8 +157,8 @@ impl DepthPredictorMultiView {
         self.forward_impl(inp, false)
     }
 
-    /// Every convolution (UNets, heads, upsampler, projections) packed in bf16 (CPU inference; the cost
-    /// volume, norms, softmax and depth stay f32: see [`crate::bf16`]).
+    /// Every convolution (UNets, heads, upsampler, projections) packed in bf16, the Gaussian head's two as
+    /// bf16 Winograd (CPU inference; the cost volume, norms, softmax and depth stay f32: see [`crate::bf16`]).
     pub fn pack_bf16(&mut self) -> Result<()> {
         for c in [
             &mut self.corr_conv,
@@ -162,12 +169,20 @@ impl DepthPredictorMultiView {
             &mut self.upsampler,
             &mut self.proj_feature,
             &mut self.refine_conv,
-            &mut self.to_gaussians.0,
-            &mut self.to_gaussians.1,
             &mut self.to_disparity.0,
             &mut self.to_disparity.1,
         ] {
             c.pack_bf16()?;
+        }
+        if self.to_gaussians_winograd.is_none() {
+            let wino = |c: &Conv2d| match &c.weight {
+                ConvWeight::F32(w) => {
+                    refuse_var(w)?;
+                    Winograd3x3::new_bf16(w, Some(&c.bias))
+                }
+                ConvWeight::Bf16(_) => candle_core::bail!("depth predictor: the Gaussian head's convolutions are packed already"),
+            };
+            self.to_gaussians_winograd = Some((wino(&self.to_gaussians.0)?, wino(&self.to_gaussians.1)?));
         }
         self.corr_unet.pack_bf16()?;
         self.refine_unet.pack_bf16()
@@ -241,13 +256,19 @@ impl DepthPredictorMultiView {
         let gin = Tensor::cat(&[&refine_out, &images, &upsampled], 1)?;
         // Each full-resolution intermediate is dropped once used (a shadowed binding would live to the end).
         let prof = mvsplat360_nn::prof::scope("encoder.to_gaussians.conv0");
-        let h = self.to_gaussians.0.forward(&gin)?;
+        let h = match &self.to_gaussians_winograd {
+            Some((w0, _)) => w0.forward(&gin)?,
+            None => self.to_gaussians.0.forward(&gin)?,
+        };
         drop((prof, gin));
         let prof = mvsplat360_nn::prof::scope("encoder.to_gaussians.gelu");
         let g = gelu(&h)?;
         drop((prof, h));
         let prof = mvsplat360_nn::prof::scope("encoder.to_gaussians.conv1");
-        let raw = self.to_gaussians.1.forward(&g)?;
+        let raw = match &self.to_gaussians_winograd {
+            Some((_, w1)) => w1.forward(&g)?,
+            None => self.to_gaussians.1.forward(&g)?,
+        };
         drop((prof, g));
         mvsplat360_nn::prof::lap("encoder.to_gaussians", &mut t);
         let disp_dens = self.to_disparity.1.forward(&gelu(&self.to_disparity.0.forward(&refine_out)?)?)?;
