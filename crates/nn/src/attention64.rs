@@ -202,8 +202,8 @@ unsafe fn value_tile<const R: usize>(p: *const f32, ps: usize, kc: usize, v: *co
 }
 
 /// 2^f on [−½, ½]: degree-6 polynomial fitted for relative error (1.9e-9 in exact arithmetic; f32 Horner adds
-/// about an ulp).
-const EXP2_POLY: [f32; 7] = [1.0, 0.693_147_2, 0.240_226_46, 0.055_503_29, 0.009_618_52, 0.001_339_986, 0.000_153_375_78];
+/// about an ulp). The fit's linear coefficient rounds to ln 2 in f32 (same bits).
+const EXP2_POLY: [f32; 7] = [1.0, std::f32::consts::LN_2, 0.240_226_46, 0.055_503_29, 0.009_618_52, 0.001_339_986, 0.000_153_375_78];
 
 /// One chunk of the online softmax over the first `kc` scores of each row (stride `ss`): in place
 /// exp(s − new row max), the running sum rescaled by `corr` = exp(old max − new max) (which the value product
