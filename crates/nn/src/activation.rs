@@ -49,12 +49,40 @@ fn map_par(
     Ok((candle_core::CpuStorage::F32(dst), layout.shape().clone()))
 }
 
+/// [`gelu`]'s values in place (the same expression and instruction choice: no FMA), for kernels that apply it
+/// as an epilogue instead of writing an intermediate.
+pub(crate) fn gelu_erf_in_place(d: &mut [f32]) {
+    #[inline(always)]
+    fn imp(d: &mut [f32]) {
+        for v in d {
+            *v = gelu_erf_scalar(*v);
+        }
+    }
+    #[cfg(target_arch = "x86_64")]
+    {
+        #[target_feature(enable = "avx2")]
+        unsafe fn avx2(d: &mut [f32]) {
+            imp(d)
+        }
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: AVX2 is available on this CPU.
+            return unsafe { avx2(d) };
+        }
+    }
+    imp(d)
+}
+
+#[inline(always)]
+fn gelu_erf_scalar(x: f32) -> f32 {
+    0.5 * x * (1.0 + erf_fast(x * std::f32::consts::FRAC_1_SQRT_2))
+}
+
 impl candle_core::CustomOp1 for GeluErf {
     fn name(&self) -> &'static str {
         "gelu-erf-par"
     }
     fn cpu_fwd(&self, s: &candle_core::CpuStorage, l: &candle_core::Layout) -> Result<(candle_core::CpuStorage, candle_core::Shape)> {
-        map_par(s, l, |x| 0.5 * x * (1.0 + erf_fast(x * std::f32::consts::FRAC_1_SQRT_2)), self.name())
+        map_par(s, l, gelu_erf_scalar, self.name())
     }
     fn bwd(&self, arg: &Tensor, _res: &Tensor, grad_res: &Tensor) -> Result<Option<Tensor>> {
         let d = arg.contiguous()?.apply_op1_no_bwd(&GeluErfGrad)?;

@@ -9,7 +9,7 @@ use super::ldm_unet::{Conv2d, GroupNorm, UNetCfg, UNetModel};
 use crate::bf16::{refuse_var, ConvWeight};
 use crate::config::EncoderCostVolumeCfg;
 use mvsplat360_nn::activation::gelu;
-use mvsplat360_nn::conv::Winograd3x3;
+use mvsplat360_nn::conv::{Winograd3x3, WinogradEpilogue};
 use mvsplat360_nn::upsample::{upsample_bilinear, upsample_nearest};
 use mvsplat360_nn::warp_correlation::{warp_correlation, warp_correlation_bf16};
 
@@ -256,14 +256,22 @@ impl DepthPredictorMultiView {
         let gin = Tensor::cat(&[&refine_out, &images, &upsampled], 1)?;
         // Each full-resolution intermediate is dropped once used (a shadowed binding would live to the end).
         let prof = mvsplat360_nn::prof::scope("encoder.to_gaussians.conv0");
-        let h = match &self.to_gaussians_winograd {
-            Some((w0, _)) => w0.forward(&gin)?,
-            None => self.to_gaussians.0.forward(&gin)?,
+        let g = match &self.to_gaussians_winograd {
+            // GELU as the convolution's epilogue (the same values): no full-resolution pre-activation tensor.
+            Some((w0, _)) => {
+                let g = w0.forward_epilogue(&gin, WinogradEpilogue { gelu_output: true, ..Default::default() })?;
+                drop((prof, gin));
+                g
+            }
+            None => {
+                let h = self.to_gaussians.0.forward(&gin)?;
+                drop((prof, gin));
+                let prof = mvsplat360_nn::prof::scope("encoder.to_gaussians.gelu");
+                let g = gelu(&h)?;
+                drop((prof, h));
+                g
+            }
         };
-        drop((prof, gin));
-        let prof = mvsplat360_nn::prof::scope("encoder.to_gaussians.gelu");
-        let g = gelu(&h)?;
-        drop((prof, h));
         let prof = mvsplat360_nn::prof::scope("encoder.to_gaussians.conv1");
         let raw = match &self.to_gaussians_winograd {
             Some((_, w1)) => w1.forward(&g)?,

@@ -87,7 +87,8 @@ const CFG: Conv2dConfig = Conv2dConfig { padding: 1, stride: 1, dilation: 1 };
 const G: [[f64; 3]; 4] = [[1.0, 0.0, 0.0], [0.5, 0.5, 0.5], [0.5, -0.5, 0.5], [0.0, 0.0, 1.0]];
 
 /// What [`Winograd3x3::forward_epilogue`] does around the convolution:
-/// `out = act(conv(relu?(x)) + bias + relu?(residual))`, `act` = ReLU when `relu_output`.
+/// `out = act(conv(relu?(x)) + bias + relu?(residual))`, `act` = ReLU when `relu_output`, then GELU when
+/// `gelu_output`.
 #[derive(Debug, Clone, Copy, Default)]
 pub struct WinogradEpilogue<'a> {
     /// Rectify the input as it is read (the convolution sees `relu(x)`).
@@ -98,6 +99,9 @@ pub struct WinogradEpilogue<'a> {
     pub relu_residual: bool,
     /// ReLU on the result.
     pub relu_output: bool,
+    /// GELU (exact erf form) on the result, the values of [`crate::activation::gelu`] bit for bit: spares the
+    /// caller a full-size intermediate.
+    pub gelu_output: bool,
 }
 
 /// A 3×3, stride 1, padding 1 convolution with its Winograd-transformed weights (built once).
@@ -274,6 +278,9 @@ impl Winograd3x3 {
         }
         if epi.relu_output {
             y = y.relu()?;
+        }
+        if epi.gelu_output {
+            y = crate::activation::gelu(&y)?;
         }
         Ok(y)
     }
@@ -558,6 +565,9 @@ fn output_transform(m: &[f32], tmp: &mut [f32], bias: Option<&[f32]>, res: Optio
                 if epi.relu_output {
                     dst.iter_mut().for_each(|d| *d = d.max(0.0));
                 }
+                if epi.gelu_output {
+                    crate::activation::gelu_erf_in_place(dst);
+                }
             }
         }
     }
@@ -726,7 +736,7 @@ mod tests {
             let xt = tensor(&x, &[n, ci, h, w]);
             let rt = tensor(&res, &[n, co, h, w]);
             for (relu_residual, relu_output) in [(true, false), (false, true), (true, true)] {
-                let epi = WinogradEpilogue { relu_input: true, residual: Some(&rt), relu_residual, relu_output };
+                let epi = WinogradEpilogue { relu_input: true, residual: Some(&rt), relu_residual, relu_output, gelu_output: false };
                 let pre = |i: usize| exact[i] + bias[i / (h * w) % co] as f64 + if relu_residual { res[i].max(0.0) as f64 } else { res[i] as f64 };
                 let want: Vec<f64> = (0..exact.len()).map(|i| if relu_output { pre(i).max(0.0) } else { pre(i) }).collect();
                 let bound: Vec<f64> = (0..exact.len()).map(|i| gamma(ci + 9) * (shat[i] + bias[i / (h * w) % co].abs() as f64 + res[i].abs() as f64)).collect();
@@ -740,6 +750,34 @@ mod tests {
                 let fb = vec4(&wg.forward_epilogue(&xt, epi).unwrap());
                 assert!(worst(&fb, &want, &bound) <= 1.0, "fallback epilogue {:?}", (n, ci, co, h, w));
             }
+        }
+    }
+
+    /// The GELU epilogue gives the separate [`crate::activation::gelu`]'s values bit for bit (f32 and bf16 `Û`,
+    /// several block sizes), and the fallback the same as its tensor ops.
+    #[test]
+    fn winograd_gelu_epilogue_is_the_separate_gelu() {
+        for (si, &(n, ci, co, h, w)) in SHAPES.iter().enumerate() {
+            let sd = 2000 + si as u64;
+            let x = tensor(&data(sd, n * ci * h * w, 2.0), &[n, ci, h, w]);
+            let wt = tensor(&data(sd + 1, co * ci * 9, 0.5), &[co, ci, 3, 3]);
+            let bias = tensor(&data(sd + 2, co, 1.0), &[co]);
+            let epi = WinogradEpilogue { gelu_output: true, ..Default::default() };
+            for wg in [Winograd3x3::new(&wt, Some(&bias)).unwrap(), Winograd3x3::new_bf16(&wt, Some(&bias)).unwrap()] {
+                for tiles in [TARGET_TILES, 1, 5] {
+                    let plain = wg.forward_blocked(&x, WinogradEpilogue::default(), tiles).unwrap();
+                    let want = vec4(&crate::activation::gelu(&plain).unwrap());
+                    let got = vec4(&wg.forward_blocked(&x, epi, tiles).unwrap());
+                    assert!(want.iter().zip(vec4(&plain)).any(|(g, p)| *g != p), "GELU changed nothing");
+                    let same = got.iter().zip(&want).all(|(a, b)| a.to_bits() == b.to_bits());
+                    assert!(same, "shape {:?} bf16 {} tiles {tiles}: the GELU epilogue differs from gelu()", (n, ci, co, h, w), wg.is_bf16());
+                }
+            }
+            let wg = Winograd3x3::new(&wt, Some(&bias)).unwrap();
+            let _g = crate::mode::differentiable();
+            let fb = vec4(&wg.forward_epilogue(&x, epi).unwrap());
+            let want = vec4(&crate::activation::gelu(&crate::conv2d(&x, &wt, Some(&bias), CFG).unwrap()).unwrap());
+            assert!(fb.iter().zip(&want).all(|(a, b)| a.to_bits() == b.to_bits()), "fallback GELU epilogue {:?}", (n, ci, co, h, w));
         }
     }
 
@@ -852,7 +890,7 @@ mod tests {
                     let (exact, shat) = reference(&x, &wt, (n, ci, co, h, w), relu_in);
                     let (rwant, rabs) = rounded_reference(&x, &wt, (n, ci, co, h, w), relu_in);
                     let epi = if relu_in {
-                        WinogradEpilogue { relu_input: true, residual: Some(&rt), relu_residual: true, relu_output: false }
+                        WinogradEpilogue { relu_input: true, residual: Some(&rt), relu_residual: true, relu_output: false, gelu_output: false }
                     } else {
                         WinogradEpilogue::default()
                     };
