@@ -5,7 +5,7 @@
 use candle_core::{Result, Tensor};
 use rayon::prelude::*;
 
-use crate::math::{erf_fast, exp_fast, gelu_f32, simd_dispatch};
+use crate::math::{erf_fast, exp_fast, gelu_f32, gelu_scalar, simd_dispatch};
 use crate::mode::{cpu_f32, is_cpu_f32, with_f32};
 
 /// Exact-form GELU `x·Φ(x)` (PyTorch `nn.GELU()`), multi-threaded, with backward.
@@ -55,7 +55,7 @@ pub(crate) fn gelu_erf_in_place(d: &mut [f32]) {
     #[inline(always)]
     fn imp(d: &mut [f32]) {
         for v in d {
-            *v = gelu_erf_scalar(*v);
+            *v = gelu_scalar(*v);
         }
     }
     #[cfg(target_arch = "x86_64")]
@@ -72,17 +72,12 @@ pub(crate) fn gelu_erf_in_place(d: &mut [f32]) {
     imp(d)
 }
 
-#[inline(always)]
-fn gelu_erf_scalar(x: f32) -> f32 {
-    0.5 * x * (1.0 + erf_fast(x * std::f32::consts::FRAC_1_SQRT_2))
-}
-
 impl candle_core::CustomOp1 for GeluErf {
     fn name(&self) -> &'static str {
         "gelu-erf-par"
     }
     fn cpu_fwd(&self, s: &candle_core::CpuStorage, l: &candle_core::Layout) -> Result<(candle_core::CpuStorage, candle_core::Shape)> {
-        map_par(s, l, gelu_erf_scalar, self.name())
+        map_par(s, l, gelu_scalar, self.name())
     }
     fn bwd(&self, arg: &Tensor, _res: &Tensor, grad_res: &Tensor) -> Result<Option<Tensor>> {
         let d = arg.contiguous()?.apply_op1_no_bwd(&GeluErfGrad)?;
